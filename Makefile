@@ -1,0 +1,61 @@
+# offload workspace. `make test` and `make demo` install what they need first (Debian packages, the
+# .venv, the catkin build) and skip what is already done.
+SHELL := /bin/bash
+.DEFAULT_GOAL := help
+.PHONY: help deps venv build test test-cpp test-python bench-planner clean
+
+ROOT := $(CURDIR)
+VENV := $(ROOT)/.venv
+PY := $(VENV)/bin/python3
+NOETIC := /opt/ros/noetic/setup.bash
+
+# Debian's own ROS 1 packages; skipped when ROS Noetic is installed in /opt/ros/noetic.
+ROS_DEBS := ros-base-dev python3-rospy python3-roslaunch python3-rostest python3-rosbag libnav-msgs-dev \
+	python3-nav-msgs catkin ros-message-generation librostest-dev
+BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv cppzmq-dev \
+	libzmq3-dev
+DEBS := $(BUILD_DEBS) $(if $(wildcard $(NOETIC)),,$(ROS_DEBS))
+
+# Every recipe that needs ROS starts with this: Noetic's setup if present, then the devel space.
+ROSENV := set -eo pipefail; export ROS_HOME=$(ROOT)/.ros; \
+	$(if $(wildcard $(NOETIC)),source $(NOETIC);) \
+	if [ -f $(ROOT)/devel/setup.bash ]; then source $(ROOT)/devel/setup.bash; fi;
+
+help:
+	@echo "make test           install, build, run gtest + pytest + rostest (fails when any test fails)"
+	@echo "make build          install Debian packages, .venv and build the catkin workspace"
+	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
+
+deps:
+	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then \
+		echo "installing Debian packages:" $$missing; \
+		apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$missing; \
+	fi
+
+$(VENV)/.installed: requirements.txt | deps
+	@[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
+	@touch $(VENV)/CATKIN_IGNORE
+	$(PY) -m pip install -q -r requirements.txt
+	@touch $@
+
+venv: $(VENV)/.installed
+
+build: venv
+	@$(ROSENV) catkin_make --source . -DPYTHON_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=Release -j2 \
+		| grep -Ev '^(make\[|-- |\[ *[0-9]+%\] (Built|Generating|Building)|Scanning|Consolidate)' || true; \
+	test -f devel/setup.bash && test -x devel/lib/offload_planner_cpp/planner_node
+
+# catkin_make run_tests exits 0 when tests fail: catkin_test_results decides.
+test: build
+	@rm -rf build/test_results
+	@$(ROSENV) catkin_make --source . -j2 run_tests > build/run_tests.log 2>&1 || { tail -50 build/run_tests.log; exit 1; }; \
+	status=0; $(PY) -m pytest --junitxml=build/test_results/pytest/pytest.xml || status=$$?; \
+	$(PY) tools/test_summary.py build/test_results || status=1; \
+	exit $$status
+
+bench-planner: build
+	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_planner.py
+
+clean:
+	rm -rf build devel .ros

@@ -1,0 +1,12 @@
+"""Installs the learner core. Under catkin, catkin_python_setup() reads this; on a laptop without ROS,
+`pip install ./src/offload_learner_py` installs the ROS-free core the same way."""
+try:
+    from catkin_pkg.python_setup import generate_distutils_setup
+    from setuptools import setup
+
+    setup(**generate_distutils_setup(packages=["offload_learner_py"], package_dir={"": "src"}))
+except ImportError:  # no catkin_pkg: plain setuptools install of the core
+    from setuptools import setup
+
+    setup(name="offload_learner_py", version="0.1.0", packages=["offload_learner_py"],
+          package_dir={"": "src"})

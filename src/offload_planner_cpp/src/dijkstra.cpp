@@ -1,0 +1,263 @@
+#include "offload_planner_cpp/dijkstra.h"
+
+#include <algorithm>
+#include <chrono>
+#include <cmath>
+#include <limits>
+#include <sstream>
+
+namespace offload_planner {
+namespace {
+
+constexpr double kDiagonal = 1.4142135623730951;  // sqrt(2)
+
+std::string cellText(Cell c) {
+  std::ostringstream out;
+  out << "(" << c.x << ", " << c.y << ")";
+  return out.str();
+}
+
+}  // namespace
+
+const char* statusName(PlanStatus status) {
+  switch (status) {
+    case PlanStatus::kOk: return "ok";
+    case PlanStatus::kEmptyMap: return "empty_map";
+    case PlanStatus::kSizeMismatch: return "size_mismatch";
+    case PlanStatus::kStartOffMap: return "start_off_map";
+    case PlanStatus::kGoalOffMap: return "goal_off_map";
+    case PlanStatus::kStartBlocked: return "start_blocked";
+    case PlanStatus::kGoalBlocked: return "goal_blocked";
+    case PlanStatus::kNoPath: return "no_path";
+    case PlanStatus::kInvalidOptions: return "invalid_options";
+  }
+  return "unknown";
+}
+
+bool DijkstraPlanner::passable(int index) const {
+  const std::int8_t v = grid_[index];
+  return v < 0 ? unknown_free_ : v < lethal_;
+}
+
+void DijkstraPlanner::beginSearch() {
+  const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
+  if (mark_.size() < cells) {
+    mark_.assign(cells, 0);
+    dist_.resize(cells);
+    seen_mark_ = 0;
+    settled_mark_ = 1;
+  }
+  if (settled_mark_ >= std::numeric_limits<std::uint32_t>::max() - 2) {
+    std::fill(mark_.begin(), mark_.end(), 0);
+    seen_mark_ = 0;
+    settled_mark_ = 1;
+  }
+  seen_mark_ += 2;
+  settled_mark_ += 2;
+  for (auto& bucket : buckets_) bucket.clear();
+  expansions_ = 0;
+}
+
+// Dial's bucket queue with bucket width 1, the smallest step cost (Dinitz): every cell in the lowest
+// non-empty bucket already has its final distance, so buckets are settled in any order with O(1) queue
+// work. Steps cost at most sqrt(2) < 2, so three buckets in a ring hold everything pending.
+bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
+  beginSearch();
+  const int w = width_;
+  const int h = height_;
+  std::uint32_t* const mark = mark_.data();
+  double* const dist = dist_.data();
+  const std::uint32_t seen = seen_mark_;
+  const std::uint32_t done = settled_mark_;
+
+  dist[start] = 0.0;
+  mark[start] = seen;
+  buckets_[0].push_back(start);
+  std::size_t pending = 1;
+  bool reached = false;
+
+  auto relax = [&](int j, double nd) {
+    const std::uint32_t m = mark[j];
+    if (m < seen || (m == seen && nd < dist[j])) {
+      dist[j] = nd;
+      mark[j] = seen;
+      buckets_[static_cast<std::size_t>(nd) % 3].push_back(j);
+      ++pending;
+    }
+  };
+
+  for (std::size_t level = 0; pending > 0; ++level) {
+    std::vector<int>& bucket = buckets_[level % 3];
+    // Relaxations from this bucket land in the next two, never in this one (steps cost >= 1).
+    for (std::size_t k = 0; k < bucket.size(); ++k) {
+      const int i = bucket[k];
+      if (mark[i] == done) continue;  // stale duplicate of an improved entry
+      mark[i] = done;
+      ++expansions_;
+      if (i == target) {
+        reached = true;
+        if (stop_at_target) {
+          pending = 0;
+          break;
+        }
+      }
+      const double d = dist[i];
+      const int y = i / w;
+      const int x = i - y * w;
+      const bool fw = x > 0 && passable(i - 1);
+      const bool fe = x < w - 1 && passable(i + 1);
+      const bool fn = y > 0 && passable(i - w);
+      const bool fs = y < h - 1 && passable(i + w);
+      if (fw) relax(i - 1, d + 1.0);
+      if (fe) relax(i + 1, d + 1.0);
+      if (fn) relax(i - w, d + 1.0);
+      if (fs) relax(i + w, d + 1.0);
+      if (fn && fw && passable(i - w - 1)) relax(i - w - 1, d + kDiagonal);
+      if (fn && fe && passable(i - w + 1)) relax(i - w + 1, d + kDiagonal);
+      if (fs && fw && passable(i + w - 1)) relax(i + w - 1, d + kDiagonal);
+      if (fs && fe && passable(i + w + 1)) relax(i + w + 1, d + kDiagonal);
+    }
+    pending -= std::min(pending, bucket.size());
+    bucket.clear();
+  }
+  return reached;
+}
+
+void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
+  const int w = width_;
+  const int h = height_;
+  path->clear();
+  int i = goal;
+  path->push_back({i % w, i / w});
+  while (dist_[i] > 0.0) {
+    const int y = i / w;
+    const int x = i - y * w;
+    const bool fw = x > 0 && passable(i - 1);
+    const bool fe = x < w - 1 && passable(i + 1);
+    const bool fn = y > 0 && passable(i - w);
+    const bool fs = y < h - 1 && passable(i + w);
+    int best = -1;
+    double best_dist = std::numeric_limits<double>::infinity();
+    auto consider = [&](bool legal, int j, double step) {
+      if (legal && settled(j) && dist_[j] + step < best_dist) {
+        best_dist = dist_[j] + step;
+        best = j;
+      }
+    };
+    consider(fw, i - 1, 1.0);
+    consider(fe, i + 1, 1.0);
+    consider(fn, i - w, 1.0);
+    consider(fs, i + w, 1.0);
+    consider(fn && fw && passable(i - w - 1), i - w - 1, kDiagonal);
+    consider(fn && fe && passable(i - w + 1), i - w + 1, kDiagonal);
+    consider(fs && fw && passable(i + w - 1), i + w - 1, kDiagonal);
+    consider(fs && fe && passable(i + w + 1), i + w + 1, kDiagonal);
+    i = best;  // exists: a settled cell's predecessor on its shortest path is settled and closer
+    path->push_back({i % w, i / w});
+  }
+  std::reverse(path->begin(), path->end());
+}
+
+PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int width, int height, Cell start,
+                                 Cell goal, const PlannerOptions& options) {
+  const auto started = std::chrono::steady_clock::now();
+  PlanResult result;
+  result.goal = goal;
+  auto finish = [&](PlanStatus status, const std::string& message) {
+    result.status = status;
+    result.message = message;
+    result.seconds = std::chrono::duration<double>(std::chrono::steady_clock::now() - started).count();
+    return result;
+  };
+
+  if (width <= 0 || height <= 0 || size == 0 || data == nullptr) {
+    std::ostringstream msg;
+    msg << "empty map: " << width << " x " << height << " cells, " << size << " values";
+    return finish(PlanStatus::kEmptyMap, msg.str());
+  }
+  if (static_cast<std::size_t>(width) * static_cast<std::size_t>(height) != size) {
+    std::ostringstream msg;
+    msg << "map size mismatch: " << width << " x " << height << " = "
+        << static_cast<std::size_t>(width) * static_cast<std::size_t>(height) << " cells but " << size
+        << " values";
+    return finish(PlanStatus::kSizeMismatch, msg.str());
+  }
+  if (static_cast<std::size_t>(width) * static_cast<std::size_t>(height) >
+      static_cast<std::size_t>(std::numeric_limits<int>::max())) {
+    return finish(PlanStatus::kSizeMismatch, "map too large: more than 2^31 cells");
+  }
+  if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
+    return finish(PlanStatus::kInvalidOptions,
+                  "lethal_threshold must be in 1..101, got " + std::to_string(options.lethal_threshold));
+  }
+  if (!(options.goal_tolerance_cells >= 0.0) || !std::isfinite(options.goal_tolerance_cells)) {
+    return finish(PlanStatus::kInvalidOptions, "goal tolerance must be a finite number >= 0");
+  }
+
+  grid_ = data;
+  width_ = width;
+  height_ = height;
+  lethal_ = static_cast<std::int8_t>(std::min(options.lethal_threshold, 101));
+  unknown_free_ = !options.unknown_is_obstacle;
+
+  auto on_map = [&](Cell c) { return c.x >= 0 && c.y >= 0 && c.x < width && c.y < height; };
+  auto index = [&](Cell c) { return c.y * width + c.x; };
+  const std::string size_text = std::to_string(width) + " x " + std::to_string(height);
+  if (!on_map(start)) return finish(PlanStatus::kStartOffMap, "start " + cellText(start) + " is off the " + size_text + " map");
+  if (!on_map(goal)) return finish(PlanStatus::kGoalOffMap, "goal " + cellText(goal) + " is off the " + size_text + " map");
+  if (!passable(index(start))) {
+    return finish(PlanStatus::kStartBlocked, "start " + cellText(start) + " is in an obstacle (occupancy " +
+                                                 std::to_string(data[index(start)]) + ")");
+  }
+
+  // Goal candidates, nearest to the requested goal first: the goal itself if free, then free cells
+  // within the tolerance.
+  std::vector<std::pair<double, int>> candidates;
+  if (passable(index(goal))) candidates.emplace_back(0.0, index(goal));
+  const double radius = options.goal_tolerance_cells;
+  if (radius > 0.0) {
+    const int r = static_cast<int>(std::floor(radius));
+    for (int y = std::max(0, goal.y - r); y <= std::min(height - 1, goal.y + r); ++y) {
+      for (int x = std::max(0, goal.x - r); x <= std::min(width - 1, goal.x + r); ++x) {
+        const double d = std::hypot(x - goal.x, y - goal.y);
+        const int i = y * width + x;
+        if (d > 0.0 && d <= radius && passable(i)) candidates.emplace_back(d, i);
+      }
+    }
+    std::stable_sort(candidates.begin(), candidates.end(),
+                     [](const auto& a, const auto& b) { return a.first < b.first; });
+  }
+  if (candidates.empty()) {
+    std::ostringstream msg;
+    msg << "goal " << cellText(goal) << " is in an obstacle (occupancy " << static_cast<int>(data[index(goal)])
+        << ")";
+    if (radius > 0.0) msg << " and no free cell lies within " << radius << " cells of it";
+    return finish(PlanStatus::kGoalBlocked, msg.str());
+  }
+
+  // One search suffices: if the nearest candidate is not reached, the search has exhausted the start's
+  // component, so the first settled candidate is the nearest reachable one.
+  int reached = -1;
+  if (search(index(start), candidates.front().second, options.stop_at_goal)) {
+    reached = candidates.front().second;
+  } else {
+    for (const auto& candidate : candidates) {
+      if (settled(candidate.second)) {
+        reached = candidate.second;
+        break;
+      }
+    }
+  }
+  result.expansions = expansions_;
+  if (reached < 0) {
+    std::string msg = "goal " + cellText(goal) + " is unreachable from start " + cellText(start);
+    if (radius > 0.0) msg += ", and so is every free cell within the tolerance";
+    return finish(PlanStatus::kNoPath, msg);
+  }
+  tracePath(reached, &result.path);
+  result.cost = dist_[reached];
+  result.goal = {reached % width, reached / width};
+  return finish(PlanStatus::kOk, "");
+}
+
+}  // namespace offload_planner

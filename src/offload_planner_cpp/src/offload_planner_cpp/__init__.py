@@ -1,0 +1,59 @@
+"""Dijkstra path planner on OccupancyGrid-convention grids, the same C++ core as the ROS planner node.
+
+    >>> import numpy, offload_planner_cpp
+    >>> grid = numpy.zeros((10, 10), numpy.int8)      # indexed [y, x]; -1 unknown, 0..100 occupancy
+    >>> result = offload_planner_cpp.plan(grid, (0, 0), (9, 9))
+    >>> result.path[-1].tolist(), round(result.cost, 4)
+    ([9, 9], 12.7279)
+"""
+from dataclasses import dataclass
+from typing import Tuple
+
+import numpy as np
+
+from offload_planner_cpp._core import grid_address, plan_raw
+
+__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "grid_address", "plan_raw"]
+
+
+class PlanError(ValueError):
+    """A request the planner cannot serve: empty map, start or goal off the map or blocked, bad options.
+
+    `status` names the cause: empty_map, size_mismatch, start_off_map, goal_off_map, start_blocked,
+    goal_blocked or invalid_options."""
+
+    def __init__(self, status: str, message: str):
+        super().__init__(f"{status}: {message}")
+        self.status = status
+
+
+class NoPathError(RuntimeError):
+    """The goal (and every free cell within the tolerance) is unreachable from the start."""
+
+    status = "no_path"
+
+
+@dataclass(frozen=True)
+class PlanResult:
+    path: np.ndarray          # N x 2 int32 cells (x, y), start to goal inclusive
+    cost: float               # path length in cells (1 straight, sqrt(2) diagonal)
+    goal: Tuple[int, int]     # the cell reached: the goal, or the nearest reachable one within tolerance
+    expansions: int           # cells settled
+    seconds: float            # time inside the C++ planner
+
+
+def plan(grid, start, goal, *, lethal_threshold=50, unknown_is_obstacle=True, goal_tolerance=0.0,
+         stop_at_goal=True) -> PlanResult:
+    """Shortest 8-connected path on `grid` (2-D int8 array [y, x], read in place) from `start` to `goal`,
+    both (x, y) cells. `goal_tolerance` is in cells. Raises PlanError (a ValueError) on bad input and
+    NoPathError when the goal is unreachable."""
+    raw = plan_raw(grid, start, goal, lethal_threshold=lethal_threshold,
+                   unknown_is_obstacle=unknown_is_obstacle, goal_tolerance=goal_tolerance,
+                   stop_at_goal=stop_at_goal)
+    status = raw["status"]
+    if status == "no_path":
+        raise NoPathError(raw["message"])
+    if status != "ok":
+        raise PlanError(status, raw["message"])
+    return PlanResult(path=raw["path"], cost=raw["cost"], goal=raw["goal"], expansions=raw["expansions"],
+                      seconds=raw["seconds"])

@@ -1,0 +1,269 @@
+// Core planner on small hand-made grids, every error, and agreement with a textbook binary-heap
+// Dijkstra on random grids.
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <queue>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "offload_planner_cpp/dijkstra.h"
+
+using namespace offload_planner;
+
+namespace {
+
+const double kSqrt2 = std::sqrt(2.0);
+
+// Rows top to bottom as text: '.' free, '#' occupied (100), '?' unknown (-1), digits d -> 10 * d.
+struct Grid {
+  int width = 0, height = 0;
+  std::vector<std::int8_t> data;
+  explicit Grid(const std::vector<std::string>& rows) {
+    height = static_cast<int>(rows.size());
+    width = static_cast<int>(rows[0].size());
+    for (const auto& row : rows) {
+      for (char c : row) {
+        data.push_back(c == '#' ? 100 : c == '?' ? -1 : c == '.' ? 0 : static_cast<std::int8_t>(10 * (c - '0')));
+      }
+    }
+  }
+  PlanResult plan(Cell s, Cell g, const PlannerOptions& o = PlannerOptions()) {
+    return planner.plan(data.data(), data.size(), width, height, s, g, o);
+  }
+  DijkstraPlanner planner;
+};
+
+// Independent reference: textbook Dijkstra with a binary heap, same move rules.
+double referenceCost(const std::vector<std::int8_t>& grid, int w, int h, Cell s, Cell g) {
+  auto free = [&](int x, int y) { return x >= 0 && y >= 0 && x < w && y < h && grid[y * w + x] == 0; };
+  std::vector<double> dist(w * h, INFINITY);
+  using Item = std::pair<double, int>;
+  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> heap;
+  dist[s.y * w + s.x] = 0;
+  heap.push({0, s.y * w + s.x});
+  while (!heap.empty()) {
+    auto [d, i] = heap.top();
+    heap.pop();
+    if (d > dist[i]) continue;
+    const int x = i % w, y = i / w;
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        if ((dx == 0 && dy == 0) || !free(x + dx, y + dy)) continue;
+        if (dx != 0 && dy != 0 && (!free(x + dx, y) || !free(x, y + dy))) continue;
+        const double nd = d + ((dx != 0 && dy != 0) ? kSqrt2 : 1.0);
+        const int j = (y + dy) * w + x + dx;
+        if (nd < dist[j]) {
+          dist[j] = nd;
+          heap.push({nd, j});
+        }
+      }
+    }
+  }
+  return dist[g.y * w + g.x];
+}
+
+// Each step of a path is one legal move and the steps add up to the reported cost.
+void expectValidPath(const Grid& grid, const PlanResult& r, Cell s, Cell g) {
+  ASSERT_TRUE(r.ok()) << r.message;
+  ASSERT_FALSE(r.path.empty());
+  EXPECT_EQ(r.path.front(), s);
+  EXPECT_EQ(r.path.back(), g);
+  double length = 0;
+  auto freeAt = [&](int x, int y) { return grid.data[y * grid.width + x] < 50 && grid.data[y * grid.width + x] >= 0; };
+  for (std::size_t k = 1; k < r.path.size(); ++k) {
+    const int dx = r.path[k].x - r.path[k - 1].x, dy = r.path[k].y - r.path[k - 1].y;
+    ASSERT_LE(std::abs(dx), 1);
+    ASSERT_LE(std::abs(dy), 1);
+    ASSERT_TRUE(dx != 0 || dy != 0);
+    ASSERT_TRUE(freeAt(r.path[k].x, r.path[k].y));
+    if (dx != 0 && dy != 0) {
+      ASSERT_TRUE(freeAt(r.path[k - 1].x + dx, r.path[k - 1].y)) << "corner cut at step " << k;
+      ASSERT_TRUE(freeAt(r.path[k - 1].x, r.path[k - 1].y + dy)) << "corner cut at step " << k;
+    }
+    length += (dx != 0 && dy != 0) ? kSqrt2 : 1.0;
+  }
+  EXPECT_NEAR(length, r.cost, 1e-9);
+}
+
+}  // namespace
+
+TEST(Dijkstra, StraightAndDiagonalCosts) {
+  Grid g({".....", ".....", "....."});
+  auto r = g.plan({0, 0}, {4, 0});
+  expectValidPath(g, r, {0, 0}, {4, 0});
+  EXPECT_DOUBLE_EQ(r.cost, 4.0);
+  r = g.plan({0, 0}, {2, 2});
+  expectValidPath(g, r, {0, 0}, {2, 2});
+  EXPECT_DOUBLE_EQ(r.cost, 2 * kSqrt2);
+  r = g.plan({0, 0}, {4, 2});
+  EXPECT_NEAR(r.cost, 2 + 2 * kSqrt2, 1e-12);
+  EXPECT_GT(r.expansions, 0u);
+  EXPECT_GE(r.seconds, 0.0);
+}
+
+TEST(Dijkstra, StartEqualsGoal) {
+  Grid g({"...", "..."});
+  auto r = g.plan({1, 1}, {1, 1});
+  ASSERT_TRUE(r.ok());
+  ASSERT_EQ(r.path.size(), 1u);
+  EXPECT_EQ(r.cost, 0.0);
+}
+
+TEST(Dijkstra, NoCornerCutting) {
+  // The only diagonal gap squeezes between two obstacles; the path must go around.
+  Grid g({".#.",
+          "#..",
+          "..."});
+  auto r = g.plan({0, 0}, {1, 1});
+  EXPECT_EQ(r.status, PlanStatus::kNoPath) << "moved diagonally between two blocked corners";
+  Grid h({"..#",
+          ".#.",
+          "..."});
+  // (1, 0) -> (2, 1) would squeeze between (2, 0) and (1, 1): the way round is 6 straight steps.
+  r = h.plan({1, 0}, {2, 1});
+  expectValidPath(h, r, {1, 0}, {2, 1});
+  EXPECT_NEAR(r.cost, 6.0, 1e-12);
+  r = h.plan({0, 0}, {2, 2});
+  expectValidPath(h, r, {0, 0}, {2, 2});
+  EXPECT_NEAR(r.cost, 4.0, 1e-12);  // down then right: no diagonal past the centre obstacle
+}
+
+TEST(Dijkstra, UnknownCellsAndLethalThreshold) {
+  Grid g({"..?..", "###?#", "....."});
+  EXPECT_EQ(g.plan({0, 0}, {0, 2}).status, PlanStatus::kNoPath);
+  PlannerOptions unknown_free;
+  unknown_free.unknown_is_obstacle = false;
+  auto r = g.plan({0, 0}, {0, 2}, unknown_free);
+  ASSERT_TRUE(r.ok());
+  EXPECT_NE(std::find(r.path.begin(), r.path.end(), Cell{3, 1}), r.path.end()) << "through the unknown gap";
+
+  Grid c({"...", "555", "..."});  // occupancy 50 across the middle
+  EXPECT_EQ(c.plan({0, 0}, {0, 2}).status, PlanStatus::kNoPath);
+  PlannerOptions high;
+  high.lethal_threshold = 51;
+  EXPECT_TRUE(c.plan({0, 0}, {0, 2}, high).ok());
+}
+
+TEST(Dijkstra, GoalToleranceFindsNearestFreeCell) {
+  Grid g({".....",
+          "...##",
+          "...##"});
+  PlannerOptions o;
+  EXPECT_EQ(g.plan({0, 0}, {4, 2}, o).status, PlanStatus::kGoalBlocked);
+  o.goal_tolerance_cells = 1.5;  // all three neighbours are blocked
+  EXPECT_EQ(g.plan({0, 0}, {4, 2}, o).status, PlanStatus::kGoalBlocked);
+  o.goal_tolerance_cells = 2.0;  // (2, 2) and (4, 0) are both 2 away; ties go to the first in row order
+  auto r = g.plan({0, 0}, {4, 2}, o);
+  ASSERT_TRUE(r.ok()) << r.message;
+  EXPECT_EQ(r.goal, (Cell{4, 0}));
+  expectValidPath(g, r, {0, 0}, {4, 0});
+  EXPECT_DOUBLE_EQ(r.cost, 4.0);
+}
+
+TEST(Dijkstra, GoalToleranceSkipsUnreachableCandidates) {
+  // The goal sits in a walled pocket; the nearest free cell outside it within tolerance is chosen.
+  Grid g({".......",
+          ".......",
+          "....###",
+          "....#..",
+          "....#.."});
+  PlannerOptions o;
+  EXPECT_EQ(g.plan({0, 0}, {6, 4}, o).status, PlanStatus::kNoPath);
+  o.goal_tolerance_cells = 2.5;  // only pocket cells lie within 2.5
+  EXPECT_EQ(g.plan({0, 0}, {6, 4}, o).status, PlanStatus::kNoPath);
+  o.goal_tolerance_cells = 3.0;  // (6, 1) and (3, 4) are 3 away and reachable; row order picks (6, 1)
+  auto r = g.plan({0, 0}, {6, 4}, o);
+  ASSERT_TRUE(r.ok()) << r.message;
+  EXPECT_EQ(r.goal, (Cell{6, 1}));
+  expectValidPath(g, r, {0, 0}, {6, 1});
+}
+
+TEST(Dijkstra, StopAtGoalSettlesFewerCells) {
+  Grid g(std::vector<std::string>(50, std::string(50, '.')));
+  PlannerOptions all;
+  all.stop_at_goal = false;
+  const auto early = g.plan({0, 0}, {3, 0});
+  const auto full = g.plan({0, 0}, {3, 0}, all);
+  ASSERT_TRUE(early.ok());
+  ASSERT_TRUE(full.ok());
+  EXPECT_EQ(full.expansions, 2500u);
+  EXPECT_LT(early.expansions, 100u);
+  EXPECT_DOUBLE_EQ(early.cost, full.cost);
+}
+
+TEST(Dijkstra, Errors) {
+  Grid g({"..#", "...", "..."});
+  DijkstraPlanner p;
+  auto r = p.plan(g.data.data(), 0, 0, 0, {0, 0}, {1, 1});
+  EXPECT_EQ(r.status, PlanStatus::kEmptyMap);
+  EXPECT_NE(r.message.find("empty"), std::string::npos);
+  r = p.plan(g.data.data(), g.data.size(), 4, 3, {0, 0}, {1, 1});
+  EXPECT_EQ(r.status, PlanStatus::kSizeMismatch);
+  EXPECT_NE(r.message.find("12 cells but 9"), std::string::npos) << r.message;
+  r = g.plan({-1, 0}, {1, 1});
+  EXPECT_EQ(r.status, PlanStatus::kStartOffMap);
+  EXPECT_NE(r.message.find("(-1, 0)"), std::string::npos);
+  r = g.plan({0, 0}, {3, 0});
+  EXPECT_EQ(r.status, PlanStatus::kGoalOffMap);
+  r = g.plan({0, 0}, {0, 3});
+  EXPECT_EQ(r.status, PlanStatus::kGoalOffMap);
+  r = g.plan({2, 0}, {0, 0});
+  EXPECT_EQ(r.status, PlanStatus::kStartBlocked);
+  r = g.plan({0, 0}, {2, 0});
+  EXPECT_EQ(r.status, PlanStatus::kGoalBlocked);
+  EXPECT_NE(r.message.find("obstacle"), std::string::npos);
+  PlannerOptions bad;
+  bad.lethal_threshold = 0;
+  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidOptions);
+  bad = PlannerOptions();
+  bad.goal_tolerance_cells = -1;
+  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidOptions);
+  bad.goal_tolerance_cells = NAN;
+  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidOptions);
+  Grid walled({".#.", ".#.", ".#."});
+  r = walled.plan({0, 0}, {2, 2});
+  EXPECT_EQ(r.status, PlanStatus::kNoPath);
+  EXPECT_NE(r.message.find("unreachable"), std::string::npos);
+  EXPECT_TRUE(r.path.empty());
+  for (auto s : {PlanStatus::kOk, PlanStatus::kEmptyMap, PlanStatus::kSizeMismatch, PlanStatus::kStartOffMap,
+                 PlanStatus::kGoalOffMap, PlanStatus::kStartBlocked, PlanStatus::kGoalBlocked, PlanStatus::kNoPath,
+                 PlanStatus::kInvalidOptions}) {
+    EXPECT_STRNE(statusName(s), "unknown");
+  }
+}
+
+TEST(Dijkstra, AgreesWithReferenceOnRandomGridsAndReusesBuffers) {
+  std::mt19937 rng(7);
+  DijkstraPlanner planner;  // one planner across sizes: buffers grow, shrink and get reused
+  int checked = 0;
+  for (int trial = 0; trial < 60; ++trial) {
+    const int w = 5 + static_cast<int>(rng() % 60), h = 5 + static_cast<int>(rng() % 60);
+    std::bernoulli_distribution blocked(0.1 + 0.3 * (trial % 3));
+    std::vector<std::int8_t> grid(w * h);
+    for (auto& v : grid) v = blocked(rng) ? 100 : 0;
+    for (int q = 0; q < 5; ++q) {
+      Cell s{static_cast<int>(rng() % w), static_cast<int>(rng() % h)};
+      Cell g{static_cast<int>(rng() % w), static_cast<int>(rng() % h)};
+      grid[s.y * w + s.x] = 0;
+      grid[g.y * w + g.x] = 0;
+      const double expected = referenceCost(grid, w, h, s, g);
+      const auto r = planner.plan(grid.data(), grid.size(), w, h, s, g);
+      if (std::isinf(expected)) {
+        EXPECT_EQ(r.status, PlanStatus::kNoPath);
+      } else {
+        ASSERT_TRUE(r.ok()) << r.message;
+        EXPECT_NEAR(r.cost, expected, 1e-9);
+        ++checked;
+      }
+    }
+  }
+  EXPECT_GT(checked, 100);
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
