@@ -34,26 +34,15 @@ const char* statusName(PlanStatus status) {
   return "unknown";
 }
 
-bool DijkstraPlanner::passable(int index) const {
-  const std::int8_t v = grid_[index];
-  return v < 0 ? unknown_free_ : v < lethal_;
-}
-
 void DijkstraPlanner::beginSearch() {
+  constexpr double kUnseen = std::numeric_limits<double>::infinity();
   const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
-  if (mark_.size() < cells) {
-    mark_.assign(cells, 0);
-    dist_.resize(cells);
-    seen_mark_ = 0;
-    settled_mark_ = 1;
+  if (dist_.size() != cells) {
+    dist_.assign(cells, kUnseen);
+  } else if (dirty_end_ > dirty_begin_) {
+    std::fill(dist_.begin() + dirty_begin_, dist_.begin() + dirty_end_, kUnseen);
   }
-  if (settled_mark_ >= std::numeric_limits<std::uint32_t>::max() - 2) {
-    std::fill(mark_.begin(), mark_.end(), 0);
-    seen_mark_ = 0;
-    settled_mark_ = 1;
-  }
-  seen_mark_ += 2;
-  settled_mark_ += 2;
+  dirty_begin_ = dirty_end_ = 0;
   for (auto& bucket : buckets_) bucket.clear();
   expansions_ = 0;
 }
@@ -65,22 +54,18 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
   beginSearch();
   const int w = width_;
   const int h = height_;
-  std::uint32_t* const mark = mark_.data();
   double* const dist = dist_.data();
-  const std::uint32_t seen = seen_mark_;
-  const std::uint32_t done = settled_mark_;
+  int row_min = h;
+  int row_max = -1;
 
   dist[start] = 0.0;
-  mark[start] = seen;
   buckets_[0].push_back(start);
   std::size_t pending = 1;
   bool reached = false;
 
   auto relax = [&](int j, double nd) {
-    const std::uint32_t m = mark[j];
-    if (m < seen || (m == seen && nd < dist[j])) {
+    if (nd < dist[j]) {  // false for settled cells, whose stored distance is negative
       dist[j] = nd;
-      mark[j] = seen;
       buckets_[static_cast<std::size_t>(nd) % 3].push_back(j);
       ++pending;
     }
@@ -91,9 +76,14 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
     // Relaxations from this bucket land in the next two, never in this one (steps cost >= 1).
     for (std::size_t k = 0; k < bucket.size(); ++k) {
       const int i = bucket[k];
-      if (mark[i] == done) continue;  // stale duplicate of an improved entry
-      mark[i] = done;
+      const double d = dist[i];
+      if (std::signbit(d)) continue;  // stale duplicate of an improved entry
+      dist[i] = -d;
       ++expansions_;
+      const int y = i / w;
+      const int x = i - y * w;
+      row_min = std::min(row_min, y);
+      row_max = std::max(row_max, y);
       if (i == target) {
         reached = true;
         if (stop_at_target) {
@@ -101,9 +91,6 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
           break;
         }
       }
-      const double d = dist[i];
-      const int y = i / w;
-      const int x = i - y * w;
       const bool fw = x > 0 && passable(i - 1);
       const bool fe = x < w - 1 && passable(i + 1);
       const bool fn = y > 0 && passable(i - w);
@@ -120,6 +107,9 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
     pending -= std::min(pending, bucket.size());
     bucket.clear();
   }
+  // Relaxed cells lie at most one row beyond the settled ones.
+  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
+  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
   return reached;
 }
 
@@ -129,7 +119,7 @@ void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
   path->clear();
   int i = goal;
   path->push_back({i % w, i / w});
-  while (dist_[i] > 0.0) {
+  while (distance(i) > 0.0) {
     const int y = i / w;
     const int x = i - y * w;
     const bool fw = x > 0 && passable(i - 1);
@@ -139,8 +129,8 @@ void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
     int best = -1;
     double best_dist = std::numeric_limits<double>::infinity();
     auto consider = [&](bool legal, int j, double step) {
-      if (legal && settled(j) && dist_[j] + step < best_dist) {
-        best_dist = dist_[j] + step;
+      if (legal && settled(j) && distance(j) + step < best_dist) {
+        best_dist = distance(j) + step;
         best = j;
       }
     };
@@ -197,8 +187,9 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   grid_ = data;
   width_ = width;
   height_ = height;
-  lethal_ = static_cast<std::int8_t>(std::min(options.lethal_threshold, 101));
-  unknown_free_ = !options.unknown_is_obstacle;
+  for (int v = -128; v < 128; ++v) {
+    passable_[static_cast<std::uint8_t>(v)] = v < 0 ? !options.unknown_is_obstacle : v < options.lethal_threshold;
+  }
 
   auto on_map = [&](Cell c) { return c.x >= 0 && c.y >= 0 && c.x < width && c.y < height; };
   auto index = [&](Cell c) { return c.y * width + c.x; };
@@ -255,7 +246,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
     return finish(PlanStatus::kNoPath, msg);
   }
   tracePath(reached, &result.path);
-  result.cost = dist_[reached];
+  result.cost = distance(reached);
   result.goal = {reached % width, reached / width};
   return finish(PlanStatus::kOk, "");
 }

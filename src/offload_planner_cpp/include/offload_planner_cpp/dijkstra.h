@@ -7,6 +7,7 @@
 // theirs exactly.
 #pragma once
 
+#include <cmath>
 #include <cstddef>
 #include <cstdint>
 #include <string>
@@ -71,24 +72,25 @@ class DijkstraPlanner {
   bool search(int start, int target, bool stop_at_target);
   // Walks back from `goal` along settled cells, each step to the neighbour with the smallest distance.
   void tracePath(int goal, std::vector<Cell>* path) const;
-  bool passable(int index) const;
-  bool settled(int index) const { return mark_[index] == settled_mark_; }
+  bool passable(int index) const { return passable_[static_cast<std::uint8_t>(grid_[index])]; }
+  // A settled cell stores its distance negated (the start -0.0): `nd < dist` then never holds for it,
+  // so relaxation needs no separate flag.
+  bool settled(int index) const { return std::signbit(dist_[index]); }
+  double distance(int index) const { return std::fabs(dist_[index]); }
   void beginSearch();
 
   // Set per call.
   const std::int8_t* grid_ = nullptr;
   int width_ = 0;
   int height_ = 0;
-  std::int8_t lethal_ = 50;
-  bool unknown_free_ = false;
+  bool passable_[256] = {};  // by occupancy value as uint8 (-1 unknown is 255)
   std::uint64_t expansions_ = 0;
 
-  // Reused between calls. mark_[i] says whether dist_[i] belongs to the current search (seen_mark_) and
-  // whether it is final (settled_mark_); bumping the marks invalidates the whole buffer in O(1).
+  // Reused between calls: +inf except in cells [dirty_begin_, dirty_end_), the rows the last search
+  // touched, which the next search resets: a short search on a big map does not pay to clear it all.
   std::vector<double> dist_;
-  std::vector<std::uint32_t> mark_;
-  std::uint32_t seen_mark_ = 0;
-  std::uint32_t settled_mark_ = 1;
+  std::size_t dirty_begin_ = 0;
+  std::size_t dirty_end_ = 0;
   std::vector<int> buckets_[3];
 };
 

@@ -1,0 +1,36 @@
+"""The planner's move graph as a scipy sparse matrix: an independent solver for tests and the
+benchmark baseline (scipy.sparse.csgraph.dijkstra on the same graph)."""
+import numpy as np
+from scipy.sparse import csr_matrix
+
+_SQRT2 = float(np.sqrt(2.0))
+
+
+def free_cells(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
+    """Boolean [y, x] mask of the cells the planner may enter."""
+    return np.where(grid < 0, not unknown_is_obstacle, grid < lethal_threshold)
+
+
+def grid_graph(grid: np.ndarray, **options) -> csr_matrix:
+    """Directed graph over cell indices y * width + x: 8-connected, cost 1 and sqrt(2), a diagonal only
+    when both orthogonal neighbours are free."""
+    free = free_cells(grid, **options)
+    height, width = free.shape
+    index = np.arange(height * width).reshape(height, width)
+    rows, cols, costs = [], [], []
+    for dy, dx in ((0, 1), (1, 0), (1, 1), (1, -1)):
+        # Pairs (a, b) with b = a + (dx, dy); each edge is added both ways.
+        ys = slice(0, height - dy)
+        xs = slice(max(0, -dx), width - max(0, dx))
+        ys2 = slice(dy, height)
+        xs2 = slice(max(0, dx), width + min(0, dx))
+        ok = free[ys, xs] & free[ys2, xs2]
+        if dx and dy:
+            ok &= free[ys, xs2] & free[ys2, xs]  # no corner cutting
+        a, b = index[ys, xs][ok], index[ys2, xs2][ok]
+        cost = _SQRT2 if dx and dy else 1.0
+        rows += [a, b]
+        cols += [b, a]
+        costs += [np.full(a.size, cost), np.full(a.size, cost)]
+    rows, cols, costs = np.concatenate(rows), np.concatenate(cols), np.concatenate(costs)
+    return csr_matrix((costs, (rows, cols)), shape=(height * width, height * width))

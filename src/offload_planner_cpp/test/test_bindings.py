@@ -1,0 +1,128 @@
+"""The pybind11 module: results, zero-copy grids, GIL release, error types, agreement with scipy."""
+import threading
+import time
+
+import numpy as np
+import pytest
+from scipy.sparse import csgraph
+
+import offload_planner_cpp
+from offload_planner_cpp import NoPathError, PlanError, plan
+from offload_planner_cpp.grid_graph import grid_graph
+from offload_planner_cpp.maps import load_map
+
+
+def test_result_fields():
+    grid = np.zeros((5, 7), np.int8)
+    grid[1:, 3] = 100
+    result = plan(grid, (0, 4), (6, 4))
+    assert result.path.dtype == np.int32 and result.path.shape[1] == 2
+    assert result.path[0].tolist() == [0, 4] and result.path[-1].tolist() == [6, 4]
+    assert result.goal == (6, 4)
+    # Up to row 0 round the wall and down again: 2 + 2 diagonals + ... checked against the path itself.
+    steps = np.abs(np.diff(result.path, axis=0)).sum(axis=1)
+    assert result.cost == pytest.approx((steps == 1).sum() + np.sqrt(2) * (steps == 2).sum())
+    assert (grid[result.path[:, 1], result.path[:, 0]] == 0).all()
+    assert result.expansions > 0 and result.seconds > 0
+
+
+def test_grid_is_not_copied():
+    grid = np.zeros((300, 200), np.int8)
+    assert offload_planner_cpp.grid_address(grid) == grid.ctypes.data
+    view = np.zeros((400, 300), np.int8)[50:350, 50:250]  # not contiguous: refused rather than copied
+    with pytest.raises(ValueError, match="C-contiguous"):
+        plan(view, (0, 0), (1, 1))
+    # The planner reads the caller's buffer as it is now: blocking a cell in place changes the answer.
+    grid = np.zeros((3, 3), np.int8)
+    assert plan(grid, (0, 1), (2, 1)).cost == 2.0
+    grid[:, 1] = 100
+    with pytest.raises(NoPathError):
+        plan(grid, (0, 1), (2, 1))
+
+
+def test_gil_released_while_planning():
+    rng = np.random.default_rng(1)
+    grid = ((rng.random((2500, 2500)) < 0.2) * 100).astype(np.int8)
+    grid[0, 0] = grid[-1, -1] = 0
+    window = {}
+
+    def work():
+        window["start"] = time.perf_counter()
+        window["result"] = plan(grid, (0, 0), (2499, 2499), stop_at_goal=False)
+        window["end"] = time.perf_counter()
+
+    worker = threading.Thread(target=work)
+    ticks = []
+    worker.start()
+    while worker.is_alive():
+        ticks.append(time.perf_counter())
+    worker.join()
+    inside = [t for t in ticks if window["start"] < t < window["end"]]
+    span = window["end"] - window["start"]
+    # With the GIL held during the search this thread could not run for the whole plan.
+    gaps = np.diff([window["start"], *inside, window["end"]])
+    assert len(inside) > 100 and gaps.max() < 0.5 * span, f"longest stall {gaps.max():.3f} s of {span:.3f} s"
+
+
+@pytest.mark.parametrize("args, status", [
+    ((np.zeros((0, 5), np.int8), (0, 0), (0, 0)), "empty_map"),
+    ((np.zeros((4, 4), np.int8), (4, 0), (0, 0)), "start_off_map"),
+    ((np.zeros((4, 4), np.int8), (0, 0), (0, -1)), "goal_off_map"),
+    ((np.full((4, 4), 100, np.int8), (0, 0), (1, 1)), "start_blocked"),
+])
+def test_bad_input_raises_value_error(args, status):
+    with pytest.raises(ValueError) as error:
+        plan(*args)
+    assert isinstance(error.value, PlanError) and error.value.status == status
+    assert status in str(error.value)
+
+
+def test_bad_arguments_are_clear():
+    grid = np.zeros((4, 4), np.int8)
+    with pytest.raises(ValueError, match="int8"):
+        plan(np.zeros((4, 4), np.uint8), (0, 0), (1, 1))
+    with pytest.raises(ValueError, match="2-D"):
+        plan(np.zeros(16, np.int8), (0, 0), (1, 1))
+    with pytest.raises(ValueError, match=r"start must be an \(x, y\) pair"):
+        plan(grid, (0, 0, 0), (1, 1))
+    with pytest.raises(ValueError, match="goal must be"):
+        plan(grid, (0, 0), "xy")
+    with pytest.raises(ValueError, match="lethal_threshold"):
+        plan(grid, (0, 0), (1, 1), lethal_threshold=0)
+    with pytest.raises(ValueError, match="tolerance"):
+        plan(grid, (0, 0), (1, 1), goal_tolerance=-2.0)
+    with pytest.raises(TypeError):
+        plan([[0, 0]], (0, 0), (1, 0))
+
+
+def test_goal_blocked_and_unreachable_are_distinct():
+    grid = np.zeros((5, 5), np.int8)
+    grid[:, 2] = 100
+    with pytest.raises(PlanError, match="goal_blocked"):
+        plan(grid, (0, 0), (2, 2))
+    with pytest.raises(NoPathError, match="unreachable"):
+        plan(grid, (0, 0), (4, 4))
+    assert not issubclass(NoPathError, ValueError)
+    # Within tolerance the nearest reachable free cell is planned to instead.
+    result = plan(grid, (0, 0), (2, 2), goal_tolerance=1.0)
+    assert result.goal == (1, 2)
+
+
+def test_agrees_with_scipy_on_a_real_map(bundled_maps):
+    grid = load_map(bundled_maps / "turtlebot3_world" / "map.yaml").grid
+    graph = grid_graph(grid)
+    rng = np.random.default_rng(3)
+    free = np.flatnonzero(grid.ravel() == 0)
+    width = grid.shape[1]
+    agreed = 0
+    for start in rng.choice(free, 5, replace=False):
+        distances = csgraph.dijkstra(graph, indices=int(start))
+        for goal in rng.choice(free, 20, replace=False):
+            s, g = (int(start % width), int(start // width)), (int(goal % width), int(goal // width))
+            if np.isinf(distances[goal]):
+                with pytest.raises(NoPathError):
+                    plan(grid, s, g)
+            else:
+                assert plan(grid, s, g).cost == pytest.approx(distances[goal], abs=1e-9)
+                agreed += 1
+    assert agreed >= 20
