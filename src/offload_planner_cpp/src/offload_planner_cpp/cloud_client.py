@@ -1,0 +1,238 @@
+"""Robot-side client of the cloud planner: Lazy Pirate request/reply over a DEALER socket.
+
+Each call has a deadline (`timeout_s`). Within it the request is sent up to `retries + 1` times, each
+attempt polling for an equal share of the deadline; after an unanswered attempt the socket is closed
+with LINGER 0 and reopened, so nothing stale survives and a restarted server is found again. Replies
+are matched to the request id and anything else is dropped. When the deadline passes, CloudTimeout is
+raised at once so the caller can plan locally.
+
+Health check:
+    python -m offload_planner_cpp.cloud_client tcp://HOST:5555 --ping --keys-dir ROBOT_KEYS
+exits 0 and prints the round trip when the server answers, 1 with the reason otherwise.
+"""
+import argparse
+import itertools
+import os
+import sys
+import threading
+import time
+from dataclasses import dataclass
+from typing import Optional, Sequence
+
+import numpy as np
+import zmq
+
+from offload_planner_cpp import protocol
+from offload_planner_cpp.keys import load_client_keys
+from offload_planner_cpp.protocol import PlanOptions, ProtocolError, Reply, Status
+
+
+class CloudTimeout(RuntimeError):
+    """The cloud did not answer within the deadline."""
+
+
+class KnownMaps:
+    """Hashes of maps the server has acknowledged, shared by every client of one robot so a map is
+    uploaded once. Kept small: only the robot's recent map versions matter."""
+
+    def __init__(self, capacity: int = 8):
+        self._hashes = []
+        self._capacity = capacity
+        self._lock = threading.Lock()
+
+    def add(self, map_hash: bytes) -> None:
+        with self._lock:
+            if map_hash in self._hashes:
+                self._hashes.remove(map_hash)
+            self._hashes.append(map_hash)
+            del self._hashes[:-self._capacity]
+
+    def discard(self, map_hash: bytes) -> None:
+        with self._lock:
+            if map_hash in self._hashes:
+                self._hashes.remove(map_hash)
+
+    def __contains__(self, map_hash: bytes) -> bool:
+        with self._lock:
+            return map_hash in self._hashes
+
+
+@dataclass(frozen=True)
+class PlanOutcome:
+    reply: Reply
+    round_trip_s: float    # send of the first attempt to the matched reply, uploads included
+    uploaded: bool         # the map travelled with this call
+
+
+# Statuses after which the server holds the map (it planned on it).
+_PLANNED = {Status.OK, Status.START_OFF_MAP, Status.GOAL_OFF_MAP, Status.START_BLOCKED, Status.GOAL_BLOCKED,
+            Status.NO_PATH, Status.INVALID_OPTIONS, Status.EMPTY_MAP, Status.SIZE_MISMATCH}
+
+
+class CloudClient:
+    """Not thread safe: one client per thread (they can share `known_maps` and `context`)."""
+
+    def __init__(self, endpoint: str, *, keys_dir: Optional[str] = None, insecure: bool = False,
+                 timeout_s: float = 5.0, retries: int = 1, known_maps: Optional[KnownMaps] = None,
+                 context: Optional[zmq.Context] = None):
+        if not insecure and not keys_dir:
+            raise ValueError("a keys dir is required unless insecure is set")
+        if timeout_s <= 0 or retries < 0:
+            raise ValueError("timeout_s must be > 0 and retries >= 0")
+        self.endpoint = endpoint
+        self.timeout_s = timeout_s
+        self.retries = retries
+        self.known_maps = known_maps if known_maps is not None else KnownMaps()
+        self._keys = None if insecure else load_client_keys(keys_dir)
+        self._own_context = context is None
+        self._context = context if context is not None else zmq.Context()
+        # Ids start at a random point so a reply meant for an earlier process is never taken as ours.
+        self._ids = itertools.count(int.from_bytes(os.urandom(6), "little"))
+        self._socket = None
+
+    def _open(self) -> zmq.Socket:
+        socket = self._context.socket(zmq.DEALER)
+        socket.linger = 0
+        if self._keys is not None:
+            public, secret, server_public = self._keys
+            socket.curve_publickey = public
+            socket.curve_secretkey = secret
+            socket.curve_serverkey = server_public
+        socket.connect(self.endpoint)
+        return socket
+
+    def _reset(self) -> None:
+        if self._socket is not None:
+            self._socket.close(0)
+            self._socket = None
+
+    def close(self) -> None:
+        self._reset()
+        if self._own_context:
+            self._context.term()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc):
+        self.close()
+
+    def request(self, build_frames, deadline: Optional[float] = None) -> Reply:
+        """Sends build_frames(request_id) Lazy-Pirate style; returns the matched reply or raises
+        CloudTimeout at `deadline` (time.monotonic(); default now + timeout_s)."""
+        if deadline is None:
+            deadline = time.monotonic() + self.timeout_s
+        attempts = self.retries + 1
+        for attempt in range(attempts):
+            remaining_s = deadline - time.monotonic()
+            if remaining_s <= 0:
+                break
+            attempt_deadline = time.monotonic() + remaining_s / (attempts - attempt)
+            if self._socket is None:
+                self._socket = self._open()
+            request_id = next(self._ids) & 0xFFFFFFFFFFFFFFFF
+            try:
+                self._socket.send_multipart(build_frames(request_id), copy=False, flags=zmq.NOBLOCK)
+            except zmq.Again:
+                self._reset()
+                continue
+            reply = self._await(request_id, attempt_deadline)
+            if reply is not None:
+                return reply
+            self._reset()   # Lazy Pirate: the old socket may hold a dead connection or a stale reply
+        raise CloudTimeout(f"no reply from {self.endpoint} within {self.timeout_s:g} s")
+
+    def _await(self, request_id: int, deadline: float) -> Optional[Reply]:
+        while True:
+            wait_ms = int(max(0.0, deadline - time.monotonic()) * 1000) + 1
+            if not self._socket.poll(wait_ms, zmq.POLLIN):
+                if time.monotonic() >= deadline:
+                    return None
+                continue
+            frames = self._socket.recv_multipart(copy=False)
+            try:
+                reply = protocol.decode_reply([frame.buffer for frame in frames])
+            except ProtocolError:
+                continue   # garbage from a confused server: keep waiting for ours
+            if reply.request_id == request_id:
+                return reply
+            # a stale reply to an earlier request: dropped
+
+    def ping(self, timeout_s: Optional[float] = None) -> float:
+        """Round trip of one ping in seconds; CloudTimeout when unanswered."""
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        started = time.perf_counter()
+        reply = self.request(protocol.encode_ping, deadline)
+        if reply.status != Status.OK:
+            raise RuntimeError(f"ping answered {reply.status.name}: {reply.message}")
+        return time.perf_counter() - started
+
+    def upload(self, grid: np.ndarray, map_hash: Optional[bytes] = None, timeout_s: Optional[float] = None) -> Reply:
+        """Puts `grid` in the server's cache without planning."""
+        map_hash = protocol.grid_hash(grid) if map_hash is None else map_hash
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        reply = self.request(lambda request_id: protocol.encode_upload(request_id, grid), deadline)
+        if reply.status == Status.OK:
+            self.known_maps.add(map_hash)
+        return reply
+
+    def plan(self, grid: np.ndarray, start: Sequence[int], goal: Sequence[int],
+             options: PlanOptions = PlanOptions(), map_hash: Optional[bytes] = None) -> PlanOutcome:
+        """Plans on `grid` in the cloud: only the hash travels when the server acknowledged this map,
+        else the map goes along; a cache-miss reply makes it upload once and retry, within the deadline."""
+        map_hash = protocol.grid_hash(grid) if map_hash is None else map_hash
+        deadline = time.monotonic() + self.timeout_s
+        started = time.perf_counter()
+        upload = map_hash not in self.known_maps
+        while True:
+            attached = grid if upload else None
+            reply = self.request(
+                lambda request_id: protocol.encode_plan(request_id, map_hash, start, goal, options, attached),
+                deadline)
+            if reply.status == Status.MAP_UNKNOWN and not upload:
+                self.known_maps.discard(map_hash)
+                upload = True
+                continue
+            if reply.status in _PLANNED:
+                self.known_maps.add(map_hash)
+            return PlanOutcome(reply, time.perf_counter() - started, upload)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description="Cloud planner client: health check.")
+    parser.add_argument("endpoint", help="server endpoint, e.g. tcp://cloud.example.org:5555")
+    parser.add_argument("--ping", action="store_true", help="ping the server and print the round trip")
+    parser.add_argument("--count", type=int, default=1, help="pings to send (default 1)")
+    parser.add_argument("--keys-dir", help="this robot's keys dir (client.key_secret, server.key)")
+    parser.add_argument("--insecure", action="store_true", help="plaintext, for a server run with --insecure")
+    parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
+    args = parser.parse_args(argv)
+    if not args.ping:
+        parser.error("nothing to do: pass --ping")
+    if not args.insecure and not args.keys_dir:
+        print("error: pass --keys-dir (the server uses CURVE by default) or --insecure", file=sys.stderr)
+        return 2
+    try:
+        client = CloudClient(args.endpoint, keys_dir=args.keys_dir, insecure=args.insecure,
+                             timeout_s=args.timeout, retries=0)
+    except (OSError, ValueError, zmq.ZMQError) as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+    with client:
+        for _ in range(max(1, args.count)):
+            try:
+                round_trip_s = client.ping()
+            except CloudTimeout:
+                print(f"error: no answer from {args.endpoint} within {args.timeout:g} s: server down, wrong "
+                      f"endpoint, blocked port, or this client's key is not on the server's allowlist",
+                      file=sys.stderr)
+                return 1
+            except (RuntimeError, zmq.ZMQError) as error:
+                print(f"error: {error}", file=sys.stderr)
+                return 1
+            print(f"pong from {args.endpoint}: round trip {round_trip_s * 1e3:.3f} ms")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

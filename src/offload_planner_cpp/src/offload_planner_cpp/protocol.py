@@ -1,0 +1,264 @@
+"""Wire protocol between the robot-side client and the cloud planner, defined once for both ends.
+
+Every message is a ZeroMQ multipart message. Frame 0 is a fixed 14-byte envelope that every version
+keeps, so a server can always tell an old client which version it speaks:
+
+    magic b"OFPL" | version u8 | kind u8 | request_id u64        (little endian)
+
+Plan request (kind PLAN), after the envelope:
+    frame 1: body, struct PLAN_BODY: map hash (16 bytes), start x, y, goal x, y (int32 cells),
+             goal tolerance (float64 cells), lethal threshold (int16), flags (u8: unknown_is_obstacle,
+             stop_at_goal)
+    frames 2, 3 (only when uploading the map): JSON metadata {"width", "height", "dtype": "int8"} and
+             the raw C-order int8 buffer, never pickle. The hash is map_hash() of exactly these two.
+Upload only (kind UPLOAD): frames 1, 2 are the metadata and buffer; the reply acknowledges the hash.
+Ping (kind PING): the envelope alone.
+
+Reply (kind REPLY): envelope with the request's id, then
+    frame 1: struct REPLY_BODY: status u8, reached goal x, y (int32), expansions u64,
+             planning time (float64 s, inside the server's planner), cost (float64 cells)
+    frame 2: message, UTF-8 (empty when OK)
+    frame 3: path, raw int32 buffer of N x 2 cells (x, y), start to goal
+
+A plan on a cached map is therefore 14 + 51 bytes of payload.
+"""
+import enum
+import hashlib
+import json
+import struct
+from dataclasses import dataclass, field
+from typing import List, Optional, Sequence, Tuple
+
+import numpy as np
+
+MAGIC = b"OFPL"
+VERSION = 1
+ENVELOPE = struct.Struct("<4sBBQ")
+PLAN_BODY = struct.Struct("<16s4idhB")
+REPLY_BODY = struct.Struct("<B2iQdd")
+HASH_SIZE = 16
+FLAG_UNKNOWN_IS_OBSTACLE = 1
+FLAG_STOP_AT_GOAL = 2
+# Largest side the planner accepts, as the ROS node's map validation.
+MAX_MAP_SIDE = 100000
+MAX_METADATA_BYTES = 1024
+
+
+class Kind(enum.IntEnum):
+    PING = 1
+    PLAN = 2
+    UPLOAD = 3
+    REPLY = 4
+
+
+class Status(enum.IntEnum):
+    """Reply status. The planner's own outcomes first, in the core's order, then the link's."""
+    OK = 0
+    EMPTY_MAP = 1
+    SIZE_MISMATCH = 2
+    START_OFF_MAP = 3
+    GOAL_OFF_MAP = 4
+    START_BLOCKED = 5
+    GOAL_BLOCKED = 6
+    NO_PATH = 7
+    INVALID_OPTIONS = 8
+    MAP_UNKNOWN = 20           # the hash is not (or no longer) cached: upload the map and retry
+    BAD_REQUEST = 21           # malformed message; the reply says what is wrong
+    UNSUPPORTED_VERSION = 22
+    TOO_LARGE = 23
+    BUSY = 24                  # every worker busy and the queue full: try later or plan locally
+    SERVER_ERROR = 25
+
+
+# plan_raw() status names to protocol codes.
+CORE_STATUS = {
+    "ok": Status.OK, "empty_map": Status.EMPTY_MAP, "size_mismatch": Status.SIZE_MISMATCH,
+    "start_off_map": Status.START_OFF_MAP, "goal_off_map": Status.GOAL_OFF_MAP,
+    "start_blocked": Status.START_BLOCKED, "goal_blocked": Status.GOAL_BLOCKED, "no_path": Status.NO_PATH,
+    "invalid_options": Status.INVALID_OPTIONS,
+}
+
+
+class ProtocolError(ValueError):
+    """A message that does not follow this protocol; `status` is the reply code to send back."""
+
+    def __init__(self, status: Status, message: str):
+        super().__init__(message)
+        self.status = status
+
+
+@dataclass(frozen=True)
+class PlanOptions:
+    goal_tolerance_cells: float = 0.0
+    lethal_threshold: int = 50
+    unknown_is_obstacle: bool = True
+    stop_at_goal: bool = True
+
+
+@dataclass(frozen=True)
+class PlanRequest:
+    request_id: int
+    map_hash: bytes
+    start: Tuple[int, int]
+    goal: Tuple[int, int]
+    options: PlanOptions
+    grid: Optional[np.ndarray] = None   # set when the map travels with the request
+
+
+@dataclass(frozen=True)
+class Reply:
+    request_id: int
+    status: Status
+    message: str = ""
+    path: np.ndarray = field(default_factory=lambda: np.empty((0, 2), np.int32))
+    goal: Tuple[int, int] = (0, 0)
+    expansions: int = 0
+    planning_time_s: float = 0.0
+    cost_cells: float = 0.0
+
+
+def map_metadata(grid: np.ndarray) -> bytes:
+    """The metadata frame of `grid`, canonical (sorted keys, no spaces) so its hash is stable."""
+    return json.dumps({"dtype": "int8", "height": int(grid.shape[0]), "width": int(grid.shape[1])},
+                      sort_keys=True, separators=(",", ":")).encode()
+
+
+def map_hash(metadata: bytes, data) -> bytes:
+    """Content hash of a map: metadata and cells both count, so a reshaped grid is a different map."""
+    digest = hashlib.blake2b(digest_size=HASH_SIZE)
+    digest.update(metadata)
+    digest.update(data)
+    return digest.digest()
+
+
+def grid_hash(grid: np.ndarray) -> bytes:
+    return map_hash(map_metadata(grid), _buffer_of(grid))
+
+
+def _buffer_of(grid: np.ndarray) -> memoryview:
+    if grid.dtype != np.int8 or grid.ndim != 2 or not grid.flags.c_contiguous:
+        raise ValueError("grid must be a C-contiguous 2-D int8 array indexed [y, x]")
+    return memoryview(grid).cast("B") if grid.size else b""
+
+
+def envelope(kind: Kind, request_id: int) -> bytes:
+    return ENVELOPE.pack(MAGIC, VERSION, kind, request_id)
+
+
+def encode_ping(request_id: int) -> List[bytes]:
+    return [envelope(Kind.PING, request_id)]
+
+
+def encode_upload(request_id: int, grid: np.ndarray) -> list:
+    return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), _buffer_of(grid)]
+
+
+def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: Sequence[int],
+                options: PlanOptions = PlanOptions(), grid: Optional[np.ndarray] = None) -> list:
+    """Frames of a plan request; with `grid` the map travels too (its buffer is sent without a copy)."""
+    flags = (FLAG_UNKNOWN_IS_OBSTACLE if options.unknown_is_obstacle else 0) | \
+            (FLAG_STOP_AT_GOAL if options.stop_at_goal else 0)
+    body = PLAN_BODY.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]),
+                          float(options.goal_tolerance_cells), int(options.lethal_threshold), flags)
+    frames = [envelope(Kind.PLAN, request_id), body]
+    if grid is not None:
+        frames += [map_metadata(grid), _buffer_of(grid)]
+    return frames
+
+
+def encode_reply(reply: Reply) -> list:
+    path = np.ascontiguousarray(reply.path, dtype=np.int32)
+    body = REPLY_BODY.pack(int(reply.status), int(reply.goal[0]), int(reply.goal[1]), int(reply.expansions),
+                           float(reply.planning_time_s), float(reply.cost_cells))
+    return [envelope(Kind.REPLY, reply.request_id), body, reply.message.encode("utf-8", "replace"),
+            memoryview(path).cast("B") if path.size else b""]
+
+
+def decode_envelope(frame) -> Tuple[Kind, int]:
+    """Kind and request id of a message's first frame; ProtocolError when it is not ours or too new."""
+    frame = bytes(frame)
+    if len(frame) < 5 or frame[:4] != MAGIC:
+        raise ProtocolError(Status.BAD_REQUEST, "not an offload planner message (bad magic)")
+    if frame[4] != VERSION:
+        raise ProtocolError(Status.UNSUPPORTED_VERSION,
+                            f"protocol version {frame[4]} is not supported: this server speaks version {VERSION}")
+    if len(frame) != ENVELOPE.size:
+        raise ProtocolError(Status.BAD_REQUEST, f"envelope is {len(frame)} bytes, expected {ENVELOPE.size}")
+    _, _, kind, request_id = ENVELOPE.unpack(frame)
+    try:
+        return Kind(kind), request_id
+    except ValueError:
+        raise ProtocolError(Status.BAD_REQUEST, f"unknown message kind {kind}") from None
+
+
+def request_id_of(frame) -> int:
+    """Best-effort id of a message whose envelope may be bad, so even an error reply can be matched."""
+    frame = bytes(frame)
+    return ENVELOPE.unpack(frame)[3] if len(frame) == ENVELOPE.size else 0
+
+
+def decode_map(metadata_frame, data_frame, max_cells: int) -> Tuple[bytes, np.ndarray]:
+    """Hash and grid (a view of the received buffer, no copy) of an uploaded map."""
+    metadata = bytes(metadata_frame)
+    if len(metadata) > MAX_METADATA_BYTES:
+        raise ProtocolError(Status.BAD_REQUEST, "map metadata frame too long")
+    try:
+        meta = json.loads(metadata)
+        width, height, dtype = meta["width"], meta["height"], meta["dtype"]
+    except (ValueError, TypeError, KeyError, UnicodeDecodeError):
+        raise ProtocolError(Status.BAD_REQUEST, "map metadata must be JSON with width, height and dtype") from None
+    if dtype != "int8" or type(width) is not int or type(height) is not int:
+        raise ProtocolError(Status.BAD_REQUEST, "map metadata needs integer width and height and dtype int8")
+    if not (0 < width <= MAX_MAP_SIDE and 0 < height <= MAX_MAP_SIDE):
+        raise ProtocolError(Status.BAD_REQUEST, f"map of {width} x {height} cells is not accepted")
+    if width * height > max_cells:
+        raise ProtocolError(Status.TOO_LARGE, f"map of {width} x {height} cells exceeds {max_cells} cells")
+    data = memoryview(data_frame)
+    if data.nbytes != width * height:
+        raise ProtocolError(Status.BAD_REQUEST,
+                            f"map data has {data.nbytes} bytes but {width} x {height} = {width * height} were declared")
+    grid = np.frombuffer(data, dtype=np.int8).reshape(height, width)
+    return map_hash(metadata, data), grid
+
+
+def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
+    """A plan request from the frames after the envelope; ProtocolError when malformed or inconsistent."""
+    if len(frames) not in (1, 3):
+        raise ProtocolError(Status.BAD_REQUEST,
+                            f"plan request needs 1 body frame (+2 map frames), got {len(frames)} frames")
+    body = bytes(frames[0])
+    if len(body) != PLAN_BODY.size:
+        raise ProtocolError(Status.BAD_REQUEST, f"plan body is {len(body)} bytes, expected {PLAN_BODY.size}")
+    digest, sx, sy, gx, gy, tolerance, lethal, flags = PLAN_BODY.unpack(body)
+    if not np.isfinite(tolerance) or tolerance < 0:
+        raise ProtocolError(Status.BAD_REQUEST, "goal tolerance must be a finite number >= 0 cells")
+    options = PlanOptions(goal_tolerance_cells=tolerance, lethal_threshold=lethal,
+                          unknown_is_obstacle=bool(flags & FLAG_UNKNOWN_IS_OBSTACLE),
+                          stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL))
+    grid = None
+    if len(frames) == 3:
+        uploaded, grid = decode_map(frames[1], frames[2], max_cells)
+        if uploaded != digest:
+            raise ProtocolError(Status.BAD_REQUEST, "map hash does not match the uploaded map")
+    return PlanRequest(request_id, digest, (sx, sy), (gx, gy), options, grid)
+
+
+def decode_reply(frames) -> Reply:
+    """A reply from all its frames (envelope first); ProtocolError when malformed."""
+    if len(frames) != 4:
+        raise ProtocolError(Status.BAD_REQUEST, f"reply needs 4 frames, got {len(frames)}")
+    kind, request_id = decode_envelope(frames[0])
+    body = bytes(frames[1])
+    if kind != Kind.REPLY or len(body) != REPLY_BODY.size:
+        raise ProtocolError(Status.BAD_REQUEST, "malformed reply")
+    status, gx, gy, expansions, planning_time_s, cost = REPLY_BODY.unpack(body)
+    path_bytes = memoryview(frames[2 + 1])
+    if path_bytes.nbytes % 8:
+        raise ProtocolError(Status.BAD_REQUEST, "reply path is not whole (x, y) int32 pairs")
+    try:
+        status = Status(status)
+    except ValueError:
+        raise ProtocolError(Status.BAD_REQUEST, f"unknown reply status {status}") from None
+    path = np.frombuffer(path_bytes, dtype=np.int32).reshape(-1, 2)
+    return Reply(request_id, status, bytes(frames[2]).decode("utf-8", "replace"), path, (gx, gy), expansions,
+                 planning_time_s, cost)
