@@ -1,0 +1,152 @@
+"""Protocol round trips and rejections, the map cache, and the Python port of the map geometry."""
+import math
+
+import numpy as np
+import pytest
+
+from offload_planner_cpp import protocol
+from offload_planner_cpp.grid_geometry import MapGeometry, fmt, in_map_frame, validate_map, yaw_of
+from offload_planner_cpp.map_cache import MapCache
+from offload_planner_cpp.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
+
+MAX_CELLS = 1 << 24
+
+
+def test_plan_request_round_trip_with_and_without_map():
+    grid = np.arange(12, dtype=np.int8).reshape(3, 4)
+    digest = protocol.grid_hash(grid)
+    options = PlanOptions(goal_tolerance_cells=2.5, lethal_threshold=70, unknown_is_obstacle=False,
+                          stop_at_goal=True)
+    for attached in (None, grid):
+        frames = protocol.encode_plan(77, digest, (1, 2), (3, 0), options, attached)
+        kind, request_id = protocol.decode_envelope(frames[0])
+        assert (kind, request_id) == (Kind.PLAN, 77)
+        request = protocol.decode_plan(request_id, [bytes(f) for f in frames[1:]], MAX_CELLS)
+        assert request.map_hash == digest and request.start == (1, 2) and request.goal == (3, 0)
+        assert request.options == options
+        if attached is None:
+            assert request.grid is None
+        else:
+            np.testing.assert_array_equal(request.grid, grid)
+
+
+def test_request_on_a_cached_map_is_small():
+    frames = protocol.encode_plan(1, b"\0" * 16, (1, 2), (3, 4))
+    assert sum(len(f) for f in frames) <= 512
+    assert len(frames) == 2
+
+
+def test_reply_round_trip():
+    path = np.array([[0, 0], [1, 1], [2, 1]], np.int32)
+    reply = Reply(9, Status.OK, "", path, (2, 1), 42, 0.0125, 2.414)
+    decoded = protocol.decode_reply([bytes(f) for f in protocol.encode_reply(reply)])
+    assert decoded.request_id == 9 and decoded.status == Status.OK and decoded.goal == (2, 1)
+    assert decoded.expansions == 42 and decoded.planning_time_s == 0.0125 and decoded.cost_cells == 2.414
+    np.testing.assert_array_equal(decoded.path, path)
+    empty = protocol.decode_reply([bytes(f) for f in protocol.encode_reply(Reply(3, Status.NO_PATH, "none"))])
+    assert empty.path.shape == (0, 2) and empty.message == "none"
+
+
+def test_upload_and_ping_round_trip():
+    grid = np.zeros((5, 7), np.int8)
+    frames = protocol.encode_upload(5, grid)
+    assert protocol.decode_envelope(frames[0]) == (Kind.UPLOAD, 5)
+    digest, decoded = protocol.decode_map(bytes(frames[1]), bytes(frames[2]), MAX_CELLS)
+    assert digest == protocol.grid_hash(grid) and decoded.shape == (5, 7)
+    assert protocol.decode_envelope(protocol.encode_ping(6)[0]) == (Kind.PING, 6)
+
+
+def test_hash_depends_on_shape_and_content():
+    grid = np.zeros((4, 6), np.int8)
+    assert protocol.grid_hash(grid) != protocol.grid_hash(grid.reshape(6, 4))
+    changed = grid.copy()
+    changed[3, 5] = 1
+    assert protocol.grid_hash(grid) != protocol.grid_hash(changed)
+
+
+def test_other_version_is_told_which_version_the_server_speaks():
+    frame = protocol.ENVELOPE.pack(protocol.MAGIC, protocol.VERSION + 1, Kind.PLAN, 3)
+    with pytest.raises(ProtocolError) as error:
+        protocol.decode_envelope(frame)
+    assert error.value.status == Status.UNSUPPORTED_VERSION
+    assert f"speaks version {protocol.VERSION}" in str(error.value)
+
+
+@pytest.mark.parametrize("frame", [b"", b"OFP", b"XXXX" + bytes(10), protocol.envelope(Kind.PLAN, 1)[:-1],
+                                   protocol.ENVELOPE.pack(protocol.MAGIC, protocol.VERSION, 99, 1)])
+def test_bad_envelopes_are_rejected(frame):
+    with pytest.raises(ProtocolError) as error:
+        protocol.decode_envelope(frame)
+    assert error.value.status == Status.BAD_REQUEST
+
+
+def test_malformed_plans_are_rejected():
+    grid = np.zeros((3, 3), np.int8)
+    good = [bytes(f) for f in protocol.encode_plan(1, protocol.grid_hash(grid), (0, 0), (2, 2), grid=grid)][1:]
+    bad_cases = [
+        [],                                        # no body
+        [good[0][:-1]],                            # truncated body
+        good[:2],                                  # metadata without data
+        [good[0], good[1], good[2][:-1]],          # data shorter than declared
+        [good[0], b"{not json", good[2]],
+        [good[0], b'{"dtype":"int8","height":3,"width":-3}', good[2]],
+        [good[0], b'{"dtype":"float32","height":3,"width":3}', good[2]],
+        [good[0], b'{"dtype":"int8","height":3.0,"width":3}', good[2]],
+        [protocol.encode_plan(1, b"\1" * 16, (0, 0), (2, 2))[1], good[1], good[2]],   # hash mismatch
+        [protocol.PLAN_BODY.pack(b"\0" * 16, 0, 0, 1, 1, float("nan"), 50, 3)],
+        [protocol.PLAN_BODY.pack(b"\0" * 16, 0, 0, 1, 1, -1.0, 50, 3)],
+    ]
+    for frames in bad_cases:
+        with pytest.raises(ProtocolError) as error:
+            protocol.decode_plan(1, frames, MAX_CELLS)
+        assert error.value.status == Status.BAD_REQUEST, frames
+    with pytest.raises(ProtocolError) as error:
+        protocol.decode_plan(1, good, max_cells=8)
+    assert error.value.status == Status.TOO_LARGE
+
+
+def test_map_cache_is_lru_and_bounded():
+    cache = MapCache(capacity_bytes=250)
+    maps = {key: np.zeros(100, np.int8) for key in (b"a", b"b", b"c")}
+    assert cache.put(b"a", maps[b"a"]) and cache.put(b"b", maps[b"b"])
+    assert cache.get(b"a") is maps[b"a"]          # a is now the most recent
+    assert cache.put(b"c", maps[b"c"])            # evicts b
+    assert b"b" not in cache and b"a" in cache and b"c" in cache
+    assert cache.size_bytes == 200 and cache.evictions == 1
+    assert not cache.put(b"big", np.zeros(251, np.int8))
+    assert cache.get(b"b") is None and cache.misses == 1
+
+
+def test_geometry_matches_the_cpp_convention():
+    geometry = MapGeometry(resolution=0.5, origin_x=-1.0, origin_y=2.0, origin_yaw=0.0, width=10, height=4)
+    assert geometry.world_to_cell(-1.0, 2.0) == (0, 0)
+    assert geometry.world_to_cell(3.99, 3.99) == (9, 3)
+    assert geometry.world_to_cell(4.0, 2.0) is None          # right edge is off the map
+    assert geometry.world_to_cell(-1.01, 2.0) is None
+    assert geometry.cell_to_world(0, 0) == (-0.75, 2.25)
+    xs, ys = geometry.cells_to_world(np.array([[0, 0], [9, 3]]))
+    assert (xs.tolist(), ys.tolist()) == ([-0.75, 3.75], [2.25, 3.75])
+    rotated = MapGeometry(resolution=1.0, origin_yaw=math.pi / 2, width=5, height=5)
+    assert rotated.world_to_cell(-0.5, 2.5) == (2, 0)        # grid x runs along world y
+    x, y = rotated.cell_to_world(2, 0)
+    assert (round(x, 9), round(y, 9)) == (-0.5, 2.5)
+    assert yaw_of(0, 0, math.sin(0.3), math.cos(0.3)) == pytest.approx(0.6)
+
+
+def test_map_validation_and_frames_word_as_the_local_node():
+    assert validate_map(0, 5, 0, 0.05, 0, 0) == "map is empty (0 x 5)"
+    assert validate_map(3, 2, 5, 0.05, 0, 0) == "map data has 5 cells but 3 x 2 = 6 were declared"
+    assert validate_map(3, 2, 6, 0.0, 0, 0) == "map resolution 0 is not a positive number"
+    assert validate_map(3, 2, 6, 0.05, math.nan, 0) == "map origin is not finite"
+    assert validate_map(3, 2, 6, 0.05, 0, 0) == ""
+    assert fmt(1.5) == "1.5" and fmt(100.0) == "100" and fmt(1234567.0) == "1.23457e+06"
+    assert in_map_frame("", "map") and in_map_frame("/map", "map") and not in_map_frame("odom", "map")
+
+
+def test_bridge_status_codes_match_the_service():
+    srv = pytest.importorskip("offload_msgs.srv")
+    from offload_planner_cpp.bridge import PlanPathStatus
+    response = srv.PlanPathResponse
+    for name in ("OK", "NO_MAP", "BAD_FRAME", "START_OFF_MAP", "GOAL_OFF_MAP", "START_BLOCKED", "GOAL_BLOCKED",
+                 "NO_PATH", "INVALID_MAP", "CLOUD_TIMEOUT", "CLOUD_ERROR", "INVALID_REQUEST"):
+        assert getattr(PlanPathStatus, name) == getattr(response, name), name

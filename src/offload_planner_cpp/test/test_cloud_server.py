@@ -1,0 +1,237 @@
+"""The cloud server on a random loopback port: correct plans, CURVE allowlist, hostile input, size cap,
+cache misses, concurrency, and the health-check command."""
+import os
+import random
+import subprocess
+import sys
+import threading
+import time
+
+import numpy as np
+import pytest
+import zmq
+
+import offload_planner_cpp
+from offload_planner_cpp import protocol
+from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout
+from offload_planner_cpp.keys import load_client_keys
+from offload_planner_cpp.protocol import Kind, PlanOptions, Status
+
+from cloud_test_helpers import make_keys, random_map, start_server
+
+pytestmark = pytest.mark.timeout(120)
+
+
+@pytest.fixture(scope="module")
+def key_dirs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("keys")
+    server_keys = make_keys(root, ["robot", "robot2"])
+    intruder = make_keys(tmp_path_factory.mktemp("other"), ["intruder"]).parent / "intruder"
+    return server_keys, root / "robot", intruder
+
+
+@pytest.fixture(scope="module")
+def server(key_dirs):
+    server = start_server(key_dirs[0], workers=2, max_message_bytes=1 << 20, cache_bytes=1 << 22)
+    yield server
+    server.stop()
+
+
+@pytest.fixture
+def client(server, key_dirs):
+    with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=5.0) as client:
+        yield client
+
+
+def curve_socket(context, key_dir, endpoint, kind=zmq.DEALER):
+    socket = context.socket(kind)
+    socket.linger = 0
+    public, secret, server_public = load_client_keys(key_dir)
+    socket.curve_publickey, socket.curve_secretkey, socket.curve_serverkey = public, secret, server_public
+    socket.connect(endpoint)
+    return socket
+
+
+def test_ping_and_plan_match_local_planning(client):
+    assert client.ping() > 0
+    grid = random_map(60, 40, 0.2, seed=1)
+    outcome = client.plan(grid, (0, 0), (59, 39))
+    local = offload_planner_cpp.plan_raw(grid, (0, 0), (59, 39))
+    assert outcome.uploaded and outcome.reply.status == Status.OK and local["status"] == "ok"
+    np.testing.assert_array_equal(outcome.reply.path, local["path"])
+    assert outcome.reply.cost_cells == local["cost"] and outcome.reply.expansions == local["expansions"]
+    again = client.plan(grid, (0, 0), (59, 39))
+    assert not again.uploaded and again.reply.status == Status.OK
+
+
+def test_planner_failures_come_back_as_statuses(client):
+    grid = np.zeros((10, 10), np.int8)
+    grid[5, :] = 100
+    assert client.plan(grid, (0, 0), (9, 9)).reply.status == Status.NO_PATH
+    blocked = client.plan(grid, (0, 0), (5, 5)).reply
+    assert blocked.status == Status.GOAL_BLOCKED and "obstacle" in blocked.message
+    assert client.plan(grid, (0, 0), (50, 5)).reply.status == Status.GOAL_OFF_MAP
+    tolerant = client.plan(grid, (0, 0), (5, 5), PlanOptions(goal_tolerance_cells=1.5)).reply
+    assert tolerant.status == Status.OK and tolerant.goal != (5, 5)
+
+
+def test_old_client_gets_unsupported_version(server, key_dirs):
+    context = zmq.Context()
+    socket = curve_socket(context, key_dirs[1], server.endpoint)
+    try:
+        socket.send_multipart([protocol.ENVELOPE.pack(protocol.MAGIC, 0, Kind.PING, 12)])
+        assert socket.poll(5000)
+        reply = protocol.decode_reply(socket.recv_multipart())
+        assert reply.status == Status.UNSUPPORTED_VERSION and reply.request_id == 12
+        assert f"speaks version {protocol.VERSION}" in reply.message
+    finally:
+        socket.close(0)
+        context.term()
+
+
+def test_req_socket_clients_are_served_too(server, key_dirs):
+    context = zmq.Context()
+    socket = curve_socket(context, key_dirs[1], server.endpoint, zmq.REQ)
+    try:
+        socket.send_multipart(protocol.encode_ping(5))
+        assert socket.poll(5000)
+        assert protocol.decode_reply(socket.recv_multipart()).status == Status.OK
+    finally:
+        socket.close(0)
+        context.term()
+
+
+def test_unknown_client_key_gets_no_service(server, key_dirs):
+    with CloudClient(server.endpoint, keys_dir=str(key_dirs[2]), timeout_s=1.0, retries=0) as intruder:
+        with pytest.raises(CloudTimeout):
+            intruder.ping()
+        with pytest.raises(CloudTimeout):
+            intruder.plan(np.zeros((4, 4), np.int8), (0, 0), (3, 3))
+    with CloudClient(server.endpoint, insecure=True, timeout_s=1.0, retries=0) as plaintext:
+        with pytest.raises(CloudTimeout):
+            plaintext.ping()
+    with CloudClient(server.endpoint, keys_dir=str(key_dirs[1].parent / "robot2"), timeout_s=5.0) as allowed:
+        assert allowed.ping() > 0
+
+
+def test_fuzz_garbage_then_a_valid_request_succeeds(server, key_dirs, client):
+    rng = random.Random(1234)
+    grid = random_map(30, 30, 0.1, seed=2)
+    valid = [bytes(f) for f in protocol.encode_plan(7, protocol.grid_hash(grid), (0, 0), (29, 29), grid=grid)]
+    ping = protocol.encode_ping(8)[0]
+
+    def garbage():
+        choice = rng.randrange(6)
+        if choice == 0:   # random frames
+            return [rng.randbytes(rng.randrange(0, 64)) for _ in range(rng.randrange(1, 6))]
+        if choice == 1:   # a valid message truncated at a random frame and byte
+            frames = valid[:rng.randrange(1, len(valid) + 1)]
+            cut = rng.randrange(len(frames))
+            return frames[:cut] + [frames[cut][:rng.randrange(len(frames[cut]) + 1)]]
+        if choice == 2:   # a valid message with random bytes flipped
+            frames = [bytearray(f) for f in valid[:2]]
+            for _ in range(rng.randrange(1, 4)):
+                frame = frames[rng.randrange(len(frames))]
+                if frame:
+                    frame[rng.randrange(len(frame))] = rng.randrange(256)
+            return [bytes(f) for f in frames]
+        if choice == 3:   # right envelope, hostile body
+            kind = rng.choice([Kind.PLAN, Kind.UPLOAD, Kind.REPLY, Kind.PING])
+            return [protocol.envelope(kind, rng.getrandbits(64))] + [rng.randbytes(rng.randrange(80))
+                                                                      for _ in range(rng.randrange(0, 4))]
+        if choice == 4:   # many frames
+            return [ping] * rng.randrange(10, 40)
+        return [b""] * rng.randrange(1, 4) + [ping]
+
+    context = zmq.Context()
+    sockets = [curve_socket(context, key_dirs[1], server.endpoint) for _ in range(4)]
+    try:
+        for k in range(3000):
+            sockets[k % 4].send_multipart(garbage())
+            if k % 200 == 199:   # drain so the server's replies never pile up
+                for socket in sockets:
+                    while socket.poll(0):
+                        socket.recv_multipart()
+        deadline = time.monotonic() + 10
+        for socket in sockets:
+            while time.monotonic() < deadline and socket.poll(200):
+                socket.recv_multipart()
+    finally:
+        for socket in sockets:
+            socket.close(0)
+        context.term()
+    outcome = client.plan(grid, (0, 0), (29, 29))
+    assert outcome.reply.status == Status.OK
+    np.testing.assert_array_equal(outcome.reply.path, offload_planner_cpp.plan_raw(grid, (0, 0), (29, 29))["path"])
+
+
+def test_oversized_message_is_refused_and_server_survives(server, key_dirs, client):
+    big = np.zeros((1100, 1000), np.int8)   # 1.1 MB frame over the 1 MiB cap
+    with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=1.0, retries=0) as sender:
+        with pytest.raises(CloudTimeout):   # libzmq drops the connection: no reply at all
+            sender.plan(big, (0, 0), (5, 5))
+    # Frames each under the cap but together over it are refused with a reply.
+    context = zmq.Context()
+    socket = curve_socket(context, key_dirs[1], server.endpoint)
+    try:
+        half = bytes(700_000)
+        socket.send_multipart([protocol.envelope(Kind.UPLOAD, 3), half, half])
+        assert socket.poll(5000)
+        assert protocol.decode_reply(socket.recv_multipart()).status == Status.TOO_LARGE
+    finally:
+        socket.close(0)
+        context.term()
+    assert client.ping() > 0
+
+
+def test_cache_miss_makes_the_client_upload_again(key_dirs):
+    server = start_server(key_dirs[0], workers=1, cache_bytes=150_000)   # room for one 100 kB map
+    try:
+        with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=5.0) as client:
+            first, second = random_map(400, 250, 0.1, seed=3), random_map(400, 250, 0.1, seed=4)
+            assert client.plan(first, (0, 0), (399, 249)).uploaded
+            assert not client.plan(first, (0, 0), (10, 10)).uploaded
+            assert client.plan(second, (0, 0), (399, 249)).uploaded   # evicts the first map
+            outcome = client.plan(first, (0, 0), (399, 249))
+            assert outcome.uploaded and outcome.reply.status == Status.OK
+            assert server.cache.evictions >= 1
+            assert not client.plan(first, (0, 0), (399, 249)).uploaded
+    finally:
+        server.stop()
+
+
+def test_many_concurrent_clients_get_correct_paths(server, key_dirs):
+    grid = random_map(120, 90, 0.25, seed=5)
+    rng = np.random.default_rng(6)
+    free = np.argwhere(grid == 0)
+    jobs = [(tuple(free[a][::-1]), tuple(free[b][::-1])) for a, b in rng.integers(0, len(free), (48, 2))]
+    results = {}
+
+    def robot(index):
+        with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=20.0) as client:
+            for job in range(index, len(jobs), 8):
+                results[job] = client.plan(grid, *jobs[job]).reply
+
+    threads = [threading.Thread(target=robot, args=(k,)) for k in range(8)]
+    for thread in threads:
+        thread.start()
+    for thread in threads:
+        thread.join(60)
+    assert len(results) == len(jobs)
+    for job, (start, goal) in enumerate(jobs):
+        local = offload_planner_cpp.plan_raw(grid, start, goal)
+        reply = results[job]
+        assert reply.status == protocol.CORE_STATUS[local["status"]]
+        np.testing.assert_array_equal(reply.path, local["path"])
+        assert reply.cost_cells == local["cost"]
+
+
+def test_health_check_command(server, key_dirs):
+    command = [sys.executable, "-m", "offload_planner_cpp.cloud_client"]
+    ok = subprocess.run(command + [server.endpoint, "--ping", "--keys-dir", str(key_dirs[1])],
+                        capture_output=True, text=True, timeout=60, env=os.environ)
+    assert ok.returncode == 0, ok.stderr
+    assert "round trip" in ok.stdout
+    denied = subprocess.run(command + [server.endpoint, "--ping", "--keys-dir", str(key_dirs[2]), "--timeout",
+                                       "0.5"], capture_output=True, text=True, timeout=60, env=os.environ)
+    assert denied.returncode == 1 and "no answer" in denied.stderr
