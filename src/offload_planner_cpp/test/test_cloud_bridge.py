@@ -1,0 +1,177 @@
+"""The robot-side bridge without ROS: local-node-identical answers, timeout and reconnect against a server
+process that is killed mid-request, and the WAN emulator in between."""
+import math
+import signal
+import threading
+import time
+
+import numpy as np
+import pytest
+
+import offload_planner_cpp
+from offload_planner_cpp.bridge import BridgeConfig, CloudBridge, PlanPathStatus, StampedPoint
+from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout
+from offload_planner_cpp.wan_emulator import LinkModel, WanEmulator, read_trace
+
+from cloud_test_helpers import LOOPBACK, free_port, make_keys, random_map, spawn_server, start_server
+
+pytestmark = pytest.mark.timeout(120)
+RESOLUTION_M = 0.05
+ORIGIN_M = (-1.0, 2.0)
+IDENTITY = (0.0, 0.0, 0.0, 1.0)
+
+
+@pytest.fixture(scope="module")
+def key_dirs(tmp_path_factory):
+    root = tmp_path_factory.mktemp("keys")
+    return make_keys(root, ["robot"]), root / "robot"
+
+
+def make_bridge(endpoint, client_keys, **overrides) -> CloudBridge:
+    return CloudBridge(BridgeConfig(endpoint=endpoint, keys_dir=str(client_keys), **overrides))
+
+
+def give_map(bridge, grid, frame_id="map"):
+    height, width = grid.shape
+    return bridge.set_map(grid.reshape(-1), width, height, RESOLUTION_M, *ORIGIN_M, IDENTITY, frame_id, "stamp")
+
+
+def world(cell):
+    return ORIGIN_M[0] + (cell[0] + 0.5) * RESOLUTION_M, ORIGIN_M[1] + (cell[1] + 0.5) * RESOLUTION_M
+
+
+def point(cell, frame_id="map"):
+    return StampedPoint(frame_id, *world(cell))
+
+
+def test_bridge_answers_like_the_local_node(key_dirs):
+    server = start_server(key_dirs[0], workers=1)
+    bridge = make_bridge(server.endpoint, key_dirs[1])
+    try:
+        no_map = bridge.plan(point((0, 0)), point((1, 1)), 0.0)
+        assert no_map.status == PlanPathStatus.NO_MAP
+        assert no_map.message == "no map received yet on the map topic"
+        assert "were declared" in bridge.set_map(np.zeros(5, np.int8), 2, 2, 0.05, 0, 0, IDENTITY, "map", None)
+        assert bridge.plan(point((0, 0)), point((1, 1)), 0.0).message.endswith(
+            "(last map rejected: map data has 5 cells but 2 x 2 = 4 were declared)")
+
+        grid = random_map(80, 60, 0.2, seed=7)
+        assert give_map(bridge, grid) == ""
+        result = bridge.plan(point((0, 0)), point((79, 59)), 0.0)
+        local = offload_planner_cpp.plan_raw(grid, (0, 0), (79, 59))
+        assert result.status == PlanPathStatus.OK and result.reached_goal and result.map_stamp == "stamp"
+        xs, ys = (ORIGIN_M[0] + (local["path"][:, 0] + 0.5) * RESOLUTION_M,
+                  ORIGIN_M[1] + (local["path"][:, 1] + 0.5) * RESOLUTION_M)
+        np.testing.assert_array_equal(result.path_x_m, xs)
+        np.testing.assert_array_equal(result.path_y_m, ys)
+        assert result.cost_m == local["cost"] * RESOLUTION_M and result.expansions == local["expansions"]
+        assert result.link_round_trip_s > 0 and result.reachable
+
+        bad_frame = bridge.plan(point((0, 0), "odom"), point((1, 1)), 0.0)
+        assert bad_frame.status == PlanPathStatus.BAD_FRAME
+        assert bad_frame.message == ("start is in frame 'odom' but the map is in 'map': "
+                                     "transform it to the map frame first")
+        assert bridge.plan(point((0, 0)), point((1, 1), "/map"), 0.0).status == PlanPathStatus.OK
+        assert bridge.plan(point((0, 0)), point((1, 1)), -1.0).status == PlanPathStatus.INVALID_REQUEST
+        assert bridge.plan(StampedPoint("", math.nan, 0), point((1, 1)), 0.0).status == \
+            PlanPathStatus.INVALID_REQUEST
+        off = bridge.plan(StampedPoint("map", -1.5, 2.0), point((1, 1)), 0.0)
+        assert off.status == PlanPathStatus.START_OFF_MAP and off.message == "start (-1.5, 2) m is off the map"
+        off = bridge.plan(point((0, 0)), StampedPoint("map", 3.0, 100.0), 0.0)
+        assert off.status == PlanPathStatus.GOAL_OFF_MAP and off.message == "goal (3, 100) m is off the map"
+
+        walled = np.zeros((20, 20), np.int8)
+        walled[10, :] = 100
+        give_map(bridge, walled)
+        assert bridge.plan(point((0, 0)), point((5, 19)), 0.0).status == PlanPathStatus.NO_PATH
+        blocked = bridge.plan(point((0, 0)), point((5, 10)), 0.0)
+        assert blocked.status == PlanPathStatus.GOAL_BLOCKED
+        assert blocked.message == offload_planner_cpp.plan_raw(walled, (0, 0), (5, 10))["message"]
+        tolerant = bridge.plan(point((0, 0)), point((5, 10)), 0.06)   # 1.2 cells
+        assert tolerant.status == PlanPathStatus.OK and not tolerant.reached_goal
+        assert bridge.plan(point((5, 10)), point((0, 0)), 0.0).status == PlanPathStatus.START_BLOCKED
+    finally:
+        bridge.close()
+        server.stop()
+
+
+def test_killed_server_gives_timeout_in_time_then_reconnects(key_dirs):
+    port = free_port()
+    endpoint = f"{LOOPBACK}:{port}"
+    process = spawn_server(port, key_dirs[0])
+    timeout_s = 2.0
+    bridge = make_bridge(endpoint, key_dirs[1], timeout_s=timeout_s, retries=1)
+    try:
+        grid = np.zeros((2500, 2500), np.int8)   # a plan long enough to be killed in the middle
+        give_map(bridge, grid)
+        assert bridge.heartbeat()[0]              # uploads the map
+        assert bridge.plan(point((0, 0)), point((5, 5)), 0.0).status == PlanPathStatus.OK
+        answers = []
+
+        def ask():
+            started = time.monotonic()
+            answers.append((bridge.plan(point((0, 0)), point((2499, 2499)), 0.0), time.monotonic() - started))
+
+        asking = threading.Thread(target=ask)
+        asking.start()
+        time.sleep(0.05)
+        process.send_signal(signal.SIGKILL)
+        process.wait(10)
+        asking.join(30)
+        result, elapsed_s = answers[0]
+        assert result.status == PlanPathStatus.CLOUD_TIMEOUT and not result.reachable
+        assert "did not answer within 2 s" in result.message
+        assert elapsed_s < timeout_s + 1.0
+        assert bridge.heartbeat() == (False, 1.0)
+
+        process = spawn_server(port, key_dirs[0])   # restarted, with an empty cache
+        result = bridge.plan(point((0, 0)), point((2499, 2499)), 0.0)
+        assert result.status == PlanPathStatus.OK, result.message
+        assert bridge.heartbeat()[0]
+    finally:
+        bridge.close()
+        process.kill()
+        process.wait(10)
+
+
+def test_client_timeout_is_fast_when_nothing_listens():
+    with CloudClient(f"{LOOPBACK}:{free_port()}", insecure=True, timeout_s=0.5, retries=2) as client:
+        started = time.monotonic()
+        with pytest.raises(CloudTimeout):
+            client.ping()
+        assert time.monotonic() - started < 0.5 + 1.0
+
+
+def test_wan_emulator_adds_delay_and_stalls(key_dirs):
+    server = start_server(key_dirs[0], workers=1)
+    link = LinkModel(rtt_s=0.08, jitter_s=0.01, bandwidth_bps=50e6, outages=[(1.5, 1.0)], seed=1)
+    emulator = WanEmulator(f"{LOOPBACK}:0", server.endpoint, link)
+    endpoint = emulator.start()
+    try:
+        with CloudClient(endpoint, keys_dir=str(key_dirs[1]), timeout_s=5.0, retries=0) as client:
+            client.ping()   # connects (the CURVE handshake crosses the link too)
+            round_trips = [client.ping() for _ in range(3)]
+            assert min(round_trips) >= 0.08 - 0.01
+            outcome = client.plan(random_map(200, 200, 0.1, seed=8), (0, 0), (199, 199))
+            assert outcome.reply.status == 0
+            while emulator._now() < 1.6:
+                time.sleep(0.05)
+            with pytest.raises(CloudTimeout):   # stalled for the rest of the outage
+                client.ping(timeout_s=0.3)
+            assert client.ping() > 0          # the link comes back and so does the client
+    finally:
+        emulator.stop()
+        server.stop()
+
+
+def test_link_model_trace_and_outages(tmp_path):
+    trace_file = tmp_path / "rtt.txt"
+    trace_file.write_text("# time_s rtt_ms\n0 20\n1.5, 100\n3 40\n")
+    link = LinkModel(trace=read_trace(str(trace_file)), loop_trace=True, outages=[(10, 2)])
+    assert [link.round_trip_s(t) for t in (0.5, 2.0, 2.9, 3.5)] == [0.02, 0.1, 0.1, 0.02]
+    assert link.outage_end(11.0) == 12 and link.outage_end(12.0) is None
+    assert LinkModel(rtt_s=0.05).one_way_s(0.0) == 0.025
+    bad = tmp_path / "bad.txt"
+    bad.write_text("zero twenty\n")
+    with pytest.raises(ValueError):
+        read_trace(str(bad))
