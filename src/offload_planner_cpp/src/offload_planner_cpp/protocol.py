@@ -20,7 +20,7 @@ Reply (kind REPLY): envelope with the request's id, then
     frame 2: message, UTF-8 (empty when OK)
     frame 3: path, raw int32 buffer of N x 2 cells (x, y), start to goal
 
-A plan on a cached map is therefore 14 + 51 bytes of payload.
+A plan on a cached map is therefore 14 + 43 = 57 bytes of payload.
 """
 import enum
 import hashlib

@@ -122,6 +122,9 @@ class WanEmulator:
         self._thread = None
         self._ready = threading.Event()
         self._writers = set()
+        # TCP payload bytes forwarded client->server and server->client (the benchmark's bytes on the wire).
+        self.bytes_up = 0
+        self.bytes_down = 0
 
     @property
     def endpoint(self) -> str:
@@ -181,14 +184,14 @@ class WanEmulator:
             return
         self._writers.update((client_writer, upstream_writer))
         try:
-            await asyncio.gather(self._pump(client_reader, upstream_writer),
-                                 self._pump(upstream_reader, client_writer))
+            await asyncio.gather(self._pump(client_reader, upstream_writer, "bytes_up"),
+                                 self._pump(upstream_reader, client_writer, "bytes_down"))
         finally:
             for writer in (client_writer, upstream_writer):
                 self._writers.discard(writer)
                 writer.close()
 
-    async def _pump(self, reader, writer) -> None:
+    async def _pump(self, reader, writer, counter: str) -> None:
         direction = _Direction(self.link)
         queue = asyncio.Queue(_QUEUED_CHUNKS)
 
@@ -219,6 +222,7 @@ class WanEmulator:
                         break
                     await asyncio.sleep(wait_s)
                 writer.write(data)
+                setattr(self, counter, getattr(self, counter) + len(data))
                 await writer.drain()
             if writer.can_write_eof():
                 writer.write_eof()
