@@ -1,0 +1,71 @@
+"""Every hyperparameter of the DQN learner in one place. The paper's Table 1 is missing from its
+text, so the values below are our defaults; the architecture, replay size and epsilon are the paper's."""
+from dataclasses import asdict, dataclass, fields
+from typing import Tuple
+
+
+@dataclass(frozen=True)
+class DQNConfig:
+    seed: int = 1
+    """seed of torch, numpy and the exploration draws; same seed, same run."""
+    hidden_sizes: Tuple[int, ...] = (256, 256, 256)
+    """hidden ReLU layers between the 3 inputs and the 2 Q-values (paper: three of 256)."""
+    gamma: float = 0.0
+    """discount; 0 is the contextual-bandit reading (s_t+1 ignores a_t), > 0 reproduces the paper."""
+    learning_rate: float = 1e-3
+    """Adam step size."""
+    weight_decay: float = 0.0
+    """decoupled weight decay (AdamW); damps Q-value wiggles between sparse, noisy samples."""
+    replay_capacity: int = 1000
+    """FIFO replay memory size (paper: 1000 experiences)."""
+    batch_size: int = 64
+    """minibatch drawn uniformly from replay memory per gradient step."""
+    learning_starts: int = 200
+    """warm-up steps of uniformly random actions before the first gradient step; the state
+    normalisation is fitted on these states and then frozen."""
+    train_frequency: int = 2
+    """environment steps between gradient steps."""
+    gradient_steps: int = 1
+    """gradient steps each time training runs."""
+    target_update_interval: int = 50
+    """environment steps between copies of the online weights into the target network (K)."""
+    epsilon: float = 0.1
+    """epsilon-greedy exploration rate after warm-up (paper: 0.1)."""
+    huber_delta: float = 1.0
+    """Huber (smooth L1) loss threshold; rewards lie in [-1, 1] so the loss is quadratic there."""
+    max_grad_norm: float = 10.0
+    """gradient norm clip, guards against rare large TD errors when gamma > 0."""
+    log_input_size: bool = True
+    """feed log(d + 1e-6) instead of d: d spans orders of magnitude across requests."""
+
+    def __post_init__(self):
+        if not 0.0 <= self.gamma < 1.0:
+            raise ValueError(f"gamma must be in [0, 1), got {self.gamma}")
+        if not 0.0 <= self.epsilon <= 1.0:
+            raise ValueError(f"epsilon must be in [0, 1], got {self.epsilon}")
+        for name in ("replay_capacity", "batch_size", "train_frequency", "gradient_steps",
+                     "target_update_interval"):
+            if getattr(self, name) < 1:
+                raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.learning_starts < 0:
+            raise ValueError(f"learning_starts must be >= 0, got {self.learning_starts}")
+        if not self.hidden_sizes or min(self.hidden_sizes) < 1:
+            raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
+        if self.batch_size > self.replay_capacity:
+            raise ValueError("batch_size cannot exceed replay_capacity")
+
+    def to_dict(self) -> dict:
+        values = asdict(self)
+        values["hidden_sizes"] = list(self.hidden_sizes)
+        return values
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "DQNConfig":
+        known = {f.name for f in fields(cls)}
+        unknown = set(values) - known
+        if unknown:
+            raise ValueError(f"unknown DQNConfig fields: {sorted(unknown)}")
+        values = dict(values)
+        if "hidden_sizes" in values:
+            values["hidden_sizes"] = tuple(int(h) for h in values["hidden_sizes"])
+        return cls(**values)

@@ -1,0 +1,156 @@
+"""The DQN of Algorithm 1: a Q-network 3 -> 256 -> 256 -> 256 -> 2 (ReLU), a target copy refreshed
+every K steps, FIFO replay, epsilon-greedy actions. Plus a numpy copy of the network for the robot's
+per-request decision, which must cost well under 100 us."""
+import math
+from typing import Optional, Tuple
+
+import numpy as np
+import torch
+from torch import nn
+
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.config import DQNConfig
+from offload_learner_py.normalisation import INPUT_SIZE_LOG_FLOOR, StateNormalisation
+from offload_learner_py.replay import ReplayMemory
+from offload_learner_py.state import STATE_SIZE
+
+N_ACTIONS = 2
+
+
+class QNetwork(nn.Module):
+    def __init__(self, hidden_sizes=(256, 256, 256), state_size: int = STATE_SIZE, n_actions: int = N_ACTIONS):
+        super().__init__()
+        layers = []
+        width = state_size
+        for hidden in hidden_sizes:
+            layers += [nn.Linear(width, hidden), nn.ReLU()]
+            width = hidden
+        layers.append(nn.Linear(width, n_actions))
+        self.layers = nn.Sequential(*layers)
+
+    def forward(self, x: torch.Tensor) -> torch.Tensor:
+        return self.layers(x)
+
+
+def build_network(config: DQNConfig) -> QNetwork:
+    """Weights drawn from the config's seed without disturbing torch's global generator."""
+    with torch.random.fork_rng(devices=[]):
+        torch.manual_seed(config.seed)
+        return QNetwork(config.hidden_sizes)
+
+
+class DQNAgent:
+    """Online learner of Algorithm 1. Feed it raw states (d_t, u_t, b_t): it normalises them itself."""
+
+    def __init__(self, config: DQNConfig = DQNConfig(), normalisation: Optional[StateNormalisation] = None):
+        self.config = config
+        self.q_network = build_network(config)
+        self.target_network = build_network(config)
+        self.target_network.load_state_dict(self.q_network.state_dict())
+        self.optimizer = torch.optim.AdamW(self.q_network.parameters(), lr=config.learning_rate,
+                                           weight_decay=config.weight_decay)
+        self.memory = ReplayMemory(config.replay_capacity)
+        self.rng = np.random.default_rng(config.seed)
+        self.normalisation_frozen = normalisation is not None
+        self.normalisation = normalisation or StateNormalisation.identity(config.log_input_size)
+        self.steps = 0
+        self.gradient_steps = 0
+
+    # --- deciding -------------------------------------------------------------------------------
+    def q_values(self, state) -> np.ndarray:
+        """Q(s, local), Q(s, cloud) for one raw state, or N x 2 for N states."""
+        x = torch.from_numpy(self.normalisation.apply(state))
+        with torch.no_grad():
+            return self.q_network(x).numpy()
+
+    def greedy_action(self, state) -> int:
+        q = self.q_values(state)
+        return CLOUD if q[CLOUD] > q[LOCAL] else LOCAL
+
+    def in_warm_up(self) -> bool:
+        return self.steps < self.config.learning_starts
+
+    def act(self, state) -> Tuple[int, float]:
+        """Epsilon-greedy action and the probability with which it was chosen (its propensity),
+        which off-policy evaluation of the logged table needs. Uniform during warm-up, as
+        Algorithm 1 line 10 explores."""
+        epsilon = 1.0 if self.in_warm_up() else self.config.epsilon
+        greedy = self.greedy_action(state)
+        if self.rng.random() < epsilon:
+            action = int(self.rng.integers(0, N_ACTIONS))
+        else:
+            action = greedy
+        propensity = epsilon / N_ACTIONS + (1.0 - epsilon if action == greedy else 0.0)
+        return action, propensity
+
+    # --- learning -------------------------------------------------------------------------------
+    def observe(self, state, action: int, reward: float, next_state) -> Optional[float]:
+        """Store (s_t, a_t, r_t, s_t+1) and train on schedule. Returns the loss when a gradient step
+        ran this call, else None."""
+        self.memory.add(state, action, reward, next_state)
+        self.steps += 1
+        loss = None
+        if self.steps >= max(self.config.learning_starts, 1) and self.steps % self.config.train_frequency == 0:
+            if not self.normalisation_frozen:
+                self.normalisation = StateNormalisation.fit(self.memory.states[:len(self.memory)],
+                                                            self.config.log_input_size)
+                self.normalisation_frozen = True
+            for _ in range(self.config.gradient_steps):
+                loss = self.train_step()
+        if self.steps % self.config.target_update_interval == 0:
+            self.target_network.load_state_dict(self.q_network.state_dict())
+        return loss
+
+    def train_step(self) -> float:
+        states, actions, rewards, next_states = self.memory.sample(self.config.batch_size, self.rng)
+        x = torch.from_numpy(self.normalisation.apply(states))
+        a = torch.from_numpy(actions).unsqueeze(1)
+        r = torch.from_numpy(rewards)
+        with torch.no_grad():
+            if self.config.gamma > 0:
+                next_q = self.target_network(torch.from_numpy(self.normalisation.apply(next_states)))
+                td_target = r + self.config.gamma * next_q.max(dim=1).values
+            else:
+                td_target = r  # contextual bandit: no bootstrap, so no target network needed
+        q = self.q_network(x).gather(1, a).squeeze(1)
+        loss = nn.functional.smooth_l1_loss(q, td_target, beta=self.config.huber_delta)
+        self.optimizer.zero_grad()
+        loss.backward()
+        nn.utils.clip_grad_norm_(self.q_network.parameters(), self.config.max_grad_norm)
+        self.optimizer.step()
+        self.gradient_steps += 1
+        return float(loss.item())
+
+    def fast_decision(self) -> "FastDecision":
+        return FastDecision.from_network(self.q_network, self.normalisation)
+
+
+class FastDecision:
+    """The greedy policy as plain float32 numpy: one decision is a handful of small matmuls with no
+    autograd or dispatcher overhead. A snapshot: rebuild it after more training."""
+
+    def __init__(self, weights, biases, normalisation: StateNormalisation):
+        self.weights = [np.ascontiguousarray(w, dtype=np.float32) for w in weights]
+        self.biases = [np.ascontiguousarray(b, dtype=np.float32) for b in biases]
+        self._mean = np.asarray(normalisation.mean, dtype=np.float32)
+        self._inverse_scale = (1.0 / np.asarray(normalisation.scale, dtype=np.float64)).astype(np.float32)
+        self._log_input_size = normalisation.log_input_size
+
+    @classmethod
+    def from_network(cls, network: QNetwork, normalisation: StateNormalisation) -> "FastDecision":
+        linears = [m for m in network.layers if isinstance(m, nn.Linear)]
+        return cls([m.weight.detach().numpy().T for m in linears], [m.bias.detach().numpy() for m in linears],
+                   normalisation)
+
+    def decide(self, input_size: float, cpu_availability: float, round_trip_s: float) -> Tuple[int, float, float]:
+        """(action, Q(s, local), Q(s, cloud)) for one raw state."""
+        d = math.log(max(input_size, 0.0) + INPUT_SIZE_LOG_FLOOR) if self._log_input_size else input_size
+        h = (np.array((d, cpu_availability, round_trip_s), dtype=np.float32) - self._mean) * self._inverse_scale
+        last = len(self.weights) - 1
+        for i, (w, b) in enumerate(zip(self.weights, self.biases)):
+            h = h @ w
+            h += b
+            if i < last:
+                np.maximum(h, 0.0, out=h)
+        q_local, q_cloud = float(h[LOCAL]), float(h[CLOUD])
+        return (CLOUD if q_cloud > q_local else LOCAL), q_local, q_cloud

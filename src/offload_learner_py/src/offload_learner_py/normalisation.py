@@ -1,0 +1,60 @@
+"""State normalisation: the network sees each feature of s_t centred and scaled, with d_t on a log
+scale first. It is fitted once on warm-up states and then frozen, because moving it would silently
+change what the learned weights mean; it is saved with every checkpoint for the same reason."""
+from dataclasses import dataclass
+
+import numpy as np
+
+from offload_learner_py.state import STATE_SIZE
+
+# A constant feature (e.g. a steady round trip) has no spread; it is centred but not blown up.
+MIN_SCALE = 1e-3
+# Normalised d_t spans about four orders of magnitude (a few cells to the whole map) and is 0 for a
+# goal next to the start; log(d + floor) spreads it evenly and stays finite at 0.
+INPUT_SIZE_LOG_FLOOR = 1e-6
+
+
+@dataclass(frozen=True)
+class StateNormalisation:
+    mean: tuple
+    scale: tuple
+    log_input_size: bool = True
+
+    @classmethod
+    def identity(cls, log_input_size: bool = True) -> "StateNormalisation":
+        return cls(mean=(0.0,) * STATE_SIZE, scale=(1.0,) * STATE_SIZE, log_input_size=log_input_size)
+
+    @classmethod
+    def fit(cls, states: np.ndarray, log_input_size: bool = True) -> "StateNormalisation":
+        states = np.asarray(states, dtype=np.float64).reshape(-1, STATE_SIZE)
+        if len(states) == 0:
+            raise ValueError("cannot fit a normalisation on zero states")
+        features = cls._features(states, log_input_size)
+        scale = np.maximum(features.std(axis=0), MIN_SCALE)
+        return cls(mean=tuple(float(v) for v in features.mean(axis=0)),
+                   scale=tuple(float(v) for v in scale), log_input_size=log_input_size)
+
+    @staticmethod
+    def _features(states: np.ndarray, log_input_size: bool) -> np.ndarray:
+        features = np.array(states, dtype=np.float64, copy=True)
+        if log_input_size:
+            features[:, 0] = np.log(np.maximum(features[:, 0], 0.0) + INPUT_SIZE_LOG_FLOOR)
+        return features
+
+    def apply(self, states: np.ndarray) -> np.ndarray:
+        """Raw states (N x 3 or 3) to network inputs, float32."""
+        states = np.asarray(states, dtype=np.float64)
+        single = states.ndim == 1
+        features = self._features(states.reshape(-1, STATE_SIZE), self.log_input_size)
+        out = ((features - np.asarray(self.mean)) / np.asarray(self.scale)).astype(np.float32)
+        return out[0] if single else out
+
+    def to_dict(self) -> dict:
+        return {"mean": list(self.mean), "scale": list(self.scale), "log_input_size": self.log_input_size}
+
+    @classmethod
+    def from_dict(cls, values: dict) -> "StateNormalisation":
+        mean, scale = tuple(float(v) for v in values["mean"]), tuple(float(v) for v in values["scale"])
+        if len(mean) != STATE_SIZE or len(scale) != STATE_SIZE:
+            raise ValueError(f"normalisation must have {STATE_SIZE} features, got {len(mean)}")
+        return cls(mean=mean, scale=scale, log_input_size=bool(values["log_input_size"]))

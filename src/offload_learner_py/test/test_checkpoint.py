@@ -1,0 +1,94 @@
+import os
+
+import numpy as np
+import pytest
+import torch
+
+from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
+from offload_learner_py.config import DQNConfig
+from offload_learner_py.dqn import DQNAgent
+
+
+def _trained_agent(config=DQNConfig(seed=4, learning_starts=10, batch_size=8)):
+    agent = DQNAgent(config)
+    rng = np.random.default_rng(0)
+    states = np.stack([rng.uniform(1e-4, 0.3, 40), rng.uniform(0.5, 0.7, 40), np.full(40, 0.03)], 1)
+    for t in range(39):
+        agent.observe(states[t], t % 2, 0.3 if t % 2 else 0.0, states[t + 1])
+    return agent, states
+
+
+def test_round_trip_keeps_weights_config_and_normalisation(tmp_path):
+    agent, states = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    loaded = load_checkpoint(path, expected_config=DQNConfig())
+    assert loaded.config == agent.config
+    assert loaded.normalisation == agent.normalisation
+    assert loaded.steps == agent.steps
+    assert np.array_equal(loaded.q_values(states), agent.q_values(states))
+
+
+def test_save_is_atomic_and_replaces_the_old_file(tmp_path):
+    agent, states = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    with open(path, "w") as old:
+        old.write("old model")
+    save_checkpoint(agent, path)
+    assert os.listdir(tmp_path) == ["dqn.pt"]  # no temp file left behind
+    assert np.array_equal(load_checkpoint(path).q_values(states), agent.q_values(states))
+
+
+def test_failed_save_leaves_the_previous_checkpoint_intact(tmp_path, monkeypatch):
+    agent, states = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    before = open(path, "rb").read()
+
+    def broken_save(*args, **kwargs):
+        raise OSError("disk full")
+
+    monkeypatch.setattr(torch, "save", broken_save)
+    with pytest.raises(OSError):
+        save_checkpoint(agent, path)
+    assert open(path, "rb").read() == before
+    assert os.listdir(tmp_path) == ["dqn.pt"]
+
+
+def test_other_architecture_is_refused_clearly(tmp_path):
+    agent, _ = _trained_agent(DQNConfig(hidden_sizes=(32, 32), learning_starts=10, batch_size=8))
+    path = str(tmp_path / "small.pt")
+    save_checkpoint(agent, path)
+    with pytest.raises(IncompatibleCheckpointError, match=r"hidden layers \[32, 32\].*expected \[256, 256, 256\]"):
+        load_checkpoint(path, expected_config=DQNConfig())
+
+
+def test_weights_that_do_not_fit_their_config_are_refused(tmp_path):
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    payload = torch.load(path, weights_only=True)
+    payload["config"]["hidden_sizes"] = [128, 128, 128]
+    torch.save(payload, path)
+    with pytest.raises(IncompatibleCheckpointError, match="do not fit"):
+        load_checkpoint(path)
+
+
+@pytest.mark.parametrize("change,message", [({"version": 99}, "version 99"), ({"format": "other"}, "not an offload"),
+                                            ({"config": {"gama": 1}}, "invalid config")])
+def test_other_format_or_version_is_refused(tmp_path, change, message):
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    payload = torch.load(path, weights_only=True)
+    payload.update(change)
+    torch.save(payload, path)
+    with pytest.raises(IncompatibleCheckpointError, match=message):
+        load_checkpoint(path)
+
+
+def test_a_file_that_is_not_a_checkpoint_is_refused(tmp_path):
+    path = tmp_path / "junk.pt"
+    path.write_bytes(b"not a checkpoint at all")
+    with pytest.raises(IncompatibleCheckpointError, match="not a readable"):
+        load_checkpoint(str(path))

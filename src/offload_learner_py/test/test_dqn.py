@@ -1,0 +1,144 @@
+import ast
+import inspect
+
+import numpy as np
+import pytest
+import torch
+from torch import nn
+
+from offload_learner_py import CLOUD, LOCAL, config as config_module
+from offload_learner_py.config import DQNConfig
+from offload_learner_py.dqn import DQNAgent, QNetwork
+from offload_learner_py.normalisation import StateNormalisation
+
+
+def _states(n, seed=0):
+    rng = np.random.default_rng(seed)
+    return np.stack([10.0 ** rng.uniform(-4, -0.5, n), rng.uniform(0.5, 0.7, n), rng.uniform(0.028, 0.032, n)], 1)
+
+
+def test_network_is_3_256_256_256_2_with_relu():
+    layers = list(QNetwork().layers)
+    linears = [m for m in layers if isinstance(m, nn.Linear)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(3, 256), (256, 256), (256, 256), (256, 2)]
+    assert [type(m) for m in layers] == [nn.Linear, nn.ReLU] * 3 + [nn.Linear]
+
+
+def test_paper_defaults_and_validation():
+    config = DQNConfig()
+    assert config.hidden_sizes == (256, 256, 256) and config.replay_capacity == 1000 and config.epsilon == 0.1
+    for bad in [dict(gamma=1.0), dict(gamma=-0.1), dict(epsilon=1.5), dict(batch_size=0),
+                dict(batch_size=2000), dict(hidden_sizes=())]:
+        with pytest.raises(ValueError):
+            DQNConfig(**bad)
+    assert DQNConfig.from_dict(DQNConfig(gamma=0.9).to_dict()) == DQNConfig(gamma=0.9)
+    with pytest.raises(ValueError):
+        DQNConfig.from_dict({"gama": 0.9})
+
+
+def test_every_config_field_has_a_one_line_doc():
+    tree = ast.parse(inspect.getsource(config_module))
+    body = next(node for node in tree.body if isinstance(node, ast.ClassDef) and node.name == "DQNConfig").body
+    fields = [node.target.id for node in body if isinstance(node, ast.AnnAssign)]
+    documented = [body[i].target.id for i in range(len(body) - 1)
+                  if isinstance(body[i], ast.AnnAssign) and isinstance(body[i + 1], ast.Expr)
+                  and isinstance(body[i + 1].value, ast.Constant) and isinstance(body[i + 1].value.value, str)]
+    assert fields and fields == documented
+
+
+def _train(config, steps=150, seed=0):
+    agent = DQNAgent(config)
+    states = _states(steps + 1, seed)
+    rng = np.random.default_rng(seed)
+    losses = []
+    for t in range(steps):
+        action, _ = agent.act(states[t])
+        r = float(rng.uniform(-1, 1)) if action == CLOUD else 0.0
+        loss = agent.observe(states[t], action, r, states[t + 1])
+        if loss is not None:
+            losses.append(loss)
+    return agent, losses
+
+
+@pytest.mark.parametrize("gamma", [0.0, 0.9])
+def test_same_seed_same_run_for_both_gamma_readings(gamma):
+    config = DQNConfig(seed=7, gamma=gamma, learning_starts=20, batch_size=16)
+    a, losses_a = _train(config)
+    b, losses_b = _train(config)
+    assert losses_a == losses_b and len(losses_a) > 0
+    probe = _states(20, 5)
+    assert np.array_equal(a.q_values(probe), b.q_values(probe))
+    c, _ = _train(DQNConfig(seed=8, gamma=gamma, learning_starts=20, batch_size=16))
+    assert not np.array_equal(a.q_values(probe), c.q_values(probe))
+
+
+def test_seeding_leaves_torch_global_generator_alone():
+    torch.manual_seed(123)
+    expected = torch.rand(3)
+    torch.manual_seed(123)
+    DQNAgent(DQNConfig(seed=5))
+    assert torch.equal(torch.rand(3), expected)
+
+
+def test_target_network_is_copied_every_k_steps():
+    config = DQNConfig(learning_starts=5, batch_size=4, target_update_interval=10, train_frequency=1, gamma=0.5)
+    agent = DQNAgent(config)
+    states = _states(30)
+
+    def same():
+        return all(torch.equal(p, q) for p, q in zip(agent.q_network.parameters(), agent.target_network.parameters()))
+
+    for t in range(9):
+        agent.observe(states[t], CLOUD, 1.0, states[t + 1])
+    assert not same()  # trained since step 5, not yet copied
+    agent.observe(states[9], CLOUD, 1.0, states[10])
+    assert same()      # step 10: copied
+
+
+def test_warm_up_is_uniform_then_epsilon_greedy_with_propensities():
+    agent = DQNAgent(DQNConfig(learning_starts=50, epsilon=0.1))
+    state = _states(1)[0]
+    action, propensity = agent.act(state)
+    assert propensity == 0.5
+    agent.steps = 50
+    greedy = agent.greedy_action(state)
+    draws = [agent.act(state) for _ in range(2000)]
+    for action, propensity in draws:
+        assert propensity == pytest.approx(0.95 if action == greedy else 0.05)
+    assert np.mean([a != greedy for a, _ in draws]) == pytest.approx(0.05, abs=0.02)
+
+
+def test_normalisation_is_fitted_on_warm_up_states_then_frozen():
+    agent = DQNAgent(DQNConfig(learning_starts=40, batch_size=8))
+    states = _states(100)
+    for t in range(40):
+        agent.observe(states[t], LOCAL, 0.0, states[t + 1])
+    fitted = agent.normalisation
+    assert fitted == StateNormalisation.fit(states[:40].astype(np.float32))  # replay keeps float32
+    for t in range(40, 99):
+        agent.observe(states[t], LOCAL, 0.0, states[t + 1])
+    assert agent.normalisation is fitted
+
+
+def test_learns_the_sign_of_a_reward_that_depends_on_cpu_availability():
+    agent = DQNAgent(DQNConfig(seed=3, learning_starts=100, train_frequency=1))
+    states = _states(800, 1)
+    for t in range(799):
+        action, _ = agent.act(states[t])
+        r = (0.5 if states[t, 1] < 0.6 else -0.5) if action == CLOUD else 0.0
+        agent.observe(states[t], action, r, states[t + 1])
+    probe = _states(200, 9)
+    chosen = np.array([agent.greedy_action(s) for s in probe])
+    clear = np.abs(probe[:, 1] - 0.6) > 0.02
+    assert np.mean(chosen[clear] == (probe[clear, 1] < 0.6)) > 0.95
+
+
+def test_fast_path_matches_torch_eager():
+    agent, _ = _train(DQNConfig(seed=2, learning_starts=20, batch_size=16))
+    fast = agent.fast_decision()
+    for state in _states(200, 4):
+        action, q_local, q_cloud = fast.decide(*state)
+        expected = agent.q_values(state)
+        assert np.allclose([q_local, q_cloud], expected, atol=1e-5)
+        if abs(expected[1] - expected[0]) > 1e-5:
+            assert action == agent.greedy_action(state)

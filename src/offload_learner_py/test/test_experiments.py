@@ -1,0 +1,65 @@
+import json
+import os
+
+import pytest
+
+from offload_learner_py import experiments
+from offload_learner_py.synthetic import generate_synthetic
+
+
+def test_synthetic_command_writes_metrics_and_plots(tmp_path, capsys):
+    out = tmp_path / "cpu"
+    assert experiments.main(["synthetic", "--kind", "cpu", "--steps", "300", "--seed", "4", "--out", str(out)]) == 0
+    metrics = json.loads((out / "metrics.json").read_text())
+    assert 0.0 <= metrics["accuracy"] <= 1.0 and "accuracy_taken" in metrics
+    assert "learned_threshold" in metrics and metrics["generating_threshold"] == 0.6
+    for policy in ("dqn", "dqn_taken", "always_local", "always_cloud", "random", "threshold_d", "oracle", "lstm"):
+        assert metrics["mean_latency_s"][policy] > 0
+    for name in ("training.png", "action_vs_input_size.png", "action_vs_cpu.png", "confusion_matrix.png",
+                 "accuracy.png", "transitions.npz", "transitions.csv", "dqn.pt"):
+        assert (out / name).exists(), name
+    captured = capsys.readouterr()
+    assert "step 300/300" in captured.err  # progress is visible
+    assert json.loads(captured.out.strip().splitlines()[-1])["accuracy"] == metrics["accuracy"]
+
+
+def test_config_overrides_reach_the_learner(tmp_path):
+    out = tmp_path / "local"
+    experiments.main(["synthetic", "--kind", "local", "--steps", "250", "--seed", "2", "--out", str(out),
+                      "--gamma", "0.9", "--set", "target_update_interval=25", "--set", "hidden_sizes=[64,64,64]"])
+    config = json.loads((out / "metrics.json").read_text())["dqn_config"]
+    assert (config["gamma"], config["target_update_interval"], config["hidden_sizes"], config["seed"]) == \
+        (0.9, 25, [64, 64, 64], 2)
+    with pytest.raises(SystemExit):
+        experiments.main(["synthetic", "--kind", "local", "--out", str(out), "--set", "gama=0.9"])
+
+
+def test_compare_command_scores_every_policy_on_one_table(tmp_path, bundled_trace, capsys):
+    data = str(tmp_path / "cpu.npz")
+    generate_synthetic("cpu", bundled_trace, 400, seed=9).save_npz(data)
+    out = tmp_path / "compare"
+    assert experiments.main(["compare", "--data", data, "--out", str(out), "--set", "learning_starts=100"]) == 0
+    result = json.loads((out / "comparison.json").read_text())
+    assert set(result["accuracy"]) == {"dqn", "always_local", "always_cloud", "random", "threshold_d", "oracle",
+                                       "lstm", "lstm_all_features"}
+    assert result["accuracy"]["oracle"] == 1.0 and result["test_rows"] == 200
+    table = (out / "comparison.md").read_text()
+    assert "| dqn |" in table and "| lstm |" in table
+    for name in ("accuracy.png", "confusion_matrix_dqn.png", "action_vs_cpu.png", "training.png"):
+        assert (out / name).exists()
+    assert "| oracle | 100.0%" in capsys.readouterr().out
+
+
+def test_compare_reads_csv_too(tmp_path, small_trace):
+    data = str(tmp_path / "local.csv")
+    generate_synthetic("local", small_trace, 120, seed=1).to_csv(data)
+    result = experiments.run_compare(data, str(tmp_path / "out"), experiments.DQNConfig(learning_starts=30,
+                                                                                       batch_size=16))
+    assert result["accuracy"]["always_local"] == 1.0
+
+
+def test_sweep_summarises_mean_and_spread(tmp_path):
+    summary = experiments.run_sweep("cloud", [1, 2], 200, str(tmp_path), experiments.DQNConfig(learning_starts=50))
+    assert summary["accuracy"]["values"] and len(summary["accuracy"]["values"]) == 2
+    assert {"mean", "std", "min", "max"} <= set(summary["accuracy"])
+    assert os.path.exists(tmp_path / "seed_1" / "metrics.json") and os.path.exists(tmp_path / "summary.json")

@@ -1,0 +1,93 @@
+import numpy as np
+import pytest
+
+from offload_learner_py.state import input_size_from_cells
+from offload_learner_py.trace import PlanningTrace, free_cells, record_trace
+
+
+class NoPathError(RuntimeError):
+    pass
+
+
+class FakeResult:
+    def __init__(self, seconds, expansions):
+        self.seconds, self.expansions = seconds, expansions
+
+
+class FakePlanner:
+    """Stands in for offload_planner_cpp.plan: unreachable when the goal is in the right half."""
+
+    def __init__(self):
+        self.calls = []
+
+    def __call__(self, grid, start, goal, **options):
+        assert grid.dtype == np.int8
+        self.calls.append((start, goal, options))
+        if goal[0] >= grid.shape[1] // 2 and start[0] < grid.shape[1] // 2:
+            raise NoPathError("wall between the halves")
+        return FakeResult(0.001, 42)
+
+
+class FakeClock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        self.now += 0.5  # each call advances: elapsed per plan is always 0.5 s
+        return self.now
+
+
+def _grid():
+    grid = np.zeros((20, 30), np.int8)
+    grid[:, 15] = 100       # a wall splits the map
+    grid[0, :] = -1         # unknown row
+    return grid
+
+
+def test_free_cells_skip_obstacles_and_unknown():
+    cells = free_cells(_grid())
+    assert len(cells) == 19 * 29
+    assert not np.any(cells[:, 0] == 15) and not np.any(cells[:, 1] == 0)
+
+
+def test_record_trace_with_an_injected_planner(tmp_path):
+    planner = FakePlanner()
+    trace = record_trace(planner, _grid(), 0.05, 40, np.random.default_rng(2), map_name="fake", clock=FakeClock(),
+                         lethal_threshold=50)
+    assert len(trace) == 40
+    assert np.all(trace.local_s == 0.5) and np.all(trace.planner_s == 0.001) and np.all(trace.expansions == 42)
+    assert trace.metadata["unreachable"] == trace.metadata["attempts"] - 40 > 0
+    assert all(options == {"lethal_threshold": 50} for _, _, options in planner.calls)
+    for start, goal, d, x in zip(trace.start_cell, trace.goal_cell, trace.input_size, trace.distance_m):
+        assert d == pytest.approx(input_size_from_cells(start, goal, 0.05, 600))
+        assert x == pytest.approx(0.05 * np.hypot(*(goal - start)))
+    path = str(tmp_path / "trace.npz")
+    trace.save_npz(path)
+    loaded = PlanningTrace.load_npz(path)
+    assert np.array_equal(loaded.local_s, trace.local_s) and loaded.metadata == trace.metadata
+
+
+def test_bad_planner_input_propagates():
+    def rejecting(grid, start, goal):
+        raise ValueError("start off the map")
+
+    with pytest.raises(ValueError):
+        record_trace(rejecting, _grid(), 0.05, 3, np.random.default_rng(0))
+
+
+def test_all_unreachable_stops_after_max_attempts():
+    def never(grid, start, goal):
+        raise NoPathError("no")
+
+    with pytest.raises(RuntimeError, match="reachable"):
+        record_trace(never, _grid(), 0.05, 3, np.random.default_rng(0), max_attempts=10)
+
+
+def test_bundled_trace_holds_real_planner_times(bundled_trace):
+    trace = bundled_trace
+    assert len(trace) >= 300
+    assert "husky_playpen" in trace.metadata["map_name"] and trace.metadata["resolution_m"] == 0.05
+    assert np.all(trace.local_s > 0) and np.all(trace.expansions > 0)
+    assert np.all(trace.planner_s <= trace.local_s)  # the call wraps the search
+    # Real Dijkstra times grow with the input size (not a formula: correlation, not equality).
+    assert np.corrcoef(np.log(trace.input_size), np.log(trace.local_s))[0, 1] > 0.5
