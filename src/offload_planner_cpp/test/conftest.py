@@ -1,14 +1,10 @@
 """Shared fixtures: the map sets in ../shared/data/maps (skipped with a reason when absent) and the maps
 bundled with the package."""
-import os
 from pathlib import Path
 
 import pytest
 
-PACKAGE = Path(__file__).resolve().parents[1]
-WORKSPACE = PACKAGE.parents[1]
-SHARED_MAPS = Path(os.environ.get("OFFLOAD_SHARED_MAPS", WORKSPACE.parent / "shared" / "data" / "maps"))
-BUNDLED_MAPS = PACKAGE / "maps"
+from planner_testdata import BUNDLED_MAPS, SHARED_MAPS
 
 
 @pytest.fixture(scope="session")

@@ -8,7 +8,7 @@ from PIL import Image
 from offload_planner_cpp.maps import MapFormatError, load_map, load_map_server_yaml, load_movingai_map, \
     load_scenarios
 
-from conftest import SHARED_MAPS
+from planner_testdata import SHARED_MAPS
 
 ROS_YAMLS = sorted((SHARED_MAPS / "ros").glob("*/*.yaml")) if SHARED_MAPS.is_dir() else []
 

@@ -11,7 +11,7 @@ import offload_planner_cpp
 from offload_planner_cpp.maps import Scenario, length_tolerance, load_movingai_map, load_scenarios
 from offload_planner_cpp.movingai import check, spread
 
-from conftest import SHARED_MAPS
+from planner_testdata import SHARED_MAPS
 
 MAP_FILES = sorted((SHARED_MAPS / "movingai").glob("*/*.map")) if SHARED_MAPS.is_dir() else []
 
