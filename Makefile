@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test test-cpp test-python bench-planner clean
+.PHONY: help deps venv build test bench-planner bench-link clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -25,6 +25,7 @@ help:
 	@echo "make test           install, build, run gtest + pytest + rostest (fails when any test fails)"
 	@echo "make build          install Debian packages, .venv and build the catkin workspace"
 	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
+	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -56,6 +57,9 @@ test: build
 
 bench-planner: build
 	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_planner.py
+
+bench-link: build
+	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_link.py
 
 clean:
 	rm -rf build devel .ros
