@@ -63,3 +63,11 @@ def test_sweep_summarises_mean_and_spread(tmp_path):
     assert summary["accuracy"]["values"] and len(summary["accuracy"]["values"]) == 2
     assert {"mean", "std", "min", "max"} <= set(summary["accuracy"])
     assert os.path.exists(tmp_path / "seed_1" / "metrics.json") and os.path.exists(tmp_path / "summary.json")
+
+
+def test_generate_command_writes_npz_and_csv(tmp_path):
+    out = str(tmp_path / "cloud.npz")
+    assert experiments.main(["generate", "--kind", "cloud", "--steps", "50", "--seed", "3", "--out", out]) == 0
+    table = experiments.TransitionTable.load_npz(out)
+    assert len(table) == 50 and table.metadata["kind"] == "cloud"
+    assert len(experiments.TransitionTable.from_csv(str(tmp_path / "cloud.csv"))) == 50

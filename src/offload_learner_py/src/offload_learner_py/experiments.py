@@ -3,6 +3,7 @@
     python -m offload_learner_py.experiments synthetic --kind {local,cloud,cpu} --steps N --seed S --out DIR
     python -m offload_learner_py.experiments sweep --kind K --seeds 1 2 3 4 5 --steps N --out DIR
     python -m offload_learner_py.experiments compare --data FILE --out DIR
+    python -m offload_learner_py.experiments generate --kind K --steps N --seed S --out FILE.npz
 
 `synthetic` trains the DQN online over a synthetic stream (Algorithm 1) built on the bundled trace of
 real planning times and writes DIR/metrics.json, the online transition table, a checkpoint and plots.
@@ -11,6 +12,7 @@ before the step is learned from, over the last half of the run; the accuracy of 
 taken (10 % epsilon exploration included) is reported beside it as `accuracy_taken`. The baselines
 are fitted on the first half and scored on the same last half.
 
+`generate` writes a synthetic transition table (uniformly random logged actions) for `compare`.
 `compare` splits a transition table in time (first part to fit, rest to score), fits every policy on
 the same rows and writes comparison.md, comparison.json and plots.
 """
@@ -266,7 +268,20 @@ def main(argv: Optional[List[str]] = None) -> int:
     compare.add_argument("--seed", type=int, default=1)
     add_common(compare)
 
+    generate = commands.add_parser("generate", help="write a synthetic transition table (.npz, and .csv beside it)")
+    generate.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
+    generate.add_argument("--steps", type=int, default=1000)
+    generate.add_argument("--seed", type=int, default=1)
+    generate.add_argument("--trace", default=BUNDLED_TRACE)
+    generate.add_argument("--out", required=True, help="output .npz")
+
     args = parser.parse_args(argv)
+    if args.command == "generate":
+        table = generate_synthetic(args.kind, PlanningTrace.load_npz(args.trace), args.steps, args.seed)
+        table.save_npz(args.out)
+        table.to_csv(os.path.splitext(args.out)[0] + ".csv")
+        print(f"wrote {args.out} and its .csv: {len(table)} steps of synthetic {args.kind}")
+        return 0
     torch.set_num_threads(args.threads)
     if args.command == "synthetic":
         metrics = run_synthetic(args.kind, args.steps, args.seed, args.out, _config_from_args(args), args.trace)
