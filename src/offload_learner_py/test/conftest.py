@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 import torch
 
+from offload_learner_py.dataset import TransitionTable
 from offload_learner_py.trace import PlanningTrace
 
 BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "..", "src", "offload_learner_py", "data",
@@ -30,3 +31,20 @@ def small_trace() -> PlanningTrace:
 @pytest.fixture(scope="session")
 def bundled_trace() -> PlanningTrace:
     return PlanningTrace.load_npz(BUNDLED_TRACE)
+
+
+def _size_split_table(n, seed, cut=0.01):
+    """Cloud is faster exactly for large inputs, like the paper's real data (offload above d ~ 1.1)."""
+    rng = np.random.default_rng(seed)
+    d = 10.0 ** rng.uniform(-4, -0.5, n)
+    local_s = 0.002 + d
+    cloud_s = np.where(d > cut, 0.5, 2.0) * local_s
+    return TransitionTable(t=np.arange(n), input_size=d, cpu_availability=rng.uniform(0.5, 0.7, n),
+                           round_trip_s=np.full(n, 0.03), local_s=local_s, cloud_s=cloud_s,
+                           action=np.zeros(n, np.int64), action_propensity=np.ones(n), reward=np.zeros(n))
+
+
+@pytest.fixture
+def size_split_table():
+    """Factory of tables whose faster action is set by the input size alone."""
+    return _size_split_table

@@ -3,7 +3,6 @@ import pytest
 
 from offload_learner_py.evaluation import accuracy
 from offload_learner_py.lstm_baseline import LSTMConfig, LSTMPolicy
-from test_policies import _size_split_table
 
 
 def test_defaults_are_the_paper_s():
@@ -12,9 +11,9 @@ def test_defaults_are_the_paper_s():
     assert config.features == ("input_size",)
 
 
-def test_predicts_both_times_from_input_size_and_picks_the_smaller():
-    policy = LSTMPolicy(LSTMConfig(epochs=40, seed=1)).fit(_size_split_table(500, 1))
-    test = _size_split_table(300, 2)
+def test_predicts_both_times_from_input_size_and_picks_the_smaller(size_split_table):
+    policy = LSTMPolicy(LSTMConfig(epochs=40, seed=1)).fit(size_split_table(500, 1))
+    test = size_split_table(300, 2)
     predicted = policy.predict_latency_s(test)
     assert predicted.shape == (300, 2) and np.all(predicted > 0)
     assert np.array_equal(policy.choose(test), (predicted[:, 1] < predicted[:, 0]).astype(int))
@@ -30,8 +29,8 @@ def test_windows_hold_the_eight_latest_requests():
     assert windows[0, :, 0].tolist() == [0] * 8  # no history yet: the first request repeats
 
 
-def test_same_seed_same_model():
-    train, test = _size_split_table(200, 1), _size_split_table(50, 2)
+def test_same_seed_same_model(size_split_table):
+    train, test = size_split_table(200, 1), size_split_table(50, 2)
     a = LSTMPolicy(LSTMConfig(epochs=3, seed=5)).fit(train).predict_latency_s(test)
     b = LSTMPolicy(LSTMConfig(epochs=3, seed=5)).fit(train).predict_latency_s(test)
     assert np.array_equal(a, b)

@@ -2,7 +2,6 @@ import numpy as np
 import pytest
 
 from offload_learner_py.config import DQNConfig
-from offload_learner_py.dataset import TransitionTable
 from offload_learner_py.evaluation import accuracy
 from offload_learner_py.lstm_baseline import LSTMConfig, LSTMPolicy
 from offload_learner_py.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, OraclePolicy,
@@ -10,42 +9,31 @@ from offload_learner_py.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, In
 from offload_learner_py.synthetic import generate_synthetic
 
 
-def _size_split_table(n, seed, cut=0.01):
-    """Cloud is faster exactly for large inputs, like the paper's real data (offload above d ~ 1.1)."""
-    rng = np.random.default_rng(seed)
-    d = 10.0 ** rng.uniform(-4, -0.5, n)
-    local_s = 0.002 + d
-    cloud_s = np.where(d > cut, 0.5, 2.0) * local_s
-    return TransitionTable(t=np.arange(n), input_size=d, cpu_availability=rng.uniform(0.5, 0.7, n),
-                           round_trip_s=np.full(n, 0.03), local_s=local_s, cloud_s=cloud_s,
-                           action=np.zeros(n, np.int64), action_propensity=np.ones(n), reward=np.zeros(n))
-
-
 ALL = [AlwaysLocal(), AlwaysCloud(), RandomPolicy(3), InputSizeThreshold(), OraclePolicy(),
        LSTMPolicy(LSTMConfig(epochs=3)), DQNPolicy(DQNConfig(learning_starts=20, batch_size=16))]
 
 
 @pytest.mark.parametrize("policy", ALL, ids=lambda p: p.name)
-def test_every_policy_shares_one_interface(policy):
-    train, test = _size_split_table(120, 1), _size_split_table(40, 2)
+def test_every_policy_shares_one_interface(policy, size_split_table):
+    train, test = size_split_table(120, 1), size_split_table(40, 2)
     assert isinstance(policy, Policy)
     actions = policy.fit(train).choose(test)
     assert actions.shape == (40,) and set(actions.tolist()) <= {0, 1}
 
 
-def test_fixed_policies():
-    table = _size_split_table(50, 0)
+def test_fixed_policies(size_split_table):
+    table = size_split_table(50, 0)
     assert np.all(AlwaysLocal().choose(table) == 0) and np.all(AlwaysCloud().choose(table) == 1)
     assert np.array_equal(RandomPolicy(4).choose(table), RandomPolicy(4).choose(table))
     assert accuracy(OraclePolicy().choose(table), table) == 1.0
 
 
-def test_threshold_on_input_size_is_fitted_from_training_data():
-    policy = InputSizeThreshold().fit(_size_split_table(400, 1))
+def test_threshold_on_input_size_is_fitted_from_training_data(size_split_table):
+    policy = InputSizeThreshold().fit(size_split_table(400, 1))
     assert policy.cloud_above and policy.threshold == pytest.approx(0.01, rel=0.3)
-    test = _size_split_table(400, 2)
+    test = size_split_table(400, 2)
     assert accuracy(policy.choose(test), test) > 0.97
-    flipped = _size_split_table(400, 3)
+    flipped = size_split_table(400, 3)
     flipped.local_s, flipped.cloud_s = flipped.cloud_s, flipped.local_s
     assert not InputSizeThreshold().fit(flipped).cloud_above
     with pytest.raises(RuntimeError):
