@@ -14,7 +14,7 @@ from offload_learner_py import CLOUD, LOCAL
 COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
            "action_propensity", "reward")
 TABLE_FORMAT = "offload_learner_py.transitions/1"
-_DTYPES = {"t": np.int64, "action": np.int64}
+_INTEGER_COLUMNS = ("t", "action")
 
 
 @dataclass
@@ -32,7 +32,8 @@ class TransitionTable:
 
     def __post_init__(self):
         for name in COLUMNS:
-            setattr(self, name, np.asarray(getattr(self, name), dtype=_DTYPES.get(name, np.float64)))
+            setattr(self, name, np.asarray(getattr(self, name),
+                                           dtype=np.int64 if name in _INTEGER_COLUMNS else np.float64))
             if getattr(self, name).ndim != 1:
                 raise ValueError(f"column {name} must be one-dimensional")
         lengths = {len(getattr(self, name)) for name in COLUMNS}

@@ -3,6 +3,8 @@ import math
 from dataclasses import dataclass
 from typing import Optional
 
+import numpy as np
+
 from offload_learner_py import CLOUD, LOCAL
 
 DEFAULT_CLOUD_TIMEOUT_S = 5.0
@@ -48,8 +50,6 @@ def reward(action: int, local_s: float, cloud_s: float, weights: CostWeights = C
 
 def rewards(actions, local_s, cloud_s, weights: CostWeights = CostWeights()):
     """Eq. 10 over arrays of steps (same rules as reward())."""
-    import numpy as np
-
     actions = np.asarray(actions)
     local_s = np.asarray(local_s, dtype=np.float64)
     cloud_s = np.asarray(cloud_s, dtype=np.float64)
