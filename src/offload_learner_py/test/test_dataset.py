@@ -28,6 +28,22 @@ def test_npz_round_trip(tmp_path):
     assert loaded.metadata == {"kind": "test", "seed": 3}
 
 
+def test_corrupt_missing_and_foreign_files_are_clear_errors(tmp_path):
+    good = str(tmp_path / "table.npz")
+    _table().save_npz(good)
+    data = open(good, "rb").read()
+    truncated = tmp_path / "truncated.npz"
+    truncated.write_bytes(data[: len(data) // 2])
+    with pytest.raises(ValueError, match="cannot read transition table"):
+        TransitionTable.load_npz(str(truncated))
+    with pytest.raises(ValueError, match="cannot read transition table"):
+        TransitionTable.load_npz(str(tmp_path / "absent.npz"))
+    foreign = str(tmp_path / "foreign.npz")
+    np.savez(foreign, t=np.arange(3))
+    with pytest.raises(ValueError, match="not a transition table"):
+        TransitionTable.load_npz(foreign)
+
+
 def test_csv_export_round_trips_exactly(tmp_path):
     table = _table()
     path = str(tmp_path / "table.csv")

@@ -3,13 +3,13 @@ action, action propensity, reward). Saved as .npz (columns as arrays plus JSON m
 exportable to CSV. Both latencies are in every row, as the paper measured both at every step, so
 any policy can be scored offline against the oracle."""
 import csv
-import json
 from dataclasses import dataclass, field
 from typing import Dict
 
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.npz_io import load_versioned_npz, save_versioned_npz
 
 COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
            "action_propensity", "reward")
@@ -59,19 +59,12 @@ class TransitionTable:
                                metadata=dict(self.metadata))
 
     def save_npz(self, path: str) -> None:
-        np.savez_compressed(path, format=np.array(TABLE_FORMAT), metadata=np.array(json.dumps(self.metadata)),
-                            **{name: getattr(self, name) for name in COLUMNS})
+        save_versioned_npz(path, TABLE_FORMAT, self.metadata, {name: getattr(self, name) for name in COLUMNS})
 
     @classmethod
     def load_npz(cls, path: str) -> "TransitionTable":
-        with np.load(path, allow_pickle=False) as archive:
-            found = str(archive["format"]) if "format" in archive.files else None
-            if found != TABLE_FORMAT:
-                raise ValueError(f"{path} is not a transition table ({TABLE_FORMAT}), format is {found!r}")
-            missing = [name for name in COLUMNS if name not in archive.files]
-            if missing:
-                raise ValueError(f"{path} lacks columns {missing}")
-            return cls(**{name: archive[name] for name in COLUMNS}, metadata=json.loads(str(archive["metadata"])))
+        arrays, metadata = load_versioned_npz(path, TABLE_FORMAT, COLUMNS, "transition table")
+        return cls(**arrays, metadata=metadata)
 
     def to_csv(self, path: str) -> None:
         with open(path, "w", newline="") as out:

@@ -6,7 +6,6 @@ Record one with
     python -m offload_learner_py.trace --map /path/map.yaml --queries 300 --seed 1 --out trace.npz
 """
 import argparse
-import json
 import sys
 import time
 from dataclasses import dataclass, field
@@ -14,6 +13,7 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
+from offload_learner_py.npz_io import load_versioned_npz, save_versioned_npz
 from offload_learner_py.state import input_size_from_cells
 
 TRACE_FORMAT = "offload_learner_py.trace/1"
@@ -35,16 +35,12 @@ class PlanningTrace:
         return len(self.local_s)
 
     def save_npz(self, path: str) -> None:
-        np.savez_compressed(path, format=np.array(TRACE_FORMAT), metadata=np.array(json.dumps(self.metadata)),
-                            **{name: getattr(self, name) for name in _ARRAYS})
+        save_versioned_npz(path, TRACE_FORMAT, self.metadata, {name: getattr(self, name) for name in _ARRAYS})
 
     @classmethod
     def load_npz(cls, path: str) -> "PlanningTrace":
-        with np.load(path, allow_pickle=False) as archive:
-            found = str(archive["format"]) if "format" in archive.files else None
-            if found != TRACE_FORMAT:
-                raise ValueError(f"{path} is not a planning trace ({TRACE_FORMAT}), format is {found!r}")
-            return cls(**{name: archive[name] for name in _ARRAYS}, metadata=json.loads(str(archive["metadata"])))
+        arrays, metadata = load_versioned_npz(path, TRACE_FORMAT, _ARRAYS, "planning trace")
+        return cls(**arrays, metadata=metadata)
 
 
 def free_cells(grid: np.ndarray, lethal_threshold: int = 50) -> np.ndarray:
