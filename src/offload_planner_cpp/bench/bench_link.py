@@ -109,6 +109,8 @@ def cloud_overheads(endpoint: str, grid, start, goal, count: int, client_keys):
                 samples[k] = outcome.round_trip_s - outcome.reply.planning_time_s
         request = sum(len(f) for f in protocol.encode_plan(1, map_hash, start, goal))
         reply = sum(len(f) for f in protocol.encode_reply(outcome.reply))
+    print(f"cached plan: {len(outcome.reply.path)} path cells, server planning time "
+          f"{outcome.reply.planning_time_s * 1e3:.3f} ms")
     return samples, request, reply
 
 
