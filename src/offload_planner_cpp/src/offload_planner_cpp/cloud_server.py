@@ -22,7 +22,7 @@ import zmq
 import zmq.auth
 import zmq.auth.thread
 
-from offload_planner_cpp import protocol
+from offload_planner_cpp import plan_raw, protocol
 from offload_planner_cpp.keys import load_server_keys
 from offload_planner_cpp.map_cache import MapCache
 from offload_planner_cpp.protocol import Kind, ProtocolError, Reply, Status
@@ -54,7 +54,7 @@ class CloudServer:
             raise ValueError("at least one worker is needed")
         self.config = config
         self.cache = MapCache(config.cache_bytes)
-        self.max_cells = config.max_message_bytes
+        self.max_cells = config.max_message_bytes   # one byte per int8 cell
         self._stop = threading.Event()
         self._ready = threading.Event()
         self._context = zmq.Context()
@@ -279,7 +279,6 @@ class CloudServer:
 
 def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: protocol.PlanOptions) -> dict:
     """plan_raw() with the request's options; malformed option values come back as a status, not a raise."""
-    from offload_planner_cpp import plan_raw
     try:
         return plan_raw(grid, request.start, request.goal, lethal_threshold=options.lethal_threshold,
                         unknown_is_obstacle=options.unknown_is_obstacle,
