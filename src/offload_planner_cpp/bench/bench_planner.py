@@ -43,6 +43,10 @@ def bench_random(size, runs):
     grid = random_grid(size, 0.2, seed=0)
     start, goal = (0, 0), (size - 1, size - 1)
     t_goal, r_goal = median_of(runs, lambda: plan(grid, start, goal))
+    # A short plan on the same big map: its cost must follow the path, not the map's size.
+    near_start, near_goal = (size // 2, size // 2), (size // 2 + 40, size // 2 + 30)
+    grid[near_start[1], near_start[0]] = grid[near_goal[1], near_goal[0]] = 0
+    t_short, r_short = median_of(10 * runs, lambda: plan(grid, near_start, near_goal))
     t_full, r_full = median_of(runs, lambda: plan(grid, start, goal, stop_at_goal=False))
     built = time.perf_counter()
     graph = grid_graph(grid)
@@ -54,6 +58,8 @@ def bench_random(size, runs):
           f"{r_goal.expansions / t_goal / 1e6:5.1f} M expansions/s  cost {r_goal.cost:.3f}")
     print(f"planner, full search  : {t_full * 1e3:8.1f} ms  {r_full.expansions:>9d} expansions  "
           f"{r_full.expansions / t_full / 1e6:5.1f} M expansions/s")
+    print(f"planner, short query  : {t_short * 1e3:8.3f} ms  {r_short.expansions:>9d} expansions  "
+          f"(40 x 30 cells apart on the same map: no per-call pass over the whole map)")
     print(f"scipy dijkstra (full) : {t_scipy * 1e3:8.1f} ms  (+ {t_build * 1e3:.0f} ms to build its graph, excluded)")
     print(f"speed-up vs scipy     : {t_scipy / t_full:5.1f}x same full search, {t_scipy / t_goal:5.1f}x stop at goal")
     print("anchor (DESIGN.md, this machine class): ROS navfn makePlan 184 ms on this grid\n")

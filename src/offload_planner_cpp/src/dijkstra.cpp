@@ -34,27 +34,14 @@ const char* statusName(PlanStatus status) {
   return "unknown";
 }
 
-void DijkstraPlanner::buildFreeMap(const std::int8_t* data, const PlannerOptions& options) {
-  const std::size_t cells = static_cast<std::size_t>(stride_) * static_cast<std::size_t>(height_ + 2);
-  if (free_.size() != cells) {
-    free_.assign(cells, 0);
-    dist_.assign(cells, std::numeric_limits<double>::infinity());
-    dirty_begin_ = dirty_end_ = 0;
-  }
-  const std::int8_t lethal = static_cast<std::int8_t>(std::min(options.lethal_threshold, 101));
-  const std::uint8_t unknown = options.unknown_is_obstacle ? 0 : 1;
-  for (int y = 0; y < height_; ++y) {
-    const std::int8_t* in = data + static_cast<std::size_t>(y) * width_;
-    std::uint8_t* out = free_.data() + static_cast<std::size_t>(y + 1) * stride_ + 1;
-    for (int x = 0; x < width_; ++x) {  // branch-free so the compiler vectorises it
-      out[x] = static_cast<std::uint8_t>(in[x] < 0 ? unknown : (in[x] < lethal ? 1 : 0));
-    }
-    out[-1] = out[width_] = 0;  // keep the padding blocked when the width changes
-  }
-}
-
 void DijkstraPlanner::beginSearch() {
-  std::fill(dist_.begin() + dirty_begin_, dist_.begin() + dirty_end_, std::numeric_limits<double>::infinity());
+  constexpr double kUnseen = std::numeric_limits<double>::infinity();
+  const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
+  if (dist_.size() != cells) {
+    dist_.assign(cells, kUnseen);
+  } else if (dirty_end_ > dirty_begin_) {
+    std::fill(dist_.begin() + dirty_begin_, dist_.begin() + dirty_end_, kUnseen);
+  }
   dirty_begin_ = dirty_end_ = 0;
   for (auto& bucket : buckets_) bucket.clear();
   expansions_ = 0;
@@ -65,11 +52,11 @@ void DijkstraPlanner::beginSearch() {
 // work. Steps cost at most sqrt(2) < 2, so three buckets in a ring hold everything pending.
 bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
   beginSearch();
-  const int w = stride_;
-  const std::uint8_t* const free = free_.data();
+  const int w = width_;
+  const int h = height_;
   double* const dist = dist_.data();
-  int lowest = start;
-  int highest = start;
+  int row_min = h;
+  int row_max = -1;
 
   dist[start] = 0.0;
   buckets_[0].push_back(start);
@@ -93,8 +80,10 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
       if (std::signbit(d)) continue;  // stale duplicate of an improved entry
       dist[i] = -d;
       ++expansions_;
-      lowest = std::min(lowest, i);
-      highest = std::max(highest, i);
+      const int y = i / w;
+      const int x = i - y * w;
+      row_min = std::min(row_min, y);
+      row_max = std::max(row_max, y);
       if (i == target) {
         reached = true;
         if (stop_at_target) {
@@ -102,39 +91,41 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
           break;
         }
       }
-      const bool fw = free[i - 1];
-      const bool fe = free[i + 1];
-      const bool fn = free[i - w];
-      const bool fs = free[i + w];
+      const bool fw = x > 0 && passable(i - 1);
+      const bool fe = x < w - 1 && passable(i + 1);
+      const bool fn = y > 0 && passable(i - w);
+      const bool fs = y < h - 1 && passable(i + w);
       if (fw) relax(i - 1, d + 1.0);
       if (fe) relax(i + 1, d + 1.0);
       if (fn) relax(i - w, d + 1.0);
       if (fs) relax(i + w, d + 1.0);
-      if (fn && fw && free[i - w - 1]) relax(i - w - 1, d + kDiagonal);
-      if (fn && fe && free[i - w + 1]) relax(i - w + 1, d + kDiagonal);
-      if (fs && fw && free[i + w - 1]) relax(i + w - 1, d + kDiagonal);
-      if (fs && fe && free[i + w + 1]) relax(i + w + 1, d + kDiagonal);
+      if (fn && fw && passable(i - w - 1)) relax(i - w - 1, d + kDiagonal);
+      if (fn && fe && passable(i - w + 1)) relax(i - w + 1, d + kDiagonal);
+      if (fs && fw && passable(i + w - 1)) relax(i + w - 1, d + kDiagonal);
+      if (fs && fe && passable(i + w + 1)) relax(i + w + 1, d + kDiagonal);
     }
     pending -= std::min(pending, bucket.size());
     bucket.clear();
   }
-  // Relaxed cells lie within one row of the settled ones.
-  dirty_begin_ = static_cast<std::size_t>(lowest - w - 1);
-  dirty_end_ = static_cast<std::size_t>(highest + w + 2);
+  // Relaxed cells lie at most one row beyond the settled ones.
+  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
+  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
   return reached;
 }
 
 void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
-  const int w = stride_;
-  const std::uint8_t* const free = free_.data();
+  const int w = width_;
+  const int h = height_;
   path->clear();
   int i = goal;
-  path->push_back(cellAt(i));
+  path->push_back({i % w, i / w});
   while (distance(i) > 0.0) {
-    const bool fw = free[i - 1];
-    const bool fe = free[i + 1];
-    const bool fn = free[i - w];
-    const bool fs = free[i + w];
+    const int y = i / w;
+    const int x = i - y * w;
+    const bool fw = x > 0 && passable(i - 1);
+    const bool fe = x < w - 1 && passable(i + 1);
+    const bool fn = y > 0 && passable(i - w);
+    const bool fs = y < h - 1 && passable(i + w);
     int best = -1;
     double best_dist = std::numeric_limits<double>::infinity();
     auto consider = [&](bool legal, int j, double step) {
@@ -147,12 +138,12 @@ void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
     consider(fe, i + 1, 1.0);
     consider(fn, i - w, 1.0);
     consider(fs, i + w, 1.0);
-    consider(fn && fw && free[i - w - 1], i - w - 1, kDiagonal);
-    consider(fn && fe && free[i - w + 1], i - w + 1, kDiagonal);
-    consider(fs && fw && free[i + w - 1], i + w - 1, kDiagonal);
-    consider(fs && fe && free[i + w + 1], i + w + 1, kDiagonal);
+    consider(fn && fw && passable(i - w - 1), i - w - 1, kDiagonal);
+    consider(fn && fe && passable(i - w + 1), i - w + 1, kDiagonal);
+    consider(fs && fw && passable(i + w - 1), i + w - 1, kDiagonal);
+    consider(fs && fe && passable(i + w + 1), i + w + 1, kDiagonal);
     i = best;  // exists: a settled cell's predecessor on its shortest path is settled and closer
-    path->push_back(cellAt(i));
+    path->push_back({i % w, i / w});
   }
   std::reverse(path->begin(), path->end());
 }
@@ -181,7 +172,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
         << " values";
     return finish(PlanStatus::kSizeMismatch, msg.str());
   }
-  if (static_cast<std::size_t>(width + 2) * static_cast<std::size_t>(height + 2) >
+  if (static_cast<std::size_t>(width) * static_cast<std::size_t>(height) >
       static_cast<std::size_t>(std::numeric_limits<int>::max())) {
     return finish(PlanStatus::kSizeMismatch, "map too large: more than 2^31 cells");
   }
@@ -193,33 +184,35 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
     return finish(PlanStatus::kInvalidOptions, "goal tolerance must be a finite number >= 0");
   }
 
+  grid_ = data;
   width_ = width;
   height_ = height;
-  stride_ = width + 2;
-  buildFreeMap(data, options);
-  const std::uint8_t* const free = free_.data();
+  for (int v = -128; v < 128; ++v) {
+    passable_[static_cast<std::uint8_t>(v)] = v < 0 ? !options.unknown_is_obstacle : v < options.lethal_threshold;
+  }
 
   auto on_map = [&](Cell c) { return c.x >= 0 && c.y >= 0 && c.x < width && c.y < height; };
+  auto index = [&](Cell c) { return c.y * width + c.x; };
   const std::string size_text = std::to_string(width) + " x " + std::to_string(height);
   if (!on_map(start)) return finish(PlanStatus::kStartOffMap, "start " + cellText(start) + " is off the " + size_text + " map");
   if (!on_map(goal)) return finish(PlanStatus::kGoalOffMap, "goal " + cellText(goal) + " is off the " + size_text + " map");
-  if (!free[index(start)]) {
+  if (!passable(index(start))) {
     return finish(PlanStatus::kStartBlocked, "start " + cellText(start) + " is in an obstacle (occupancy " +
-                                                 std::to_string(data[start.y * width + start.x]) + ")");
+                                                 std::to_string(data[index(start)]) + ")");
   }
 
   // Goal candidates, nearest to the requested goal first: the goal itself if free, then free cells
   // within the tolerance.
   std::vector<std::pair<double, int>> candidates;
-  if (free[index(goal)]) candidates.emplace_back(0.0, index(goal));
+  if (passable(index(goal))) candidates.emplace_back(0.0, index(goal));
   const double radius = options.goal_tolerance_cells;
   if (radius > 0.0) {
     const int r = static_cast<int>(std::floor(radius));
     for (int y = std::max(0, goal.y - r); y <= std::min(height - 1, goal.y + r); ++y) {
       for (int x = std::max(0, goal.x - r); x <= std::min(width - 1, goal.x + r); ++x) {
         const double d = std::hypot(x - goal.x, y - goal.y);
-        const int i = index({x, y});
-        if (d > 0.0 && d <= radius && free[i]) candidates.emplace_back(d, i);
+        const int i = y * width + x;
+        if (d > 0.0 && d <= radius && passable(i)) candidates.emplace_back(d, i);
       }
     }
     std::stable_sort(candidates.begin(), candidates.end(),
@@ -227,7 +220,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   }
   if (candidates.empty()) {
     std::ostringstream msg;
-    msg << "goal " << cellText(goal) << " is in an obstacle (occupancy " << static_cast<int>(data[goal.y * width + goal.x])
+    msg << "goal " << cellText(goal) << " is in an obstacle (occupancy " << static_cast<int>(data[index(goal)])
         << ")";
     if (radius > 0.0) msg << " and no free cell lies within " << radius << " cells of it";
     return finish(PlanStatus::kGoalBlocked, msg.str());
@@ -254,7 +247,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   }
   tracePath(reached, &result.path);
   result.cost = distance(reached);
-  result.goal = cellAt(reached);
+  result.goal = {reached % width, reached / width};
   return finish(PlanStatus::kOk, "");
 }
 

@@ -68,30 +68,26 @@ class DijkstraPlanner {
                   const PlannerOptions& options = PlannerOptions());
 
  private:
-  // Cells are addressed in a copy padded with one blocked cell on every side, so neighbours need no
-  // bounds checks: padded index = (y + 1) * stride_ + x + 1.
-  int index(Cell c) const { return (c.y + 1) * stride_ + c.x + 1; }
-  Cell cellAt(int i) const { return {i % stride_ - 1, i / stride_ - 1}; }
-  // Fills free_ from the grid under the options; the padding stays blocked.
-  void buildFreeMap(const std::int8_t* data, const PlannerOptions& options);
   // Runs the search from `start`; returns true when `target` was settled.
   bool search(int start, int target, bool stop_at_target);
   // Walks back from `goal` along settled cells, each step to the neighbour with the smallest distance.
   void tracePath(int goal, std::vector<Cell>* path) const;
+  bool passable(int index) const { return passable_[static_cast<std::uint8_t>(grid_[index])]; }
   // A settled cell stores its distance negated (the start -0.0): `nd < dist` then never holds for it,
   // so relaxation needs no separate flag.
-  bool settled(int i) const { return std::signbit(dist_[i]); }
-  double distance(int i) const { return std::fabs(dist_[i]); }
+  bool settled(int index) const { return std::signbit(dist_[index]); }
+  double distance(int index) const { return std::fabs(dist_[index]); }
   void beginSearch();
 
+  // Set per call.
+  const std::int8_t* grid_ = nullptr;
   int width_ = 0;
   int height_ = 0;
-  int stride_ = 0;  // width_ + 2
+  bool passable_[256] = {};  // by occupancy value as uint8 (-1 unknown is 255)
   std::uint64_t expansions_ = 0;
 
-  // Reused between calls. dist_ is +inf except in [dirty_begin_, dirty_end_), the span the last search
+  // Reused between calls: +inf except in cells [dirty_begin_, dirty_end_), the rows the last search
   // touched, which the next search resets: a short search on a big map does not pay to clear it all.
-  std::vector<std::uint8_t> free_;
   std::vector<double> dist_;
   std::size_t dirty_begin_ = 0;
   std::size_t dirty_end_ = 0;
