@@ -92,17 +92,21 @@ def test_movingai_crlf_missing_newline_and_terrain(tmp_path):
     path.write_bytes(b"type octile\r\nheight 2\r\nwidth 3\r\nmap\r\n.GS\r\n@TW")
     grid = load_movingai_map(path).grid
     np.testing.assert_array_equal(grid, [[0, 0, 0], [100, 100, 100]])
-    path.write_bytes(b"type octile\nheight 2\nwidth 3\nmap\n.GS\n@T\n")
-    with pytest.raises(MapFormatError, match="row 1 has 2 cells"):
-        load_movingai_map(path)
-    path.write_bytes(b"type octile\nheight 2\nwidth 3\nmap\n.GS\n@TX\n")
-    with pytest.raises(MapFormatError, match="unknown terrain 'X'"):
-        load_movingai_map(path)
-    path.write_bytes(b"type octile\nheight 3\nwidth 3\nmap\n.GS\n@TW\n")
-    with pytest.raises(MapFormatError, match="3 rows, found 2"):
-        load_movingai_map(path)
-    path.write_bytes(b"type octile\nwidth 3\nmap\n...\n")
-    with pytest.raises(MapFormatError, match="height"):
+
+
+@pytest.mark.parametrize("text, needle", [
+    (b"type octile\nheight 2\nwidth 3\nmap\n.GS\n@T\n", "row 1 has 2 cells"),
+    (b"type octile\nheight 2\nwidth 3\nmap\n.GS\n@TX\n", "unknown terrain 'X'"),
+    (b"type octile\nheight 3\nwidth 3\nmap\n.GS\n@TW\n", "3 rows, found 2"),
+    (b"type octile\nwidth 3\nmap\n...\n", "height"),
+    (b"type octile\nheight 1\nwidth 3\n", "no 'map' line"),
+    (b"type octile\nheight 1\nwidth 3\n...\n", "unexpected header line"),
+    (b"\xff\xfe binary", "cannot read as text"),
+])
+def test_movingai_errors_name_the_problem(tmp_path, text, needle):
+    path = tmp_path / "t.map"
+    path.write_bytes(text)
+    with pytest.raises(MapFormatError, match=needle):
         load_movingai_map(path)
 
 
