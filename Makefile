@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test bench-planner bench-link clean
+.PHONY: help deps venv build test bench-planner bench-link bench-decision clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -26,6 +26,7 @@ help:
 	@echo "make build          install Debian packages, .venv and build the catkin workspace"
 	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
 	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
+	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -60,6 +61,9 @@ bench-planner: build
 
 bench-link: build
 	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_link.py
+
+bench-decision: build
+	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
 
 clean:
 	rm -rf build devel .ros
