@@ -148,6 +148,29 @@ void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
   std::reverse(path->begin(), path->end());
 }
 
+int DijkstraPlanner::nearestWithin(Cell goal, double radius, bool settled_only) const {
+  // Row-major scan of the disc; a strictly smaller distance replaces the best, so ties go to the first
+  // cell in row order. Squared integer distances keep it exact and cheap.
+  const long long r = static_cast<long long>(std::floor(radius));
+  const double limit = radius * radius;
+  const long long y_end = std::min<long long>(height_ - 1, goal.y + r);
+  const long long x_begin = std::max<long long>(0, goal.x - r);
+  const long long x_end = std::min<long long>(width_ - 1, goal.x + r);
+  int best = -1;
+  long long best_d2 = std::numeric_limits<long long>::max();
+  for (long long y = std::max<long long>(0, goal.y - r); y <= y_end; ++y) {
+    for (long long x = x_begin; x <= x_end; ++x) {
+      const long long d2 = (x - goal.x) * (x - goal.x) + (y - goal.y) * (y - goal.y);
+      const int i = static_cast<int>(y * width_ + x);
+      if (d2 < best_d2 && static_cast<double>(d2) <= limit && passable(i) && (!settled_only || settled(i))) {
+        best = i;
+        best_d2 = d2;
+      }
+    }
+  }
+  return best;
+}
+
 PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int width, int height, Cell start,
                                  Cell goal, const PlannerOptions& options) {
   const auto started = std::chrono::steady_clock::now();
@@ -201,43 +224,27 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
                                                  std::to_string(data[index(start)]) + ")");
   }
 
-  // Goal candidates, nearest to the requested goal first: the goal itself if free, then free cells
-  // within the tolerance.
-  std::vector<std::pair<double, int>> candidates;
-  if (passable(index(goal))) candidates.emplace_back(0.0, index(goal));
-  const double radius = options.goal_tolerance_cells;
-  if (radius > 0.0) {
-    const int r = static_cast<int>(std::floor(radius));
-    for (int y = std::max(0, goal.y - r); y <= std::min(height - 1, goal.y + r); ++y) {
-      for (int x = std::max(0, goal.x - r); x <= std::min(width - 1, goal.x + r); ++x) {
-        const double d = std::hypot(x - goal.x, y - goal.y);
-        const int i = y * width + x;
-        if (d > 0.0 && d <= radius && passable(i)) candidates.emplace_back(d, i);
-      }
+  // The tolerance only matters when the goal itself is blocked or unreachable: a free, reachable goal
+  // costs no scan of its surroundings. A radius beyond the map's diagonal covers the whole map anyway.
+  const double radius = std::min(options.goal_tolerance_cells, std::hypot(width, height));
+  int target = index(goal);
+  if (!passable(target)) {
+    target = radius > 0.0 ? nearestWithin(goal, radius, false) : -1;
+    if (target < 0) {
+      std::ostringstream msg;
+      msg << "goal " << cellText(goal) << " is in an obstacle (occupancy " << static_cast<int>(data[index(goal)])
+          << ")";
+      if (radius > 0.0) msg << " and no free cell lies within " << options.goal_tolerance_cells << " cells of it";
+      return finish(PlanStatus::kGoalBlocked, msg.str());
     }
-    std::stable_sort(candidates.begin(), candidates.end(),
-                     [](const auto& a, const auto& b) { return a.first < b.first; });
-  }
-  if (candidates.empty()) {
-    std::ostringstream msg;
-    msg << "goal " << cellText(goal) << " is in an obstacle (occupancy " << static_cast<int>(data[index(goal)])
-        << ")";
-    if (radius > 0.0) msg << " and no free cell lies within " << radius << " cells of it";
-    return finish(PlanStatus::kGoalBlocked, msg.str());
   }
 
-  // One search suffices: if the nearest candidate is not reached, the search has exhausted the start's
-  // component, so the first settled candidate is the nearest reachable one.
-  int reached = -1;
-  if (search(index(start), candidates.front().second, options.stop_at_goal)) {
-    reached = candidates.front().second;
-  } else {
-    for (const auto& candidate : candidates) {
-      if (settled(candidate.second)) {
-        reached = candidate.second;
-        break;
-      }
-    }
+  // One search suffices: `target` is the free cell nearest the goal, so if it is reached it is the
+  // answer; if not, the search has exhausted the start's component and the nearest settled cell within
+  // the tolerance is the nearest reachable one.
+  int reached = target;
+  if (!search(index(start), target, options.stop_at_goal)) {
+    reached = radius > 0.0 ? nearestWithin(goal, radius, true) : -1;
   }
   result.expansions = expansions_;
   if (reached < 0) {

@@ -1,5 +1,8 @@
 // Local planner node: Dijkstra on the latest /map, served as ~plan (offload_msgs/PlanPath) and
 // ~make_plan (nav_msgs/GetPlan). Parameters and topics are listed in the package README.
+#include <memory>
+#include <stdexcept>
+
 #include <ros/ros.h>
 
 #include "offload_planner_cpp/planner_ros.h"
@@ -8,7 +11,12 @@ int main(int argc, char** argv) {
   ros::init(argc, argv, "planner");
   ros::NodeHandle nh;
   ros::NodeHandle pnh("~");
-  offload_planner::PlannerNode node(nh, pnh);
+  std::unique_ptr<offload_planner::PlannerNode> node;
+  try {
+    node = std::make_unique<offload_planner::PlannerNode>(nh, pnh);
+  } catch (const std::invalid_argument&) {
+    return 1;  // the reason is already logged; a non-zero exit tells roslaunch the node failed
+  }
   // Two threads: a new map is taken in while a long plan runs on the previous one.
   ros::AsyncSpinner spinner(2);
   spinner.start();

@@ -3,6 +3,7 @@
 #include <chrono>
 #include <cmath>
 #include <sstream>
+#include <stdexcept>
 
 namespace offload_planner {
 namespace {
@@ -42,7 +43,9 @@ std::string validateMap(const nav_msgs::OccupancyGrid& map) {
         << static_cast<std::uint64_t>(info.width) * info.height << " were declared";
   } else if (!(info.resolution > 0.0f) || !std::isfinite(info.resolution)) {
     why << "map resolution " << info.resolution << " is not a positive number";
-  } else if (!std::isfinite(info.origin.position.x) || !std::isfinite(info.origin.position.y)) {
+  } else if (!std::isfinite(info.origin.position.x) || !std::isfinite(info.origin.position.y) ||
+             !std::isfinite(info.origin.orientation.x) || !std::isfinite(info.origin.orientation.y) ||
+             !std::isfinite(info.origin.orientation.z) || !std::isfinite(info.origin.orientation.w)) {
     why << "map origin is not finite";
   } else if (info.width > 100000 || info.height > 100000) {
     why << "map of " << info.width << " x " << info.height << " cells is larger than the planner accepts";
@@ -169,8 +172,7 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   pnh.param<std::string>("planner_name", planner_name_, "local");
   if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
     ROS_FATAL("~lethal_threshold must be in 1..101, got %d", options.lethal_threshold);
-    ros::shutdown();
-    return;
+    throw std::invalid_argument("bad ~lethal_threshold");
   }
   handler_ = std::make_unique<PlanRequestHandler>(options);
   path_pub_ = pnh.advertise<nav_msgs::Path>("path", 1, true);

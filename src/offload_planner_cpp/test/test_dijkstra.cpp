@@ -181,6 +181,31 @@ TEST(Dijkstra, GoalToleranceSkipsUnreachableCandidates) {
   expectValidPath(g, r, {0, 0}, {6, 1});
 }
 
+TEST(Dijkstra, HugeToleranceIsClampedToTheMap) {
+  Grid g({".....", ".....", ".....", "....#", "...##"});
+  PlannerOptions o;
+  for (double tolerance : {1e9, 3e9, 1e18, 1e300}) {
+    o.goal_tolerance_cells = tolerance;
+    auto r = g.plan({0, 0}, {4, 4}, o);
+    ASSERT_TRUE(r.ok()) << tolerance << ": " << r.message;
+    EXPECT_EQ(r.goal, (Cell{3, 3})) << tolerance;  // the free diagonal neighbour
+  }
+  o.goal_tolerance_cells = INFINITY;
+  EXPECT_EQ(g.plan({0, 0}, {4, 4}, o).status, PlanStatus::kInvalidOptions);
+}
+
+TEST(Dijkstra, ToleranceCostsNothingWhenTheGoalIsReachable) {
+  Grid g(std::vector<std::string>(300, std::string(300, '.')));
+  PlannerOptions o;
+  const auto plain = g.plan({150, 150}, {152, 151}, o);
+  o.goal_tolerance_cells = 1e6;
+  const auto tolerant = g.plan({150, 150}, {152, 151}, o);
+  ASSERT_TRUE(plain.ok() && tolerant.ok());
+  EXPECT_EQ(tolerant.goal, (Cell{152, 151}));
+  EXPECT_EQ(tolerant.expansions, plain.expansions);
+  EXPECT_LT(plain.expansions, 50u);
+}
+
 TEST(Dijkstra, StopAtGoalSettlesFewerCells) {
   Grid g(std::vector<std::string>(50, std::string(50, '.')));
   PlannerOptions all;

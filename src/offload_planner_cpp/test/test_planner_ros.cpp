@@ -175,8 +175,14 @@ TEST(PlanRequestHandler, RejectsMalformedMapsAndKeepsThePrevious) {
   empty->info.width = 0;
   empty->data.clear();
   EXPECT_FALSE(handler.setMap(empty, &error));
+  auto twisted = makeMap();
+  twisted->info.origin.orientation.z = NAN;
+  EXPECT_FALSE(handler.setMap(twisted, &error));
+  EXPECT_NE(error.find("origin is not finite"), std::string::npos) << error;
   handler.handle(request(wx(1), wy(1), wx(2), wy(1)), &res);
   EXPECT_EQ(res.status, PlanPath::Response::OK) << "the last good map keeps serving";
+  handler.handle(request(1e308, wy(1), wx(2), wy(1)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::START_OFF_MAP) << "a huge finite coordinate is off the map";
 }
 
 int main(int argc, char** argv) {

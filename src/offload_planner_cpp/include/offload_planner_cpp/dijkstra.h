@@ -70,6 +70,9 @@ class DijkstraPlanner {
  private:
   // Runs the search from `start`; returns true when `target` was settled.
   bool search(int start, int target, bool stop_at_target);
+  // The free cell nearest to `goal` within `radius` cells (settled by the last search if
+  // `settled_only`), ties to the first in row order; -1 if there is none.
+  int nearestWithin(Cell goal, double radius, bool settled_only) const;
   // Walks back from `goal` along settled cells, each step to the neighbour with the smallest distance.
   void tracePath(int goal, std::vector<Cell>* path) const;
   bool passable(int index) const { return passable_[static_cast<std::uint8_t>(grid_[index])]; }
