@@ -102,6 +102,9 @@ class CloudBridgeTest(unittest.TestCase):
         self.assert_same_answer(self.request((0, 0), (1, 1), frame="odom"))
         self.assert_same_answer(self.request((0, 0), (1, 1), tolerance=float("nan")))
         self.assert_same_answer(self.request((0, 0), (1e3, 0)))
+        # Huge but finite coordinates: off the map on both nodes (no overflow in the bridge's conversion).
+        self.assertEqual(self.assert_same_answer(self.request((1e308, 0), (1, 1))).status, R.START_OFF_MAP)
+        self.assertEqual(self.assert_same_answer(self.request((0, 0), (-1e308, 1e308))).status, R.GOAL_OFF_MAP)
         self.assertIn(R.OK, statuses)
         self.assertGreater(len(statuses), 1)
 

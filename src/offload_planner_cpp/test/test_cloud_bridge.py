@@ -54,6 +54,10 @@ def test_bridge_answers_like_the_local_node(key_dirs):
         assert "were declared" in bridge.set_map(np.zeros(5, np.int8), 2, 2, 0.05, 0, 0, IDENTITY, "map", None)
         assert bridge.plan(point((0, 0)), point((1, 1)), 0.0).message.endswith(
             "(last map rejected: map data has 5 cells but 2 x 2 = 4 were declared)")
+        assert bridge.set_map(np.zeros(4, np.int8), 2, 2, 0.05, 0, 0, (0.0, 0.0, math.nan, 1.0), "map", None) == \
+            "map origin is not finite"
+        assert bridge.plan(point((0, 0)), point((1, 1)), 0.0).message.endswith(
+            "(last map rejected: map origin is not finite)")
 
         grid = random_map(80, 60, 0.2, seed=7)
         assert give_map(bridge, grid) == ""
@@ -79,6 +83,18 @@ def test_bridge_answers_like_the_local_node(key_dirs):
         assert off.status == PlanPathStatus.START_OFF_MAP and off.message == "start (-1.5, 2) m is off the map"
         off = bridge.plan(point((0, 0)), StampedPoint("map", 3.0, 100.0), 0.0)
         assert off.status == PlanPathStatus.GOAL_OFF_MAP and off.message == "goal (3, 100) m is off the map"
+        # Huge but finite: off the map as the C++ worldToCell says, not an OverflowError in math.floor.
+        off = bridge.plan(StampedPoint("map", 1e308, 2.0), point((1, 1)), 0.0)
+        assert off.status == PlanPathStatus.START_OFF_MAP and off.message == "start (1e+308, 2) m is off the map"
+        off = bridge.plan(point((0, 0)), StampedPoint("map", 0.0, -1e308), 0.0)
+        assert off.status == PlanPathStatus.GOAL_OFF_MAP and off.message == "goal (0, -1e+308) m is off the map"
+        assert bridge.plan(StampedPoint("", math.inf, 0), point((1, 1)), 0.0).status == \
+            PlanPathStatus.INVALID_REQUEST   # not finite: INVALID_REQUEST before the off-map checks, as in C++
+        # The tolerance is float32 in the service: 1e308 is inf there, 3e38 m a huge but valid tolerance.
+        assert bridge.plan(point((0, 0)), point((1, 1)), 1e308).status == PlanPathStatus.INVALID_REQUEST
+        started = time.monotonic()
+        assert bridge.plan(point((0, 0)), point((1, 1)), 3e38).status == PlanPathStatus.OK
+        assert time.monotonic() - started < 10.0
 
         walled = np.zeros((20, 20), np.int8)
         walled[10, :] = 100

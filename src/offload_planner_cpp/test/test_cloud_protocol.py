@@ -133,11 +133,24 @@ def test_geometry_matches_the_cpp_convention():
     assert yaw_of(0, 0, math.sin(0.3), math.cos(0.3)) == pytest.approx(0.6)
 
 
+@pytest.mark.parametrize("point", [(1e308, 2.5), (-1e308, 2.5), (0.0, 1e308), (1e300, -1e300), (math.inf, 0.0),
+                                   (0.0, -math.inf), (math.nan, 0.0), (0.0, math.nan)])
+def test_points_far_off_or_not_finite_are_off_the_map_without_raising(point):
+    # The C++ worldToCell compares and returns false; math.floor of inf would raise OverflowError here.
+    for yaw in (0.0, 0.7):
+        geometry = MapGeometry(resolution=0.05, origin_x=-1.0, origin_y=2.0, origin_yaw=yaw, width=10, height=4)
+        assert geometry.world_to_cell(*point) is None
+
+
 def test_map_validation_and_frames_word_as_the_local_node():
     assert validate_map(0, 5, 0, 0.05, 0, 0) == "map is empty (0 x 5)"
     assert validate_map(3, 2, 5, 0.05, 0, 0) == "map data has 5 cells but 3 x 2 = 6 were declared"
     assert validate_map(3, 2, 6, 0.0, 0, 0) == "map resolution 0 is not a positive number"
     assert validate_map(3, 2, 6, 0.05, math.nan, 0) == "map origin is not finite"
+    assert validate_map(3, 2, 6, 0.05, 0, math.inf) == "map origin is not finite"
+    for bad in ((math.nan, 0, 0, 1), (0, 0, 0, math.nan), (0, 0, math.inf, 1), (0, -math.inf, 0, 1)):
+        assert validate_map(3, 2, 6, 0.05, 0, 0, bad) == "map origin is not finite", bad
+    assert validate_map(3, 2, 6, 0.05, 0, 0, (0, 0, 0.6, 0.8)) == ""
     assert validate_map(3, 2, 6, 0.05, 0, 0) == ""
     assert fmt(1.5) == "1.5" and fmt(100.0) == "100" and fmt(1234567.0) == "1.23457e+06"
     assert in_map_frame("", "map") and in_map_frame("/map", "map") and not in_map_frame("odom", "map")

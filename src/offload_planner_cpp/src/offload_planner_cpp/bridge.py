@@ -123,7 +123,8 @@ class CloudBridge:
                 origin_y: float, orientation: Tuple[float, float, float, float], frame_id: str, stamp) -> str:
         """Takes a new map (data: the message's int8 array, not copied); keeps the previous one and returns
         why when it is malformed, else returns ""."""
-        why = validate_map(width, height, int(np.asarray(data).size), resolution, origin_x, origin_y)
+        why = validate_map(width, height, int(np.asarray(data).size), resolution, origin_x, origin_y,
+                           tuple(orientation))
         if not why and np.asarray(data).dtype != np.int8:
             why = f"map data has dtype {np.asarray(data).dtype}, expected int8"
         if why:
@@ -179,6 +180,9 @@ class CloudBridge:
                                   f"transform it to the map frame first")
                 return result
         finite = all(math.isfinite(v) for v in (start.x, start.y, goal.x, goal.y))
+        # The service's tolerance is float32, as the local node reads it: a larger value is inf there.
+        with np.errstate(over="ignore"):
+            tolerance_m = float(np.float32(tolerance_m))
         if not finite or not math.isfinite(tolerance_m) or tolerance_m < 0.0:
             result.status = PlanPathStatus.INVALID_REQUEST
             result.message = "start and goal must be finite and tolerance a finite number >= 0 metres"

@@ -31,11 +31,14 @@ class MapGeometry:
         dy = wy - self.origin_y
         c = math.cos(self.origin_yaw)
         s = math.sin(self.origin_yaw)
-        gx = math.floor((c * dx + s * dy) / self.resolution)
-        gy = math.floor((-s * dx + c * dy) / self.resolution)
-        if not (0 <= gx < self.width and 0 <= gy < self.height):
+        fx = (c * dx + s * dy) / self.resolution
+        fy = (-s * dx + c * dy) / self.resolution
+        # Bounds first, on the floats: floor(f) >= 0 iff f >= 0 and floor(f) < n iff f < n, so this is the
+        # C++ test, and NaN or inf (a huge finite point, e.g. 1e308 m at 0.05 m/cell) fails it as there
+        # instead of overflowing math.floor.
+        if not (0.0 <= fx < self.width and 0.0 <= fy < self.height):
             return None
-        return int(gx), int(gy)
+        return int(math.floor(fx)), int(math.floor(fy))
 
     def cell_to_world(self, x: int, y: int) -> Tuple[float, float]:
         """World coordinates of the cell's centre."""
@@ -55,15 +58,16 @@ class MapGeometry:
 
 
 def validate_map(width: int, height: int, data_size: int, resolution: float, origin_x: float,
-                 origin_y: float) -> str:
-    """Empty when the map is usable, else why not (the same checks and wording as validateMap())."""
+                 origin_y: float, orientation: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)) -> str:
+    """Empty when the map is usable, else why not (the same checks and wording as validateMap()).
+    `orientation` is the origin quaternion (x, y, z, w)."""
     if width == 0 or height == 0:
         return f"map is empty ({width} x {height})"
     if width * height != data_size:
         return f"map data has {data_size} cells but {width} x {height} = {width * height} were declared"
     if not (resolution > 0.0) or not math.isfinite(resolution):
         return f"map resolution {fmt(resolution)} is not a positive number"
-    if not math.isfinite(origin_x) or not math.isfinite(origin_y):
+    if not all(math.isfinite(v) for v in (origin_x, origin_y, *orientation)):
         return "map origin is not finite"
     if width > 100000 or height > 100000:
         return f"map of {width} x {height} cells is larger than the planner accepts"
