@@ -92,6 +92,13 @@ def test_malformed_plans_are_rejected():
         [good[0], b'{"dtype":"int8","height":3,"width":-3}', good[2]],
         [good[0], b'{"dtype":"float32","height":3,"width":3}', good[2]],
         [good[0], b'{"dtype":"int8","height":3.0,"width":3}', good[2]],
+        [good[0], b"[" * 1000, good[2]],           # nesting that blows the JSON parser's recursion limit
+        [good[0], b'{"a":' * 340 + b"1" + b"}" * 340, good[2]],
+        [good[0], b'[{"dtype":"int8","height":3,"width":3}]', good[2]],   # not an object
+        [good[0], b'"int8"', good[2]],
+        [good[0], b"null", good[2]],
+        [good[0], b'{"dtype":"int8","height":true,"width":3}', good[2]],
+        [good[0], b'{"dtype":"int8","height":3,"width":1' + b"0" * 900 + b"}", good[2]],
         [protocol.encode_plan(1, b"\1" * 16, (0, 0), (2, 2))[1], good[1], good[2]],   # hash mismatch
         [protocol.PLAN_BODY.pack(b"\0" * 16, 0, 0, 1, 1, float("nan"), 50, 3)],
         [protocol.PLAN_BODY.pack(b"\0" * 16, 0, 0, 1, 1, -1.0, 50, 3)],
@@ -100,6 +107,10 @@ def test_malformed_plans_are_rejected():
         with pytest.raises(ProtocolError) as error:
             protocol.decode_plan(1, frames, MAX_CELLS)
         assert error.value.status == Status.BAD_REQUEST, frames
+    for metadata in (b"[" * 1000, b"{" * 1000, b'{"a":[' * 200):
+        with pytest.raises(ProtocolError) as error:
+            protocol.decode_map(metadata, good[2], MAX_CELLS)
+        assert error.value.status == Status.BAD_REQUEST
     with pytest.raises(ProtocolError) as error:
         protocol.decode_plan(1, good, max_cells=8)
     assert error.value.status == Status.TOO_LARGE

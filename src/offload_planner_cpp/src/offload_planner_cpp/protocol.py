@@ -203,10 +203,14 @@ def decode_map(metadata_frame, data_frame, max_cells: int) -> Tuple[bytes, np.nd
     if len(metadata) > MAX_METADATA_BYTES:
         raise ProtocolError(Status.BAD_REQUEST, "map metadata frame too long")
     try:
+        # RecursionError: deeply nested arrays or objects (b"[" * 1000 fits in the size cap).
         meta = json.loads(metadata)
+        if not isinstance(meta, dict):
+            raise TypeError("not a JSON object")
         width, height, dtype = meta["width"], meta["height"], meta["dtype"]
-    except (ValueError, TypeError, KeyError, UnicodeDecodeError):
-        raise ProtocolError(Status.BAD_REQUEST, "map metadata must be JSON with width, height and dtype") from None
+    except (ValueError, TypeError, KeyError, UnicodeDecodeError, RecursionError):
+        raise ProtocolError(Status.BAD_REQUEST,
+                            "map metadata must be a JSON object with width, height and dtype") from None
     if dtype != "int8" or type(width) is not int or type(height) is not int:
         raise ProtocolError(Status.BAD_REQUEST, "map metadata needs integer width and height and dtype int8")
     if not (0 < width <= MAX_MAP_SIDE and 0 < height <= MAX_MAP_SIDE):
