@@ -1,5 +1,6 @@
 """The cloud server on a random loopback port: correct plans, CURVE allowlist, hostile input, size cap,
 cache misses, concurrency, and the health-check command."""
+import collections
 import os
 import random
 import subprocess
@@ -14,10 +15,11 @@ import zmq
 import offload_planner_cpp
 from offload_planner_cpp import protocol
 from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout
+from offload_planner_cpp.cloud_server import CloudServer, ServerConfig, parse_args
 from offload_planner_cpp.keys import load_client_keys
 from offload_planner_cpp.protocol import Kind, PlanOptions, Status
 
-from cloud_test_helpers import make_keys, random_map, start_server
+from cloud_test_helpers import LOOPBACK, make_keys, random_map, start_server
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -182,6 +184,44 @@ def test_oversized_message_is_refused_and_server_survives(server, key_dirs, clie
         socket.close(0)
         context.term()
     assert client.ping() > 0
+
+
+class _CapturingSocket:
+    def __init__(self):
+        self.sent = []
+
+    def send_multipart(self, frames, **_):
+        self.sent.append(frames)
+
+
+def test_queued_bytes_budget_gives_busy():
+    """The broker's admission: beyond the queued bytes budget (or count) a request gets BUSY at once."""
+    server = CloudServer(ServerConfig(bind=f"{LOOPBACK}:0", insecure=True, max_message_bytes=1 << 20,
+                                      max_queued=10, max_queued_bytes=2 << 20))
+    try:
+        assert server.receive_hwm(server.config) == 2   # at most 2 maximum-size messages unread per connection
+        frontend, queued = _CapturingSocket(), collections.deque()
+        upload = [zmq.Frame(b"client"), zmq.Frame(protocol.envelope(Kind.UPLOAD, 1)), zmq.Frame(b"{}"),
+                  zmq.Frame(bytes(700_000))]
+        for request_id in range(3):
+            upload[1] = zmq.Frame(protocol.envelope(Kind.UPLOAD, request_id))
+            server._on_frontend(frontend, list(upload), queued)
+        assert len(queued) == 2 and server.queued_bytes == 2 * (700_000 + 2 + protocol.ENVELOPE.size)
+        assert len(frontend.sent) == 1
+        reply = protocol.decode_reply([bytes(f) for f in frontend.sent[0][1:]])
+        assert reply.status == Status.BUSY and reply.request_id == 2 and "bytes) queued" in reply.message
+        ping = [zmq.Frame(b"client"), zmq.Frame(protocol.encode_ping(9)[0])]
+        server._on_frontend(frontend, ping, queued)   # pings never queue
+        assert protocol.decode_reply([bytes(f) for f in frontend.sent[1][1:]]).status == Status.OK
+        small = [zmq.Frame(b"client"), zmq.Frame(protocol.envelope(Kind.PLAN, 10)), zmq.Frame(bytes(43))]
+        server._on_frontend(frontend, small, queued)   # still fits the budget
+        assert len(queued) == 3 and len(frontend.sent) == 2
+    finally:
+        server._frontend.close(0)
+        server._close_context()
+    with pytest.raises(ValueError):
+        CloudServer(ServerConfig(insecure=True, max_message_bytes=64 << 20, max_queued_bytes=32 << 20))
+    assert parse_args(["--max-queued-mib", "32"]).max_queued_mib == 32 and parse_args([]).max_queued_mib == 256
 
 
 def test_cache_miss_makes_the_client_upload_again(key_dirs):

@@ -41,6 +41,7 @@ class ServerConfig:
     cache_bytes: int = 1 << 30            # map cache memory cap
     max_message_bytes: int = 64 << 20     # larger messages (or frames) are refused
     max_queued: int = 64                  # plan requests waiting for a worker; more get BUSY
+    max_queued_bytes: int = 256 << 20     # and their bytes: a request that would exceed it gets BUSY
     max_frames: int = 8                   # more frames than any valid message: dropped unread
 
 
@@ -52,6 +53,8 @@ class CloudServer:
             raise ValueError("a keys dir is required unless --insecure is given")
         if config.workers < 1:
             raise ValueError("at least one worker is needed")
+        if config.max_queued < 1 or config.max_queued_bytes < config.max_message_bytes:
+            raise ValueError("max queued must be >= 1 and the queued bytes budget at least the max message size")
         self.config = config
         self.cache = MapCache(config.cache_bytes)
         self.max_cells = config.max_message_bytes   # one byte per int8 cell
@@ -60,6 +63,7 @@ class CloudServer:
         self._context = zmq.Context()
         self._auth = None
         self._backend_address = f"inproc://workers-{id(self)}"
+        self.queued_bytes = 0   # bytes of the requests waiting for a worker (broker thread only)
         self.endpoint = None
         self._thread = None
         self._frontend = self._bind_frontend()
@@ -69,8 +73,9 @@ class CloudServer:
         frontend = self._context.socket(zmq.ROUTER)
         frontend.linger = 0
         frontend.setsockopt(zmq.MAXMSGSIZE, config.max_message_bytes)
-        # Incoming messages wait in libzmq until read; a small high-water mark bounds that memory.
-        frontend.rcvhwm = 2 * config.max_queued
+        # Incoming messages wait in libzmq until read (per connection); a small high-water mark bounds that
+        # memory: at most the queued bytes budget's worth of maximum-size messages, and 2 x max_queued.
+        frontend.rcvhwm = self.receive_hwm(config)
         frontend.router_mandatory = False
         if config.insecure:
             LOG.warning("running INSECURE: plaintext and no client authentication (--insecure)")
@@ -97,6 +102,10 @@ class CloudServer:
             raise
         return frontend
 
+    @staticmethod
+    def receive_hwm(config: ServerConfig) -> int:
+        return max(2, min(2 * config.max_queued, config.max_queued_bytes // config.max_message_bytes))
+
     # -- lifecycle -----------------------------------------------------------------------------------
 
     def start(self) -> str:
@@ -120,8 +129,9 @@ class CloudServer:
                    for k in range(self.config.workers)]
         for worker in workers:
             worker.start()
-        LOG.info("serving on %s with %d workers, map cache %d MiB, max message %d MiB", self.endpoint,
-                 self.config.workers, self.config.cache_bytes >> 20, self.config.max_message_bytes >> 20)
+        LOG.info("serving on %s with %d workers, map cache %d MiB, max message %d MiB, queue %d requests / "
+                 "%d MiB", self.endpoint, self.config.workers, self.config.cache_bytes >> 20,
+                 self.config.max_message_bytes >> 20, self.config.max_queued, self.config.max_queued_bytes >> 20)
         try:
             self._broker(self._frontend, backend)
         finally:
@@ -144,7 +154,7 @@ class CloudServer:
 
     def _broker(self, frontend: zmq.Socket, backend: zmq.Socket) -> None:
         idle = collections.deque()     # worker identities waiting for a request
-        queued = collections.deque()   # (route, payload) waiting for a worker
+        queued = collections.deque()   # (route + payload frames, payload bytes) waiting for a worker
         poller = zmq.Poller()
         poller.register(frontend, zmq.POLLIN)
         poller.register(backend, zmq.POLLIN)
@@ -164,7 +174,9 @@ class CloudServer:
                 except Exception:   # a bug must cost one message, never the server
                     LOG.exception("message dropped")
             while idle and queued:
-                backend.send_multipart([idle.popleft(), *queued.popleft()], copy=False)
+                frames, nbytes = queued.popleft()
+                self.queued_bytes -= nbytes
+                backend.send_multipart([idle.popleft(), *frames], copy=False)
 
     def _on_frontend(self, frontend: zmq.Socket, frames, queued) -> None:
         # [identity, (empty delimiter if the client is a REQ socket), envelope, body...]
@@ -187,14 +199,15 @@ class CloudServer:
             if total > self.config.max_message_bytes:
                 raise ProtocolError(Status.TOO_LARGE, f"message of {total} bytes exceeds "
                                                       f"{self.config.max_message_bytes}")
-            if len(queued) >= self.config.max_queued:
-                raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and "
-                                                 f"{len(queued)} requests queued")
+            if len(queued) >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
+                raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {len(queued)} "
+                                                 f"requests ({self.queued_bytes} bytes) queued")
         except ProtocolError as error:
             LOG.warning("request %d refused: %s: %s", request_id, error.status.name, error)
             self._send(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))))
             return
-        queued.append(route + payload)
+        queued.append((route + payload, total))
+        self.queued_bytes += total
 
     @staticmethod
     def _send(socket: zmq.Socket, frames) -> None:
@@ -298,6 +311,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--cache-mib", type=int, default=1024, help="map cache memory cap in MiB (default 1024)")
     parser.add_argument("--max-message-mib", type=int, default=64, help="largest accepted message in MiB (default 64)")
     parser.add_argument("--max-queued", type=int, default=64, help="requests waiting for a worker before BUSY (64)")
+    parser.add_argument("--max-queued-mib", type=int, default=256,
+                        help="bytes of the requests waiting for a worker, in MiB, before BUSY (default 256)")
     parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     return parser.parse_args(argv)
 
@@ -310,7 +325,7 @@ def main(argv=None) -> int:
         return 2
     config = ServerConfig(bind=args.bind, workers=args.workers, keys_dir=args.keys_dir, insecure=args.insecure,
                           cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
-                          max_queued=args.max_queued)
+                          max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20)
     try:
         server = CloudServer(config)
     except (OSError, ValueError, zmq.ZMQError) as error:
