@@ -120,7 +120,8 @@ def test_killed_server_gives_timeout_in_time_then_reconnects(key_dirs):
     try:
         grid = np.zeros((2500, 2500), np.int8)   # a plan long enough to be killed in the middle
         give_map(bridge, grid)
-        assert bridge.heartbeat()[0]              # uploads the map
+        assert bridge.heartbeat()[0]              # starts the map upload
+        bridge.wait_for_upload()
         assert bridge.plan(point((0, 0)), point((5, 5)), 0.0).status == PlanPathStatus.OK
         answers = []
 
@@ -148,6 +149,60 @@ def test_killed_server_gives_timeout_in_time_then_reconnects(key_dirs):
         bridge.close()
         process.kill()
         process.wait(10)
+
+
+def test_heartbeat_measures_the_link_when_the_map_is_too_large_for_the_server(key_dirs, caplog):
+    """A map over the server's max message size: libzmq drops the connection and never answers the upload.
+    The heartbeat must still report a reachable cloud with a measured round trip, and retry the upload
+    with backoff, not at every heartbeat."""
+    server = start_server(key_dirs[0], workers=1, max_message_bytes=1 << 20)
+    bridge = make_bridge(server.endpoint, key_dirs[1], timeout_s=0.5, heartbeat_timeout_s=1.0)
+    try:
+        assert give_map(bridge, np.zeros((1100, 1000), np.int8)) == ""   # 1.1 MB > 1 MiB
+        beats = []
+        with caplog.at_level("WARNING"):
+            for _ in range(20):   # 3 s of 0.15 s heartbeats
+                beats.append(bridge.heartbeat())
+                time.sleep(0.15)
+            bridge.wait_for_upload()
+        assert all(reachable for reachable, _ in beats), beats
+        assert all(0 < round_trip_s < 0.5 for _, round_trip_s in beats), beats
+        # Attempts at about 0 s, then after each 0.5 s timeout + 0.15, 0.3, 0.6 s of backoff: 4 or so, not 20.
+        assert 2 <= bridge.upload_attempts <= 5, bridge.upload_attempts
+        warnings = [r.getMessage() for r in caplog.records if "upload of map" in r.getMessage()]
+        assert len(warnings) == 1 and "(1100000 bytes)" in warnings[0] and "max-message-mib" in warnings[0]
+        assert server.cache.misses == 0 and len(server.cache) == 0
+        # A map that fits is uploaded at the next heartbeat and then never again.
+        give_map(bridge, random_map(100, 100, 0.1, seed=9))
+        attempts = bridge.upload_attempts
+        for _ in range(5):
+            assert bridge.heartbeat()[0]
+            bridge.wait_for_upload()
+        assert bridge.upload_attempts == attempts + 1 and len(server.cache) == 1
+        assert bridge.plan(point((0, 0)), point((99, 99)), 0.0).status == PlanPathStatus.OK
+    finally:
+        bridge.close()
+        server.stop()
+
+
+def test_heartbeat_reports_a_non_pong_answer_as_reachable_with_its_round_trip(key_dirs, monkeypatch):
+    from offload_planner_cpp.protocol import Reply, Status
+    server = start_server(key_dirs[0], workers=1)
+    bridge = make_bridge(server.endpoint, key_dirs[1], heartbeat_timeout_s=1.0)
+    try:
+        client = bridge._heartbeat_client
+        real = client.ping_reply
+
+        def busy_pong(timeout_s=None):
+            reply, round_trip_s = real(timeout_s)
+            return Reply(reply.request_id, Status.BUSY, "busy"), round_trip_s
+
+        monkeypatch.setattr(client, "ping_reply", busy_pong)
+        reachable, round_trip_s = bridge.heartbeat()
+        assert reachable and 0 < round_trip_s < 0.5   # measured, not the 1 s timeout
+    finally:
+        bridge.close()
+        server.stop()
 
 
 def test_client_timeout_is_fast_when_nothing_listens():

@@ -2,8 +2,10 @@
 messages. It answers a PlanPath request exactly as the local planner node's PlanRequestHandler does
 (same checks, same order, same statuses and messages), except that the core runs in the cloud and a
 silent cloud gives CLOUD_TIMEOUT."""
+import logging
 import math
 import threading
+import time
 from dataclasses import dataclass, field
 from typing import Any, Optional, Tuple
 
@@ -14,6 +16,10 @@ from offload_planner_cpp import protocol
 from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout, KnownMaps
 from offload_planner_cpp.grid_geometry import MapGeometry, fmt, in_map_frame, validate_map, yaw_of
 from offload_planner_cpp.protocol import PlanOptions, Status
+
+# A child of rospy's "rosout" logger: under the node its records reach /rosout and the node's log like
+# rospy.logwarn's; without ROS it is an ordinary Python logger.
+LOG = logging.getLogger("rosout.offload_planner_cpp.bridge")
 
 
 class PlanPathStatus:
@@ -87,6 +93,7 @@ class BridgeConfig:
     timeout_s: float = 5.0
     retries: int = 1
     heartbeat_timeout_s: float = 1.0
+    upload_retry_max_s: float = 60.0   # a failed map upload is retried after the heartbeat period, doubling to this
     lethal_threshold: int = 50
     unknown_is_obstacle: bool = True
 
@@ -104,6 +111,17 @@ class CloudBridge:
         self._rejected = ""
         # Fails now, not at the first request, when the keys are missing.
         self._heartbeat_client = self._new_client(timeout_s=config.heartbeat_timeout_s, retries=0)
+        # Map uploads run beside the heartbeat (an upload the cloud never answers must not hold up the
+        # pings), one at a time, on their own client; a failed one is retried with backoff.
+        self._upload_client = self._new_client(timeout_s=config.timeout_s, retries=0)
+        self._upload_thread: Optional[threading.Thread] = None
+        self._failed_upload: Optional[bytes] = None   # hash of the map whose last upload failed
+        self._upload_retry_at = 0.0
+        self._upload_retry_s = 0.0
+        self._last_heartbeat_at: Optional[float] = None
+        self._heartbeat_period_s = 1.0                  # measured between heartbeat() calls
+        self._non_pong_warned = False
+        self.upload_attempts = 0                        # map uploads started by the heartbeat (for tests)
 
     def _new_client(self, timeout_s: float, retries: int) -> CloudClient:
         return CloudClient(self.config.endpoint, keys_dir=self.config.keys_dir, insecure=self.config.insecure,
@@ -111,9 +129,10 @@ class CloudBridge:
                            context=self._context)
 
     def close(self) -> None:
+        self.wait_for_upload(self.config.timeout_s + 1.0)
         with self._lock:
             clients, self._idle_clients = self._idle_clients, []
-        for client in clients + [self._heartbeat_client]:
+        for client in clients + [self._heartbeat_client, self._upload_client]:
             client.close()
         self._context.term()
 
@@ -146,20 +165,72 @@ class CloudBridge:
     # -- heartbeat ------------------------------------------------------------------------------------
 
     def heartbeat(self) -> Tuple[bool, float]:
-        """(reachable, round trip s) of one ping; the current map is uploaded first when the cloud has not
-        acknowledged it, so the next plan carries only its hash. Call from one thread only."""
-        snapshot = self.map
-        if snapshot is not None and snapshot.map_hash not in self._known_maps:
-            try:
-                self._heartbeat_client.upload(snapshot.grid, snapshot.map_hash, timeout_s=self.config.timeout_s)
-            except CloudTimeout:
-                return False, self.config.timeout_s
+        """(reachable, round trip s) of one ping. The round trip is always measured: reachable is True
+        whenever the server answered at all (a non-pong answer too); only when nothing answered within
+        heartbeat_timeout_s is it (False, heartbeat_timeout_s). Then, when the cloud answered and has not
+        acknowledged the current map, starts its upload in the background (so the next plan carries only
+        the hash); a failed upload is retried after the heartbeat period, doubling up to
+        upload_retry_max_s, not at every heartbeat. Call from one thread only."""
+        now = time.monotonic()
+        if self._last_heartbeat_at is not None:
+            self._heartbeat_period_s = max(0.01, now - self._last_heartbeat_at)
+        self._last_heartbeat_at = now
         try:
-            return True, self._heartbeat_client.ping()
+            reply, round_trip_s = self._heartbeat_client.ping_reply()
         except CloudTimeout:
             return False, self.config.heartbeat_timeout_s
-        except RuntimeError:   # answered, but not a pong: reachable all the same
-            return True, self.config.heartbeat_timeout_s
+        if reply.status != Status.OK and not self._non_pong_warned:
+            self._non_pong_warned = True
+            LOG.warning("cloud planner at %s answers pings with %s: %s", self.config.endpoint, reply.status.name,
+                        reply.message)
+        self._upload_if_due()
+        return True, round_trip_s
+
+    def _upload_if_due(self) -> None:
+        snapshot = self.map
+        if snapshot is None or snapshot.map_hash in self._known_maps:
+            return
+        if self._upload_thread is not None and self._upload_thread.is_alive():
+            return
+        if snapshot.map_hash == self._failed_upload and time.monotonic() < self._upload_retry_at:
+            return
+        self.upload_attempts += 1
+        self._upload_thread = threading.Thread(target=self._upload, args=(snapshot,), name="map-upload",
+                                               daemon=True)
+        self._upload_thread.start()
+
+    def _upload(self, snapshot: MapSnapshot) -> None:
+        why = ""
+        try:
+            reply = self._upload_client.upload(snapshot.grid, snapshot.map_hash, timeout_s=self.config.timeout_s)
+            if reply.status != Status.OK:
+                why = f"the cloud answered {reply.status.name}: {reply.message}"
+        except CloudTimeout:
+            why = (f"no answer within {fmt(self.config.timeout_s)} s: the map may exceed the server's "
+                   f"--max-message-mib (libzmq then drops the connection), or the cloud is down")
+        except Exception as error:   # never let the upload thread die silently
+            why = f"{type(error).__name__}: {error}"
+        short_hash = snapshot.map_hash.hex()[:12]
+        if not why:
+            if self._failed_upload == snapshot.map_hash:
+                LOG.info("map %s uploaded to the cloud after earlier failures", short_hash)
+                self._failed_upload = None
+            return
+        if self._failed_upload != snapshot.map_hash:
+            LOG.warning("upload of map %s (%d bytes) to %s failed: %s; retrying with backoff up to every %s s, "
+                        "plans on this map carry it along meanwhile", short_hash, snapshot.grid.nbytes,
+                        self.config.endpoint, why, fmt(self.config.upload_retry_max_s))
+            self._failed_upload = snapshot.map_hash
+            self._upload_retry_s = self._heartbeat_period_s
+        else:
+            self._upload_retry_s = min(2.0 * self._upload_retry_s, self.config.upload_retry_max_s)
+        self._upload_retry_at = time.monotonic() + self._upload_retry_s
+
+    def wait_for_upload(self, timeout_s: Optional[float] = None) -> None:
+        """Waits for a map upload the heartbeat started, if any."""
+        thread = self._upload_thread
+        if thread is not None:
+            thread.join(timeout_s)
 
     # -- plan -----------------------------------------------------------------------------------------
 

@@ -17,7 +17,7 @@ import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Optional, Sequence, Tuple
 
 import numpy as np
 import zmq
@@ -158,14 +158,21 @@ class CloudClient:
                 return reply
             # a stale reply to an earlier request: dropped
 
-    def ping(self, timeout_s: Optional[float] = None) -> float:
-        """Round trip of one ping in seconds; CloudTimeout when unanswered."""
+    def ping_reply(self, timeout_s: Optional[float] = None) -> Tuple[Reply, float]:
+        """The server's answer to one ping, whatever its status, and the measured round trip in seconds;
+        CloudTimeout when unanswered."""
         deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
         started = time.perf_counter()
         reply = self.request(protocol.encode_ping, deadline)
+        return reply, time.perf_counter() - started
+
+    def ping(self, timeout_s: Optional[float] = None) -> float:
+        """Round trip of one ping in seconds; CloudTimeout when unanswered, RuntimeError when the answer
+        is not a pong."""
+        reply, round_trip_s = self.ping_reply(timeout_s)
         if reply.status != Status.OK:
             raise RuntimeError(f"ping answered {reply.status.name}: {reply.message}")
-        return time.perf_counter() - started
+        return round_trip_s
 
     def upload(self, grid: np.ndarray, map_hash: Optional[bytes] = None, timeout_s: Optional[float] = None) -> Reply:
         """Puts `grid` in the server's cache without planning."""
