@@ -116,14 +116,39 @@ def test_unknown_client_key_gets_no_service(server, key_dirs):
         assert allowed.ping() > 0
 
 
-def test_fuzz_garbage_then_a_valid_request_succeeds(server, key_dirs, client):
+HOSTILE_METADATA = [
+    b"[" * 1000, b"{" * 1000, b'{"a":' * 300 + b"1" + b"}" * 300, b'{"a":[' * 150,   # deep nesting
+    b"[]", b'"int8"', b"null", b"1e999", b"\xff\xfe{", b" " * 1025,                  # not an object, too long
+    b'{"dtype":"int16","height":30,"width":30}', b'{"dtype":["int8"],"height":30,"width":30}',   # wrong dtype
+    b'{"dtype":"int8","height":-30,"width":30}', b'{"dtype":"int8","height":30,"width":0}',      # sizes
+    b'{"dtype":"int8","height":30,"width":1' + b"0" * 40 + b"}", b'{"dtype":"int8","height":100001,"width":1}',
+    b'{"dtype":"int8","height":2000,"width":2000}', b'{"dtype":"int8","height":30.0,"width":30}',
+    b'{"dtype":"int8","height":true,"width":30}', b'{"dtype":"int8","height":30}',
+]
+HOSTILE_TOLERANCES = [float("nan"), float("inf"), -float("inf"), -1.0, -0.0, 0.0, 5e-324, 1.5, 1e300, 1e308,
+                      1.7976931348623157e308]
+INT32_EDGES = [0, 1, 29, 30, -1, 2**31 - 1, -2**31]
+
+
+def expected_reply_id(message):
+    """The request id the server's reply to `message` (sent by a DEALER) carries, or None when the protocol
+    drops it unanswered (more frames than any valid message)."""
+    if len(message) > 9:                            # identity + more than max_frames + 1 frames: dropped
+        return None
+    payload = message[1:] if len(message) >= 2 and message[0] == b"" else message   # REQ-style delimiter
+    return protocol.request_id_of(payload[0])
+
+
+def test_fuzz_every_answerable_message_gets_exactly_one_reply(server, key_dirs, client):
     rng = random.Random(1234)
     grid = random_map(30, 30, 0.1, seed=2)
-    valid = [bytes(f) for f in protocol.encode_plan(7, protocol.grid_hash(grid), (0, 0), (29, 29), grid=grid)]
+    digest = protocol.grid_hash(grid)
+    assert client.upload(grid).status == Status.OK   # cached, so hash-only plans reach the planner
+    valid = [bytes(f) for f in protocol.encode_plan(7, digest, (0, 0), (29, 29), grid=grid)]
     ping = protocol.encode_ping(8)[0]
 
     def garbage():
-        choice = rng.randrange(6)
+        choice = rng.randrange(8)
         if choice == 0:   # random frames
             return [rng.randbytes(rng.randrange(0, 64)) for _ in range(rng.randrange(1, 6))]
         if choice == 1:   # a valid message truncated at a random frame and byte
@@ -142,29 +167,80 @@ def test_fuzz_garbage_then_a_valid_request_succeeds(server, key_dirs, client):
             return [protocol.envelope(kind, rng.getrandbits(64))] + [rng.randbytes(rng.randrange(80))
                                                                       for _ in range(rng.randrange(0, 4))]
         if choice == 4:   # many frames
-            return [ping] * rng.randrange(10, 40)
-        return [b""] * rng.randrange(1, 4) + [ping]
+            return [ping] * rng.randrange(5, 40)
+        if choice == 5:
+            return [b""] * rng.randrange(1, 4) + [ping]
+        if choice == 6:   # hostile map metadata, in an upload or with a plan
+            metadata = rng.choice(HOSTILE_METADATA)
+            cells = valid[3] if rng.random() < 0.7 else rng.randbytes(rng.randrange(2000))
+            if rng.random() < 0.5:
+                return [protocol.envelope(Kind.UPLOAD, rng.getrandbits(64)), metadata, cells]
+            return [protocol.envelope(Kind.PLAN, rng.getrandbits(64)), valid[1], metadata, cells]
+        # hostile plan body on the cached map: tolerance, cells, lethal threshold, flags
+        body = protocol.PLAN_BODY.pack(digest if rng.random() < 0.8 else rng.randbytes(16),
+                                       *(rng.choice(INT32_EDGES) if rng.random() < 0.3 else rng.randrange(30)
+                                         for _ in range(4)),
+                                       rng.choice(HOSTILE_TOLERANCES), rng.choice([50, 0, 100, -1, 32767, -32768]),
+                                       rng.randrange(256))
+        return [protocol.envelope(Kind.PLAN, rng.getrandbits(64)), body]
+
+    expected = [collections.Counter() for _ in range(4)]
+    received = [collections.Counter() for _ in range(4)]
+    statuses = collections.Counter()
+
+    def drain(k, wait_ms=0):
+        while sockets[k].poll(wait_ms):
+            frames = sockets[k].recv_multipart()
+            if len(frames) == 5 and frames[0] == b"":   # answer to a message sent with an empty first frame
+                frames = frames[1:]
+            reply = protocol.decode_reply(frames)
+            received[k][reply.request_id] += 1
+            statuses[reply.status] += 1
+            assert reply.status != Status.SERVER_ERROR, reply.message
+            wait_ms = 0
 
     context = zmq.Context()
     sockets = [curve_socket(context, key_dirs[1], server.endpoint) for _ in range(4)]
+    started = time.monotonic()
     try:
         for k in range(3000):
-            sockets[k % 4].send_multipart(garbage())
+            message = garbage()
+            sockets[k % 4].send_multipart(message)
+            request_id = expected_reply_id(message)
+            if request_id is not None:
+                expected[k % 4][request_id] += 1
             if k % 200 == 199:   # drain so the server's replies never pile up
-                for socket in sockets:
-                    while socket.poll(0):
-                        socket.recv_multipart()
-        deadline = time.monotonic() + 10
-        for socket in sockets:
-            while time.monotonic() < deadline and socket.poll(200):
-                socket.recv_multipart()
+                for j in range(4):
+                    drain(j)
+        deadline = time.monotonic() + 15
+        for j in range(4):
+            while received[j] != expected[j] and time.monotonic() < deadline:
+                drain(j, 100)
+        for j in range(4):
+            drain(j, 300)   # nothing more may come: exactly one reply each
+        for j in range(4):
+            assert received[j] == expected[j], (expected[j] - received[j], received[j] - expected[j])
     finally:
         for socket in sockets:
             socket.close(0)
         context.term()
+    assert sum(sum(c.values()) for c in expected) > 2500
+    assert {Status.OK, Status.BAD_REQUEST, Status.TOO_LARGE, Status.MAP_UNKNOWN, Status.START_OFF_MAP} <= set(statuses)
+    assert time.monotonic() - started < 30
     outcome = client.plan(grid, (0, 0), (29, 29))
     assert outcome.reply.status == Status.OK
     np.testing.assert_array_equal(outcome.reply.path, offload_planner_cpp.plan_raw(grid, (0, 0), (29, 29))["path"])
+
+
+def test_huge_goal_tolerance_is_answered_in_time(client):
+    grid = np.zeros((300, 300), np.int8)
+    grid[200:, 200:] = 100   # the goal (299, 299) is blocked: the tolerance decides
+    for goal, tolerance in (((10, 10), 1e300), ((299, 299), 1e300), ((299, 299), 1.7976931348623157e308)):
+        started = time.monotonic()
+        reply = client.plan(grid, (0, 0), goal, PlanOptions(goal_tolerance_cells=tolerance)).reply
+        assert time.monotonic() - started < 10.0
+        assert reply.status == Status.OK, reply.message
+    assert reply.goal != (299, 299) and grid[reply.goal[1], reply.goal[0]] == 0
 
 
 def test_oversized_message_is_refused_and_server_survives(server, key_dirs, client):
