@@ -1,3 +1,7 @@
+import struct
+import zipfile
+import zlib
+
 import numpy as np
 import pytest
 
@@ -70,3 +74,114 @@ def test_slice_and_states():
     part = table.slice(2, 5)
     assert len(part) == 3 and part.states.shape == (3, 3)
     assert np.array_equal(part.states[:, 1], table.cpu_availability[2:5])
+
+
+def _corrupt_member(path, member, tmp_path):
+    """Copies of an .npz with bytes of one compressed member flipped (zip structure left intact)."""
+    data = open(path, "rb").read()
+    with zipfile.ZipFile(path) as archive:
+        info = archive.getinfo(member)
+    # the local header's name and extra field lengths (its extra field may differ from the directory's)
+    name_length, extra_length = struct.unpack("<HH", data[info.header_offset + 26:info.header_offset + 30])
+    start = info.header_offset + 30 + name_length + extra_length
+    copies = []
+    for offset in (0, info.compress_size // 2):  # the deflate header (zlib.error) and the middle (CRC)
+        bad = bytearray(data)
+        for i in range(start + offset, start + offset + 8):
+            bad[i] ^= 0xFF
+        copy = tmp_path / f"corrupt-{offset}.npz"
+        copy.write_bytes(bytes(bad))
+        copies.append(str(copy))
+    return copies
+
+
+def test_a_corrupt_member_is_a_clear_error(tmp_path):
+    good = str(tmp_path / "table.npz")
+    _table(200).save_npz(good)
+    causes = set()
+    for path in _corrupt_member(good, "local_s.npy", tmp_path):
+        with pytest.raises(ValueError, match=r"corrupt-\d+\.npz: cannot read transition table: array 'local_s'") \
+                as error:
+            TransitionTable.load_npz(path)
+        causes.add(type(error.value.__cause__))
+    assert zlib.error in causes  # the case a damaged deflate stream raised raw before
+
+
+def test_a_bare_npy_or_text_file_is_not_a_table(tmp_path):
+    np.save(str(tmp_path / "bare.npy"), np.arange(3))
+    (tmp_path / "text.npz").write_text("t,input_size\n")
+    for name in ("bare.npy", "text.npz"):
+        with pytest.raises(ValueError, match=f"{name} is not a transition table"):
+            TransitionTable.load_npz(str(tmp_path / name))
+
+
+@pytest.mark.parametrize("name,value,message", [
+    ("local_s", np.nan, "local_s must be finite in every row; row 1 is nan"),
+    ("cloud_s", np.inf, "cloud_s must be finite in every row; row 1 is inf"),
+    ("cloud_s", -0.1, r"cloud_s must be > 0 in every row; row 1 is -0.1"),
+    ("action_propensity", np.nan, "action_propensity must be finite"),
+    ("action_propensity", 1.5, r"action_propensity must be in \(0, 1\] in every row; row 1"),
+    ("reward", np.nan, "reward must be finite"),
+    ("reward", -1.5, r"reward must be in \[-1, 1\] in every row; row 1"),
+    ("cpu_availability", 1.2, r"cpu_availability must be in \[0, 1\]"),
+    ("input_size", -1.0, "input_size must be >= 0"),
+    ("round_trip_s", np.nan, "round_trip_s must be finite"),
+    ("action", 0.5, "action must hold whole numbers"),
+    ("action", 2, "action must be 0 .local. or 1 .cloud. in every row; row 1 is 2"),
+    ("t", np.nan, "t must be finite"),
+])
+def test_every_column_is_validated_naming_column_and_row(tmp_path, name, value, message):
+    columns = {column: getattr(_table(3), column) for column in COLUMNS}
+    bad = np.array(columns[name], dtype=np.float64)
+    bad[1] = value
+    with pytest.raises(ValueError, match=message):
+        TransitionTable(**{**columns, name: bad})
+    # the same rules guard a loaded file, and the error names it
+    path = str(tmp_path / "bad.npz")
+    np.savez(path, format=np.array("offload_learner_py.transitions/1"), metadata=np.array("{}"), **{**columns, name: bad})
+    with pytest.raises(ValueError, match=f"bad.npz: invalid transition table: {message}"):
+        TransitionTable.load_npz(path)
+
+
+def test_non_numeric_and_two_dimensional_columns_are_rejected():
+    columns = {column: getattr(_table(3), column) for column in COLUMNS}
+    with pytest.raises(ValueError, match="column reward is not numeric"):
+        TransitionTable(**{**columns, "reward": np.array(["a", "b", "c"])})
+    with pytest.raises(ValueError, match="column reward must be one-dimensional"):
+        TransitionTable(**{**columns, "reward": np.zeros((3, 1))})
+    with pytest.raises(ValueError, match="columns have different lengths"):
+        TransitionTable(**{**columns, "t": np.arange(2)})
+
+
+def _csv(tmp_path, text, name="table.csv"):
+    path = tmp_path / name
+    path.write_text(text)
+    return str(path)
+
+
+def test_csv_errors_name_the_file_and_line(tmp_path):
+    header = ",".join(COLUMNS) + "\n"
+    good = "0,0.1,0.5,0.03,0.01,0.02,1,0.5,-0.3\n"
+    cases = [("", "table.csv is empty"),
+             ("t,input_size\n" + good, "table.csv line 1: header t,input_size is not t,input_size,"),
+             (header + good + "1,0.1,0.5\n", "table.csv line 3: 3 fields, expected 9"),
+             (header + good.strip() + ",7\n", "table.csv line 2: 10 fields, expected 9"),
+             (header + good.replace("0.01", "fast"), "table.csv line 2: local_s 'fast' is not a number"),
+             (header + good + good.replace("0.01", "nan"), "table.csv line 3: invalid transition table: local_s must "
+                                                           "be finite in every row; row 1 is nan"),
+             (header + good + "\n" + good.replace(",1,", ",3,"), "table.csv line 4: invalid transition table: action")]
+    for text, message in cases:
+        with pytest.raises(ValueError, match=message):
+            TransitionTable.from_csv(_csv(tmp_path, text))
+    with pytest.raises(ValueError, match="absent.csv: cannot read transition table"):
+        TransitionTable.from_csv(str(tmp_path / "absent.csv"))
+    (tmp_path / "binary.csv").write_bytes(b"\xff\xfe\x00garbage")
+    with pytest.raises(ValueError, match="binary.csv: not a text CSV file"):
+        TransitionTable.from_csv(str(tmp_path / "binary.csv"))
+
+
+def test_csv_with_only_a_header_or_float_actions_loads(tmp_path):
+    header = ",".join(COLUMNS) + "\n"
+    assert len(TransitionTable.from_csv(_csv(tmp_path, header))) == 0
+    table = TransitionTable.from_csv(_csv(tmp_path, header + "0.0,0.1,0.5,0.03,0.01,0.02,1.0,0.5,-0.3\n"))
+    assert table.action.dtype == np.int64 and table.action[0] == 1

@@ -91,3 +91,30 @@ def test_bundled_trace_holds_real_planner_times(bundled_trace):
     assert np.all(trace.planner_s <= trace.local_s)  # the call wraps the search
     # Real Dijkstra times grow with the input size (not a formula: correlation, not equality).
     assert np.corrcoef(np.log(trace.input_size), np.log(trace.local_s))[0, 1] > 0.5
+
+
+def test_corrupt_or_invalid_trace_files_are_clear_errors(tmp_path, small_trace):
+    from test_dataset import _corrupt_member
+
+    good = str(tmp_path / "trace.npz")
+    small_trace.save_npz(good)
+    for path in _corrupt_member(good, "local_s.npy", tmp_path):
+        with pytest.raises(ValueError, match=r"corrupt-\d+\.npz: cannot read planning trace: array 'local_s'"):
+            PlanningTrace.load_npz(path)
+    with pytest.raises(ValueError, match="absent.npz: cannot read planning trace"):
+        PlanningTrace.load_npz(str(tmp_path / "absent.npz"))
+    arrays = {name: getattr(small_trace, name) for name in ("start_cell", "goal_cell", "distance_m", "input_size",
+                                                             "local_s", "planner_s", "expansions")}
+    for name, value, message in [("local_s", np.nan, "local_s must be finite and > 0 in every row; row 3 is nan"),
+                                 ("input_size", -1.0, "input_size must be finite and >= 0"),
+                                 ("planner_s", np.inf, "planner_s must be nan or >= 0")]:
+        bad = np.array(arrays[name], dtype=np.float64)
+        bad[3] = value
+        path = str(tmp_path / "bad.npz")
+        np.savez(path, format=np.array("offload_learner_py.trace/1"), metadata=np.array("{}"), **{**arrays, name: bad})
+        with pytest.raises(ValueError, match=f"bad.npz: invalid planning trace: trace array {message}"):
+            PlanningTrace.load_npz(path)
+    with pytest.raises(ValueError, match="start_cell must be N x 2"):
+        PlanningTrace(**{**arrays, "start_cell": np.zeros(50, np.int64)})
+    with pytest.raises(ValueError, match="different lengths"):
+        PlanningTrace(**{**arrays, "local_s": arrays["local_s"][:10]})

@@ -17,6 +17,48 @@ TABLE_FORMAT = "offload_learner_py.transitions/1"
 _INTEGER_COLUMNS = ("t", "action")
 
 
+class InvalidTableError(ValueError):
+    """A column breaks a rule of the transition table; `row` is the first bad row (None if not one row)."""
+
+    def __init__(self, message: str, column: str, row=None):
+        super().__init__(message)
+        self.column, self.row = column, row
+
+
+def _column(name: str, values) -> np.ndarray:
+    """One column as a 1-D int64 (t, action) or float64 array, every value finite (and whole for ints)."""
+    try:
+        array = np.asarray(values)
+        if name in _INTEGER_COLUMNS and array.dtype.kind in "biu":
+            array = array.astype(np.int64)
+        else:
+            array = array.astype(np.float64)
+    except (TypeError, ValueError) as error:
+        raise InvalidTableError(f"column {name} is not numeric: {error}", name) from error
+    if array.ndim != 1:
+        raise InvalidTableError(f"column {name} must be one-dimensional, got shape {array.shape}", name)
+    if array.dtype == np.float64:
+        bad = np.flatnonzero(~np.isfinite(array))
+        if len(bad):
+            raise InvalidTableError(f"{name} must be finite in every row; row {bad[0]} is {array[bad[0]]}",
+                                    name, int(bad[0]))
+        if name in _INTEGER_COLUMNS:
+            bad = np.flatnonzero((array != np.round(array)) | (np.abs(array) >= 2.0 ** 53))
+            if len(bad):
+                raise InvalidTableError(f"{name} must hold whole numbers below 2**53; row {bad[0]} is "
+                                        f"{array[bad[0]]}",
+                                        name, int(bad[0]))
+            array = array.astype(np.int64)
+    return array
+
+
+def _require(table: "TransitionTable", name: str, ok: np.ndarray, rule: str) -> None:
+    bad = np.flatnonzero(~ok)
+    if len(bad):
+        value = getattr(table, name)[bad[0]]
+        raise InvalidTableError(f"{name} must be {rule} in every row; row {bad[0]} is {value}", name, int(bad[0]))
+
+
 @dataclass
 class TransitionTable:
     t: np.ndarray
@@ -32,19 +74,18 @@ class TransitionTable:
 
     def __post_init__(self):
         for name in COLUMNS:
-            setattr(self, name, np.asarray(getattr(self, name),
-                                           dtype=np.int64 if name in _INTEGER_COLUMNS else np.float64))
-            if getattr(self, name).ndim != 1:
-                raise ValueError(f"column {name} must be one-dimensional")
-        lengths = {len(getattr(self, name)) for name in COLUMNS}
-        if len(lengths) != 1:
-            raise ValueError(f"columns have different lengths: {sorted(lengths)}")
-        if not np.all((self.action == LOCAL) | (self.action == CLOUD)):
-            raise ValueError(f"action must be {LOCAL} (local) or {CLOUD} (cloud) in every row")
-        if np.any(self.local_s <= 0) or np.any(self.cloud_s <= 0):
-            raise ValueError("local_s and cloud_s must be positive in every row")
-        if np.any((self.action_propensity <= 0) | (self.action_propensity > 1)):
-            raise ValueError("action_propensity must be in (0, 1] in every row")
+            setattr(self, name, _column(name, getattr(self, name)))
+        lengths = {name: len(getattr(self, name)) for name in COLUMNS}
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"columns have different lengths: {lengths}")
+        _require(self, "action", (self.action == LOCAL) | (self.action == CLOUD), f"{LOCAL} (local) or {CLOUD} (cloud)")
+        _require(self, "input_size", self.input_size >= 0, ">= 0")
+        _require(self, "cpu_availability", (self.cpu_availability >= 0) & (self.cpu_availability <= 1), "in [0, 1]")
+        _require(self, "round_trip_s", self.round_trip_s >= 0, ">= 0")
+        _require(self, "local_s", self.local_s > 0, "> 0")
+        _require(self, "cloud_s", self.cloud_s > 0, "> 0")
+        _require(self, "action_propensity", (self.action_propensity > 0) & (self.action_propensity <= 1), "in (0, 1]")
+        _require(self, "reward", (self.reward >= -1) & (self.reward <= 1), "in [-1, 1]")
 
     def __len__(self) -> int:
         return len(self.t)
@@ -63,8 +104,13 @@ class TransitionTable:
 
     @classmethod
     def load_npz(cls, path: str) -> "TransitionTable":
+        """The table in an .npz written by save_npz. Any unreadable, foreign or invalid file raises
+        ValueError naming the file."""
         arrays, metadata = load_versioned_npz(path, TABLE_FORMAT, COLUMNS, "transition table")
-        return cls(**arrays, metadata=metadata)
+        try:
+            return cls(**arrays, metadata=metadata)
+        except InvalidTableError as error:
+            raise ValueError(f"{path}: invalid transition table: {error}") from error
 
     def to_csv(self, path: str) -> None:
         with open(path, "w", newline="") as out:
@@ -75,11 +121,49 @@ class TransitionTable:
 
     @classmethod
     def from_csv(cls, path: str) -> "TransitionTable":
-        with open(path, newline="") as source:
-            reader = csv.reader(source)
-            header = tuple(next(reader))
-            if header != COLUMNS:
-                raise ValueError(f"{path} header {header} is not {COLUMNS}")
-            rows = [row for row in reader]
-        columns = list(zip(*rows)) if rows else [()] * len(COLUMNS)
-        return cls(**{name: np.array([float(v) for v in values]) for name, values in zip(COLUMNS, columns)})
+        """The table in a CSV written by to_csv: the header must be COLUMNS and every row must have one
+        number per column (blank lines are skipped). Anything else raises ValueError naming the file
+        and the line."""
+        values = {name: [] for name in COLUMNS}
+        lines = []
+        try:
+            with open(path, newline="") as source:
+                reader = csv.reader(source)
+                header = next(reader, None)
+                if header is None:
+                    raise ValueError(f"{path} is empty: a transition table CSV starts with the header "
+                                     f"{','.join(COLUMNS)}")
+                if tuple(header) != COLUMNS:
+                    raise ValueError(f"{path} line 1: header {','.join(header)} is not {','.join(COLUMNS)}")
+                for row in reader:
+                    if not row:
+                        continue
+                    if len(row) != len(COLUMNS):
+                        raise ValueError(f"{path} line {reader.line_num}: {len(row)} fields, expected "
+                                         f"{len(COLUMNS)} ({','.join(COLUMNS)})")
+                    for name, text in zip(COLUMNS, row):
+                        values[name].append(_parse_number(text, path, reader.line_num, name))
+                    lines.append(reader.line_num)
+        except OSError as error:
+            raise ValueError(f"{path}: cannot read transition table: {error}") from error
+        except UnicodeDecodeError as error:
+            raise ValueError(f"{path}: not a text CSV file: {error}") from error
+        except csv.Error as error:
+            raise ValueError(f"{path} line {reader.line_num}: {error}") from error
+        try:
+            return cls(**values)
+        except InvalidTableError as error:
+            where = f" line {lines[error.row]}" if error.row is not None else ""
+            raise ValueError(f"{path}{where}: invalid transition table: {error}") from error
+
+
+def _parse_number(text: str, path: str, line: int, name: str):
+    """An int where the text is one (t and action keep full precision), else a float."""
+    try:
+        return int(text)
+    except ValueError:
+        pass
+    try:
+        return float(text)
+    except ValueError:
+        raise ValueError(f"{path} line {line}: {name} {text!r} is not a number") from None

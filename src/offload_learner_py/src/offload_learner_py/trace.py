@@ -18,6 +18,7 @@ from offload_learner_py.state import input_size_from_cells
 
 TRACE_FORMAT = "offload_learner_py.trace/1"
 _ARRAYS = ("start_cell", "goal_cell", "distance_m", "input_size", "local_s", "planner_s", "expansions")
+_INTEGER_ARRAYS = ("start_cell", "goal_cell", "expansions")
 
 
 @dataclass
@@ -31,6 +32,39 @@ class PlanningTrace:
     expansions: np.ndarray    # cells the planner settled (-1 if it reports none)
     metadata: Dict = field(default_factory=dict)
 
+    def __post_init__(self):
+        arrays = {}
+        for name in _ARRAYS:
+            try:
+                array = np.asarray(getattr(self, name))
+                if name in _INTEGER_ARRAYS:
+                    if array.dtype.kind not in "biu" and not (array.size == 0 and array.dtype.kind == "f"):
+                        raise ValueError(f"dtype {array.dtype} is not an integer type")
+                    array = array.astype(np.int64)
+                else:
+                    array = array.astype(np.float64)
+            except (TypeError, ValueError) as error:
+                raise ValueError(f"trace array {name} is not {'integer' if name in _INTEGER_ARRAYS else 'numeric'}: "
+                                 f"{error}") from error
+            expected = 2 if name in ("start_cell", "goal_cell") else 1
+            if array.ndim != expected or (expected == 2 and array.shape[1] != 2):
+                raise ValueError(f"trace array {name} must be {'N x 2' if expected == 2 else 'one-dimensional'}, "
+                                 f"got shape {array.shape}")
+            arrays[name] = array
+            setattr(self, name, array)
+        lengths = {name: len(array) for name, array in arrays.items()}
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"trace arrays have different lengths: {lengths}")
+        for name, ok, rule in (("distance_m", np.isfinite(self.distance_m) & (self.distance_m >= 0), "finite and >= 0"),
+                               ("input_size", np.isfinite(self.input_size) & (self.input_size >= 0), "finite and >= 0"),
+                               ("local_s", np.isfinite(self.local_s) & (self.local_s > 0), "finite and > 0"),
+                               ("planner_s", np.isnan(self.planner_s) | (np.isfinite(self.planner_s)
+                                                                        & (self.planner_s >= 0)), "nan or >= 0")):
+            bad = np.flatnonzero(~ok)
+            if len(bad):
+                raise ValueError(f"trace array {name} must be {rule} in every row; row {bad[0]} is "
+                                 f"{getattr(self, name)[bad[0]]}")
+
     def __len__(self) -> int:
         return len(self.local_s)
 
@@ -39,8 +73,13 @@ class PlanningTrace:
 
     @classmethod
     def load_npz(cls, path: str) -> "PlanningTrace":
+        """The trace in an .npz written by save_npz. Any unreadable, foreign or invalid file raises
+        ValueError naming the file."""
         arrays, metadata = load_versioned_npz(path, TRACE_FORMAT, _ARRAYS, "planning trace")
-        return cls(**arrays, metadata=metadata)
+        try:
+            return cls(**arrays, metadata=metadata)
+        except ValueError as error:
+            raise ValueError(f"{path}: invalid planning trace: {error}") from error
 
 
 def free_cells(grid: np.ndarray, lethal_threshold: int = 50) -> np.ndarray:
