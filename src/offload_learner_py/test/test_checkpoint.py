@@ -92,3 +92,46 @@ def test_a_file_that_is_not_a_checkpoint_is_refused(tmp_path):
     path.write_bytes(b"not a checkpoint at all")
     with pytest.raises(IncompatibleCheckpointError, match="not a readable"):
         load_checkpoint(str(path))
+
+
+@pytest.mark.parametrize("key", ["steps", "gradient_steps"])
+def test_missing_or_invalid_step_counters_are_refused(tmp_path, key):
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    payload = torch.load(path, weights_only=True)
+    for change in ({}, {key: "many"}, {key: -1}):
+        damaged = {k: v for k, v in payload.items() if k != key}
+        damaged.update(change)
+        torch.save(damaged, path)
+        with pytest.raises(IncompatibleCheckpointError, match=f"dqn.pt has no valid step counters.*{key}"):
+            load_checkpoint(path)
+
+
+def test_truncated_or_corrupt_checkpoints_are_refused(tmp_path):
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    data = open(path, "rb").read()
+    middle = len(data) // 2
+    damaged = {"truncated.pt": data[:middle], "end_cut.pt": data[:-10],
+               # bytes inside the stored weights: torch.load alone would load them silently
+               "flipped.pt": data[:middle] + bytes(b ^ 0xFF for b in data[middle:middle + 64]) + data[middle + 64:],
+               "empty.pt": b""}
+    for name, content in damaged.items():
+        (tmp_path / name).write_bytes(content)
+        with pytest.raises(IncompatibleCheckpointError, match=f"{name} is not a readable offload DQN checkpoint"):
+            load_checkpoint(str(tmp_path / name))
+    with pytest.raises(IncompatibleCheckpointError, match="absent.pt is not a readable"):
+        load_checkpoint(str(tmp_path / "absent.pt"))
+
+
+def test_config_and_normalisation_values_are_type_checked():
+    from offload_learner_py.normalisation import StateNormalisation
+    for bad, message in [({"batch_size": "64"}, "batch_size must be an integer"),
+                         ({"learning_rate": float("nan")}, "learning_rate must be a finite number"),
+                         ({"hidden_sizes": 5}, "hidden_sizes must be a list"), ({"seed": -1}, "seed must be >= 0")]:
+        with pytest.raises(ValueError, match=message):
+            DQNConfig.from_dict({**DQNConfig().to_dict(), **bad})
+    with pytest.raises(ValueError, match="positive finite scales"):
+        StateNormalisation.from_dict({"mean": [0, 0, 0], "scale": [1, 0, 1], "log_input_size": True})

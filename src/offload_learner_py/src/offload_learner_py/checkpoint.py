@@ -2,6 +2,7 @@
 atomically (temp file in the same directory, then rename) so a crash never leaves half a model."""
 import os
 import tempfile
+import zipfile
 
 import torch
 
@@ -47,9 +48,16 @@ def save_checkpoint(agent: DQNAgent, path: str) -> None:
 def load_checkpoint(path: str, expected_config: DQNConfig = None) -> DQNAgent:
     """Rebuild the agent. With expected_config, refuse a checkpoint whose network shape differs."""
     try:
+        # torch.load does not check the CRCs of the zip members it reads, so damaged weights would load
+        # silently; the zip layer does check them.
+        with zipfile.ZipFile(path) as archive:
+            damaged = archive.testzip()
+        if damaged is not None:
+            raise ValueError(f"member {damaged} fails its CRC check")
         payload = torch.load(path, map_location="cpu", weights_only=True)
     except Exception as error:  # torch raises several types for a foreign or corrupt file
-        raise IncompatibleCheckpointError(f"{path} is not a readable offload DQN checkpoint: {error}") from error
+        raise IncompatibleCheckpointError(f"{path} is not a readable offload DQN checkpoint (missing, truncated or "
+                                          f"corrupt): {error}") from error
     if not isinstance(payload, dict) or payload.get("format") != CHECKPOINT_FORMAT:
         raise IncompatibleCheckpointError(f"{path} is not an offload DQN checkpoint (format "
                                           f"{payload.get('format') if isinstance(payload, dict) else None!r})")
@@ -64,14 +72,24 @@ def load_checkpoint(path: str, expected_config: DQNConfig = None) -> DQNAgent:
     if expected_config is not None and tuple(expected_config.hidden_sizes) != config.hidden_sizes:
         raise IncompatibleCheckpointError(f"{path} holds a network with hidden layers {list(config.hidden_sizes)}, "
                                           f"expected {list(expected_config.hidden_sizes)}")
+    try:
+        steps, gradient_steps = _count(payload, "steps"), _count(payload, "gradient_steps")
+    except (KeyError, TypeError, ValueError) as error:
+        raise IncompatibleCheckpointError(f"{path} has no valid step counters: {error}") from error
     agent = DQNAgent(config, normalisation if payload.get("normalisation_frozen", True) else None)
     try:
         agent.q_network.load_state_dict(payload["q_network"])
         agent.target_network.load_state_dict(payload["target_network"])
         agent.optimizer.load_state_dict(payload["optimizer"])
-    except (KeyError, RuntimeError, ValueError) as error:
+    except (KeyError, IndexError, TypeError, AttributeError, RuntimeError, ValueError) as error:
         raise IncompatibleCheckpointError(f"{path} weights do not fit the network its config describes: "
                                           f"{error}") from error
-    agent.steps = int(payload["steps"])
-    agent.gradient_steps = int(payload["gradient_steps"])
+    agent.steps, agent.gradient_steps = steps, gradient_steps
     return agent
+
+
+def _count(payload: dict, key: str) -> int:
+    value = payload[key]
+    if isinstance(value, bool) or not isinstance(value, int) or value < 0:
+        raise ValueError(f"{key} must be a non-negative integer, got {value!r}")
+    return value

@@ -1,7 +1,13 @@
 """Every hyperparameter of the DQN learner in one place. The paper's Table 1 is missing from its
 text, so the values below are our defaults; the architecture, replay size and epsilon are the paper's."""
+import math
+import numbers
 from dataclasses import asdict, dataclass, fields
 from typing import Tuple
+
+
+def _is_int(value) -> bool:
+    return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
 
 @dataclass(frozen=True)
@@ -39,6 +45,25 @@ class DQNConfig:
     """feed log(d + 1e-6) instead of d: d spans orders of magnitude across requests."""
 
     def __post_init__(self):
+        for spec in fields(self):
+            value = getattr(self, spec.name)
+            if spec.name == "hidden_sizes":
+                if not isinstance(value, (tuple, list)) or not all(_is_int(h) for h in value):
+                    raise ValueError(f"hidden_sizes must be a list of integers, got {value!r}")
+                object.__setattr__(self, "hidden_sizes", tuple(int(h) for h in value))
+            elif isinstance(spec.default, bool):
+                if not isinstance(value, bool):
+                    raise ValueError(f"{spec.name} must be true or false, got {value!r}")
+            elif isinstance(spec.default, int):
+                if not _is_int(value):
+                    raise ValueError(f"{spec.name} must be an integer, got {value!r}")
+            elif not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)):
+                raise ValueError(f"{spec.name} must be a finite number, got {value!r}")
+        for name in ("learning_rate", "huber_delta", "max_grad_norm"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
+        if self.weight_decay < 0:
+            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
         if not 0.0 <= self.gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {self.gamma}")
         if not 0.0 <= self.epsilon <= 1.0:
@@ -47,6 +72,8 @@ class DQNConfig:
                      "target_update_interval"):
             if getattr(self, name) < 1:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
+        if self.seed < 0:
+            raise ValueError(f"seed must be >= 0, got {self.seed}")
         if self.learning_starts < 0:
             raise ValueError(f"learning_starts must be >= 0, got {self.learning_starts}")
         if not self.hidden_sizes or min(self.hidden_sizes) < 1:
@@ -67,5 +94,8 @@ class DQNConfig:
             raise ValueError(f"unknown DQNConfig fields: {sorted(unknown)}")
         values = dict(values)
         if "hidden_sizes" in values:
-            values["hidden_sizes"] = tuple(int(h) for h in values["hidden_sizes"])
+            sizes = values["hidden_sizes"]
+            if not isinstance(sizes, (list, tuple)):
+                raise ValueError(f"hidden_sizes must be a list of integers, got {sizes!r}")
+            values["hidden_sizes"] = tuple(sizes)
         return cls(**values)

@@ -57,4 +57,7 @@ class StateNormalisation:
         mean, scale = tuple(float(v) for v in values["mean"]), tuple(float(v) for v in values["scale"])
         if len(mean) != STATE_SIZE or len(scale) != STATE_SIZE:
             raise ValueError(f"normalisation must have {STATE_SIZE} features, got {len(mean)}")
+        if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(scale)) and min(scale) > 0):
+            raise ValueError(f"normalisation must have finite means and positive finite scales, got mean {mean}, "
+                             f"scale {scale}")
         return cls(mean=mean, scale=scale, log_input_size=bool(values["log_input_size"]))
