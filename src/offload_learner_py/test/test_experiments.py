@@ -1,9 +1,12 @@
 import json
 import os
+import subprocess
+import sys
 
 import pytest
 
 from offload_learner_py import experiments
+from offload_learner_py.dataset import COLUMNS
 from offload_learner_py.synthetic import generate_synthetic
 
 
@@ -30,8 +33,39 @@ def test_config_overrides_reach_the_learner(tmp_path):
     config = json.loads((out / "metrics.json").read_text())["dqn_config"]
     assert (config["gamma"], config["target_update_interval"], config["hidden_sizes"], config["seed"]) == \
         (0.9, 25, [64, 64, 64], 2)
-    with pytest.raises(SystemExit):
-        experiments.main(["synthetic", "--kind", "local", "--out", str(out), "--set", "gama=0.9"])
+    assert experiments.main(["synthetic", "--kind", "local", "--out", str(out), "--set", "gama=0.9"]) == 2
+    assert experiments.main(["synthetic", "--kind", "local", "--out", str(out), "--set", "batch_size=\"x\""]) == 2
+
+
+def _cli(*args, cwd):
+    env = {**os.environ, "PYTHONPATH": os.path.join(os.path.dirname(__file__), "..", "src")}
+    return subprocess.run([sys.executable, "-m", "offload_learner_py.experiments", *args], cwd=cwd, env=env,
+                          capture_output=True, text=True, timeout=120)
+
+
+def test_a_missing_data_file_is_one_error_line_and_exit_2(tmp_path):
+    result = _cli("compare", "--data", "absent.npz", "--out", "o", cwd=tmp_path)
+    assert result.returncode == 2
+    assert result.stderr.startswith("error: absent.npz: cannot read transition table")
+    assert "Traceback" not in result.stderr and len(result.stderr.strip().splitlines()) == 1
+
+
+def test_bad_user_input_is_an_error_message_and_exit_2(tmp_path, capsys):
+    (tmp_path / "text.npz").write_text("not an archive")
+    (tmp_path / "short.csv").write_text(",".join(COLUMNS) + "\n0,0.1,0.5\n")
+    out = str(tmp_path / "o")
+    cases = [(["compare", "--data", str(tmp_path / "text.npz"), "--out", out], "text.npz is not a transition table"),
+             (["compare", "--data", str(tmp_path / "short.csv"), "--out", out], "short.csv line 2: 3 fields"),
+             (["synthetic", "--kind", "cpu", "--trace", str(tmp_path / "absent.npz"), "--out", out],
+              "cannot read planning trace"),
+             (["synthetic", "--kind", "cpu", "--out", out, "--set", "learning_rate=NaN"], "learning_rate must be")]
+    for args, message in cases:
+        assert experiments.main(args) == 2, args
+        err = capsys.readouterr().err
+        assert err.startswith("error: ") and message in err, (args, err)
+    with pytest.raises(SystemExit) as exit_info:  # argparse: usage error, exit 2
+        experiments.main(["generate", "--kind", "cpu", "--steps", "0", "--out", "x.npz"])
+    assert exit_info.value.code == 2 and "must be >= 1" in capsys.readouterr().err
 
 
 def test_compare_command_scores_every_policy_on_one_table(tmp_path, bundled_trace, capsys):

@@ -226,17 +226,45 @@ def _config_from_args(args) -> DQNConfig:
     for assignment in args.set or []:
         field, _, text = assignment.partition("=")
         if field not in values:
-            raise SystemExit(f"--set: unknown DQNConfig field {field!r}; fields: {sorted(values)}")
+            raise ValueError(f"--set: unknown DQNConfig field {field!r}; fields: {sorted(values)}")
         try:
             values[field] = json.loads(text)
         except json.JSONDecodeError:
             values[field] = text
     if getattr(args, "seed", None) is not None:
         values["seed"] = args.seed
-    return DQNConfig.from_dict(values)
+    try:
+        return DQNConfig.from_dict(values)
+    except (TypeError, ValueError) as error:
+        raise ValueError(f"invalid DQN configuration: {error}") from error
+
+
+def _count_type(minimum: int):
+    """argparse type: an integer >= minimum (a bad value is a usage error, exit 2)."""
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+        if value < minimum:
+            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
+        return value
+    return parse
+
+
+def _fraction(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not 0.0 < value < 1.0:
+        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {value}")
+    return value
 
 
 def main(argv: Optional[List[str]] = None) -> int:
+    """Run one command. Bad user input (a missing or invalid data, trace or config) prints
+    `error: ...` on stderr and returns 2, as argparse does for bad arguments."""
     parser = argparse.ArgumentParser(prog="python -m offload_learner_py.experiments", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
@@ -245,37 +273,45 @@ def main(argv: Optional[List[str]] = None) -> int:
         sub.add_argument("--out", required=True, help="output directory")
         sub.add_argument("--gamma", type=float, default=None, help="discount (default 0: contextual bandit)")
         sub.add_argument("--set", action="append", metavar="FIELD=VALUE", help="override any DQNConfig field")
-        sub.add_argument("--threads", type=int, default=1,
+        sub.add_argument("--threads", type=_count_type(1), default=1,
                          help="torch threads; 1 is fastest for these small networks")
 
     synthetic = commands.add_parser("synthetic", help="train online on one synthetic dataset")
     synthetic.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
-    synthetic.add_argument("--steps", type=int, default=1000)
-    synthetic.add_argument("--seed", type=int, default=1)
+    synthetic.add_argument("--steps", type=_count_type(1), default=1000)
+    synthetic.add_argument("--seed", type=_count_type(0), default=1)
     synthetic.add_argument("--trace", default=BUNDLED_TRACE, help="planning trace .npz (default: bundled)")
     add_common(synthetic)
 
     sweep = commands.add_parser("sweep", help="`synthetic` over several seeds, with mean and spread")
     sweep.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
-    sweep.add_argument("--seeds", type=int, nargs="+", required=True)
-    sweep.add_argument("--steps", type=int, default=1000)
+    sweep.add_argument("--seeds", type=_count_type(0), nargs="+", required=True)
+    sweep.add_argument("--steps", type=_count_type(1), default=1000)
     sweep.add_argument("--trace", default=BUNDLED_TRACE)
     add_common(sweep)
 
     compare = commands.add_parser("compare", help="every policy on one transition table")
     compare.add_argument("--data", required=True, help="transition table (.npz or .csv)")
-    compare.add_argument("--train-fraction", type=float, default=0.5)
-    compare.add_argument("--seed", type=int, default=1)
+    compare.add_argument("--train-fraction", type=_fraction, default=0.5)
+    compare.add_argument("--seed", type=_count_type(0), default=1)
     add_common(compare)
 
     generate = commands.add_parser("generate", help="write a synthetic transition table (.npz, and .csv beside it)")
     generate.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
-    generate.add_argument("--steps", type=int, default=1000)
-    generate.add_argument("--seed", type=int, default=1)
+    generate.add_argument("--steps", type=_count_type(1), default=1000)
+    generate.add_argument("--seed", type=_count_type(0), default=1)
     generate.add_argument("--trace", default=BUNDLED_TRACE)
     generate.add_argument("--out", required=True, help="output .npz")
 
     args = parser.parse_args(argv)
+    try:
+        return _run(args)
+    except (ValueError, OSError) as error:  # IncompatibleCheckpointError is a ValueError
+        print(f"error: {error}", file=sys.stderr)
+        return 2
+
+
+def _run(args) -> int:
     if args.command == "generate":
         table = generate_synthetic(args.kind, PlanningTrace.load_npz(args.trace), args.steps, args.seed)
         table.save_npz(args.out)
