@@ -9,7 +9,7 @@ from typing import Dict
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.npz_io import load_versioned_npz, save_versioned_npz
+from offload_learner_py.npz_io import load_versioned, save_versioned_npz
 
 COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
            "action_propensity", "reward")
@@ -106,11 +106,7 @@ class TransitionTable:
     def load_npz(cls, path: str) -> "TransitionTable":
         """The table in an .npz written by save_npz. Any unreadable, foreign or invalid file raises
         ValueError naming the file."""
-        arrays, metadata = load_versioned_npz(path, TABLE_FORMAT, COLUMNS, "transition table")
-        try:
-            return cls(**arrays, metadata=metadata)
-        except InvalidTableError as error:
-            raise ValueError(f"{path}: invalid transition table: {error}") from error
+        return load_versioned(cls, path, TABLE_FORMAT, COLUMNS, "transition table")
 
     def to_csv(self, path: str) -> None:
         with open(path, "w", newline="") as out:

@@ -3,7 +3,7 @@ transition tables and the planning traces."""
 import json
 import zipfile
 import zlib
-from typing import Dict, Iterable, Mapping, Tuple
+from typing import Callable, Dict, Iterable, Mapping, Tuple
 
 import numpy as np
 
@@ -59,3 +59,13 @@ def load_versioned_npz(path: str, file_format: str, names: Iterable[str], what: 
     if not isinstance(metadata, dict):
         raise ValueError(f"{path}: cannot read {what}: its metadata is a {type(metadata).__name__}, not an object")
     return arrays, metadata
+
+
+def load_versioned(build: Callable, path: str, file_format: str, names: Iterable[str], what: str):
+    """`build(**arrays, metadata=metadata)` from the file; its ValueError on invalid content is raised
+    again naming the file."""
+    arrays, metadata = load_versioned_npz(path, file_format, names, what)
+    try:
+        return build(**arrays, metadata=metadata)
+    except ValueError as error:
+        raise ValueError(f"{path}: invalid {what}: {error}") from error

@@ -13,7 +13,7 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
-from offload_learner_py.npz_io import load_versioned_npz, save_versioned_npz
+from offload_learner_py.npz_io import load_versioned, save_versioned_npz
 from offload_learner_py.state import input_size_from_cells
 
 TRACE_FORMAT = "offload_learner_py.trace/1"
@@ -75,11 +75,7 @@ class PlanningTrace:
     def load_npz(cls, path: str) -> "PlanningTrace":
         """The trace in an .npz written by save_npz. Any unreadable, foreign or invalid file raises
         ValueError naming the file."""
-        arrays, metadata = load_versioned_npz(path, TRACE_FORMAT, _ARRAYS, "planning trace")
-        try:
-            return cls(**arrays, metadata=metadata)
-        except ValueError as error:
-            raise ValueError(f"{path}: invalid planning trace: {error}") from error
+        return load_versioned(cls, path, TRACE_FORMAT, _ARRAYS, "planning trace")
 
 
 def free_cells(grid: np.ndarray, lethal_threshold: int = 50) -> np.ndarray:
