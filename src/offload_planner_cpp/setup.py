@@ -3,4 +3,7 @@ beside it in the devel space by CMake)."""
 from catkin_pkg.python_setup import generate_distutils_setup
 from setuptools import setup
 
-setup(**generate_distutils_setup(packages=["offload_planner_cpp"], package_dir={"": "src"}))
+setup(**generate_distutils_setup(
+    packages=["offload_planner_cpp", "offload_planner_cpp.cloud", "offload_planner_cpp.nodes",
+              "offload_planner_cpp.devtools"],
+    package_dir={"": "src"}))

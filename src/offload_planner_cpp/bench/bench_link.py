@@ -19,10 +19,10 @@ import time
 import numpy as np
 import zmq
 
-from offload_planner_cpp import keys, protocol
-from offload_planner_cpp.cloud_client import CloudClient
-from offload_planner_cpp.keys import load_client_keys, load_server_keys
-from offload_planner_cpp.wan_emulator import LinkModel, WanEmulator
+from offload_planner_cpp.cloud import keys, protocol
+from offload_planner_cpp.cloud.client import CloudClient
+from offload_planner_cpp.cloud.keys import load_client_keys, load_server_keys
+from offload_planner_cpp.devtools.wan_emulator import LinkModel, WanEmulator
 
 LOOPBACK = "127.0.0.1"
 
@@ -53,7 +53,7 @@ def spawn(args) -> subprocess.Popen:
 
 
 def spawn_cloud(port: int, server_keys, workers: int) -> subprocess.Popen:
-    args = ["-m", "offload_planner_cpp.cloud_server", "--bind", f"tcp://{LOOPBACK}:{port}", "--workers",
+    args = ["-m", "offload_planner_cpp.cloud.server", "--bind", f"tcp://{LOOPBACK}:{port}", "--workers",
             str(workers), "--log-level", "WARNING"]
     return spawn(args + (["--keys-dir", str(server_keys)] if server_keys else ["--insecure"]))
 

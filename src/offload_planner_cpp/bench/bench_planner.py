@@ -15,7 +15,7 @@ import numpy as np
 from scipy.sparse import csgraph
 
 from offload_planner_cpp import NoPathError, plan
-from offload_planner_cpp.grid_graph import grid_graph
+from offload_planner_cpp.devtools.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map
 
 HERE = Path(__file__).resolve()

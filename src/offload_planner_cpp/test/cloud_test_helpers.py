@@ -10,8 +10,8 @@ import time
 
 import numpy as np
 
-from offload_planner_cpp import keys
-from offload_planner_cpp.cloud_server import CloudServer, ServerConfig
+from offload_planner_cpp.cloud import keys
+from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
 
 LOOPBACK = "tcp://127.0.0.1"
 
@@ -39,7 +39,7 @@ def spawn_server(port: int, server_keys, workers: int = 2, timeout_s: float = 20
     """The server as its own process (so a test can SIGKILL it); returns once it listens."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     process = subprocess.Popen(
-        [sys.executable, "-m", "offload_planner_cpp.cloud_server", "--bind", f"{LOOPBACK}:{port}",
+        [sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind", f"{LOOPBACK}:{port}",
          "--workers", str(workers), "--keys-dir", str(server_keys), "--log-level", "WARNING"],
         stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, text=True)
     deadline = time.monotonic() + timeout_s

@@ -17,8 +17,8 @@ from geometry_msgs.msg import PoseStamped
 from offload_msgs.msg import LinkLatency, PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
-from offload_planner_cpp import keys
-from offload_planner_cpp.cloud_server import CloudServer, ServerConfig
+from offload_planner_cpp.cloud import keys
+from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
 from offload_planner_cpp.maps import load_map
 
 R = PlanPathResponse
@@ -34,7 +34,7 @@ class CloudBridgeTest(unittest.TestCase):
         cls.server = CloudServer(ServerConfig(bind="tcp://127.0.0.1:0", keys_dir=str(server_keys), workers=2))
         endpoint = cls.server.start()
         cls.bridge = subprocess.Popen(
-            [sys.executable, "-m", "offload_planner_cpp.cloud_bridge_node", "__name:=cloud_bridge",
+            [sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
              f"_endpoint:={endpoint}", f"_keys_dir:={os.path.join(cls.keys_dir.name, 'robot')}",
              f"_timeout_s:={TIMEOUT_S}", "_heartbeat_period_s:=0.2"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)   # its log is in ROS_HOME/log

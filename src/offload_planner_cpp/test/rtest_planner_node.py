@@ -17,7 +17,7 @@ from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 import rospkg
 
 import offload_planner_cpp
-from offload_planner_cpp.map_publisher_node import NumpyOccupancyGrid, to_message
+from offload_planner_cpp.nodes.map_publisher import NumpyOccupancyGrid, to_message
 from offload_planner_cpp.maps import load_map
 
 R = PlanPathResponse

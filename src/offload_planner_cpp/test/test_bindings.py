@@ -8,7 +8,7 @@ from scipy.sparse import csgraph
 
 import offload_planner_cpp
 from offload_planner_cpp import NoPathError, PlanError, plan
-from offload_planner_cpp.grid_graph import grid_graph
+from offload_planner_cpp.devtools.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map
 
 

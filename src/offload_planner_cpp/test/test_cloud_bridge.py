@@ -9,9 +9,9 @@ import numpy as np
 import pytest
 
 import offload_planner_cpp
-from offload_planner_cpp.bridge import BridgeConfig, CloudBridge, PlanPathStatus, StampedPoint
-from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout
-from offload_planner_cpp.wan_emulator import LinkModel, WanEmulator, read_trace
+from offload_planner_cpp.cloud.bridge import BridgeConfig, CloudBridge, PlanPathStatus, StampedPoint
+from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
+from offload_planner_cpp.devtools.wan_emulator import LinkModel, WanEmulator, read_trace
 
 from cloud_test_helpers import LOOPBACK, free_port, make_keys, random_map, spawn_server, start_server
 
@@ -186,7 +186,7 @@ def test_heartbeat_measures_the_link_when_the_map_is_too_large_for_the_server(ke
 
 
 def test_heartbeat_reports_a_non_pong_answer_as_reachable_with_its_round_trip(key_dirs, monkeypatch):
-    from offload_planner_cpp.protocol import Reply, Status
+    from offload_planner_cpp.cloud.protocol import Reply, Status
     server = start_server(key_dirs[0], workers=1)
     bridge = make_bridge(server.endpoint, key_dirs[1], heartbeat_timeout_s=1.0)
     try:

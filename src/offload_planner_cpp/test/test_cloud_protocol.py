@@ -4,10 +4,10 @@ import math
 import numpy as np
 import pytest
 
-from offload_planner_cpp import protocol
+from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.grid_geometry import MapGeometry, fmt, in_map_frame, validate_map, yaw_of
-from offload_planner_cpp.map_cache import MapCache
-from offload_planner_cpp.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
+from offload_planner_cpp.cloud.map_cache import MapCache
+from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
 
 MAX_CELLS = 1 << 24
 
@@ -169,7 +169,7 @@ def test_map_validation_and_frames_word_as_the_local_node():
 
 def test_bridge_status_codes_match_the_service():
     srv = pytest.importorskip("offload_msgs.srv")
-    from offload_planner_cpp.bridge import PlanPathStatus
+    from offload_planner_cpp.cloud.bridge import PlanPathStatus
     response = srv.PlanPathResponse
     for name in ("OK", "NO_MAP", "BAD_FRAME", "START_OFF_MAP", "GOAL_OFF_MAP", "START_BLOCKED", "GOAL_BLOCKED",
                  "NO_PATH", "INVALID_MAP", "CLOUD_TIMEOUT", "CLOUD_ERROR", "INVALID_REQUEST"):

@@ -13,11 +13,11 @@ import pytest
 import zmq
 
 import offload_planner_cpp
-from offload_planner_cpp import protocol
-from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout
-from offload_planner_cpp.cloud_server import CloudServer, ServerConfig, parse_args
-from offload_planner_cpp.keys import load_client_keys
-from offload_planner_cpp.protocol import Kind, PlanOptions, Status
+from offload_planner_cpp.cloud import protocol
+from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
+from offload_planner_cpp.cloud.server import CloudServer, ServerConfig, parse_args
+from offload_planner_cpp.cloud.keys import load_client_keys
+from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Status
 
 from cloud_test_helpers import LOOPBACK, make_keys, random_map, start_server
 
@@ -343,7 +343,7 @@ def test_many_concurrent_clients_get_correct_paths(server, key_dirs):
 
 
 def test_health_check_command(server, key_dirs):
-    command = [sys.executable, "-m", "offload_planner_cpp.cloud_client"]
+    command = [sys.executable, "-m", "offload_planner_cpp.cloud.client"]
     ok = subprocess.run(command + [server.endpoint, "--ping", "--keys-dir", str(key_dirs[1])],
                         capture_output=True, text=True, timeout=60, env=os.environ)
     assert ok.returncode == 0, ok.stderr

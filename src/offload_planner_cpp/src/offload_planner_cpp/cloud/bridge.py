@@ -12,14 +12,14 @@ from typing import Any, Optional, Tuple
 import numpy as np
 import zmq
 
-from offload_planner_cpp import protocol
-from offload_planner_cpp.cloud_client import CloudClient, CloudTimeout, KnownMaps
+from offload_planner_cpp.cloud import protocol
+from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout, KnownMaps
 from offload_planner_cpp.grid_geometry import MapGeometry, fmt, in_map_frame, validate_map, yaw_of
-from offload_planner_cpp.protocol import PlanOptions, Status
+from offload_planner_cpp.cloud.protocol import PlanOptions, Status
 
 # A child of rospy's "rosout" logger: under the node its records reach /rosout and the node's log like
 # rospy.logwarn's; without ROS it is an ordinary Python logger.
-LOG = logging.getLogger("rosout.offload_planner_cpp.bridge")
+LOG = logging.getLogger("rosout.offload_planner_cpp.cloud.bridge")
 
 
 class PlanPathStatus:

@@ -7,7 +7,7 @@ are matched to the request id and anything else is dropped. When the deadline pa
 raised at once so the caller can plan locally.
 
 Health check:
-    python -m offload_planner_cpp.cloud_client tcp://HOST:5555 --ping --keys-dir ROBOT_KEYS
+    python -m offload_planner_cpp.cloud.client tcp://HOST:5555 --ping --keys-dir ROBOT_KEYS
 exits 0 and prints the round trip when the server answers, 1 with the reason otherwise.
 """
 import argparse
@@ -22,9 +22,9 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from offload_planner_cpp import protocol
-from offload_planner_cpp.keys import load_client_keys
-from offload_planner_cpp.protocol import PlanOptions, ProtocolError, Reply, Status
+from offload_planner_cpp.cloud import protocol
+from offload_planner_cpp.cloud.keys import load_client_keys
+from offload_planner_cpp.cloud.protocol import PlanOptions, ProtocolError, Reply, Status
 
 
 class CloudTimeout(RuntimeError):

@@ -1,6 +1,6 @@
 """The cloud copy of the planner: a ROS-free ZeroMQ server around the same C++ core as the robot.
 
-    python -m offload_planner_cpp.cloud_server --bind tcp://0.0.0.0:5555 --workers 2 --keys-dir KEYS
+    python -m offload_planner_cpp.cloud.server --bind tcp://0.0.0.0:5555 --workers 2 --keys-dir KEYS
 
 A ROUTER frontend faces the robots. The broker thread answers pings itself and hands plan requests to
 N worker threads over an inproc ROUTER, one request per idle worker, with a bounded queue in between,
@@ -22,12 +22,13 @@ import zmq
 import zmq.auth
 import zmq.auth.thread
 
-from offload_planner_cpp import plan_raw, protocol
-from offload_planner_cpp.keys import load_server_keys
-from offload_planner_cpp.map_cache import MapCache
-from offload_planner_cpp.protocol import Kind, ProtocolError, Reply, Status
+from offload_planner_cpp import plan_raw
+from offload_planner_cpp.cloud import protocol
+from offload_planner_cpp.cloud.keys import load_server_keys
+from offload_planner_cpp.cloud.map_cache import MapCache
+from offload_planner_cpp.cloud.protocol import Kind, ProtocolError, Reply, Status
 
-LOG = logging.getLogger("offload_planner_cpp.cloud_server")
+LOG = logging.getLogger("offload_planner_cpp.cloud.server")
 _READY = b"READY"
 _BACKEND_POLL_MS = 100   # how often the broker and workers look at the stop flag
 
@@ -306,7 +307,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--bind", default="tcp://0.0.0.0:5555",
                         help="ZeroMQ endpoint to listen on; port 0 picks a free one (default tcp://0.0.0.0:5555)")
     parser.add_argument("--workers", type=int, default=2, help="planner threads (default 2)")
-    parser.add_argument("--keys-dir", help="server keys dir from offload_planner_cpp.keys (server.key_secret, clients/)")
+    parser.add_argument("--keys-dir", help="server keys dir from offload_planner_cpp.cloud.keys (server.key_secret, clients/)")
     parser.add_argument("--insecure", action="store_true", help="plaintext, no client allowlist (tests, trusted LAN)")
     parser.add_argument("--cache-mib", type=int, default=1024, help="map cache memory cap in MiB (default 1024)")
     parser.add_argument("--max-message-mib", type=int, default=64, help="largest accepted message in MiB (default 64)")

@@ -3,7 +3,7 @@
 simulates lost segments as a retransmission delay, and stalls or resets the link during outages, from
 flags or a trace file of round trips over time. For the demo and tests only; a deployment has a real WAN.
 
-    python -m offload_planner_cpp.wan_emulator --listen tcp://127.0.0.1:6000 \\
+    python -m offload_planner_cpp.devtools.wan_emulator --listen tcp://127.0.0.1:6000 \\
         --upstream tcp://127.0.0.1:5555 --rtt-ms 40 --jitter-ms 5 --bandwidth-mbps 20 --outage 30:5
 
 Trace file: one `time_s rtt_ms` pair per line (comma or space separated, # comments), the round trip
@@ -20,7 +20,7 @@ import threading
 from dataclasses import dataclass, field
 from typing import List, Optional, Sequence, Tuple
 
-LOG = logging.getLogger("offload_planner_cpp.wan_emulator")
+LOG = logging.getLogger("offload_planner_cpp.devtools.wan_emulator")
 _CHUNK_BYTES = 65536
 _QUEUED_CHUNKS = 1024      # per direction: at most 64 MiB held during a stall
 

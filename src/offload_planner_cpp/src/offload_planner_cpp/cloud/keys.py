@@ -1,6 +1,6 @@
 """CURVE key pairs for the cloud link.
 
-    python -m offload_planner_cpp.keys OUT_DIR --clients robot1 [robot2 ...]
+    python -m offload_planner_cpp.cloud.keys OUT_DIR --clients robot1 [robot2 ...]
 
 writes
     OUT_DIR/server/server.key, server.key_secret     the server's pair
@@ -63,7 +63,7 @@ def load_server_keys(keys_dir) -> Tuple[bytes, bytes, pathlib.Path]:
     secret_file = keys_dir / SERVER_SECRET
     if not secret_file.is_file():
         raise FileNotFoundError(f"{secret_file} not found: generate keys with "
-                                f"`python -m offload_planner_cpp.keys OUT_DIR --clients NAME`")
+                                f"`python -m offload_planner_cpp.cloud.keys OUT_DIR --clients NAME`")
     public, secret = zmq.auth.load_certificate(str(secret_file))
     clients = keys_dir / CLIENTS_DIR
     if not clients.is_dir():
@@ -77,7 +77,7 @@ def load_client_keys(keys_dir) -> Tuple[bytes, bytes, bytes]:
     for name in (CLIENT_SECRET, SERVER_PUBLIC):
         if not (keys_dir / name).is_file():
             raise FileNotFoundError(f"{keys_dir / name} not found: copy the robot's directory made by "
-                                    f"`python -m offload_planner_cpp.keys`")
+                                    f"`python -m offload_planner_cpp.cloud.keys`")
     public, secret = zmq.auth.load_certificate(str(keys_dir / CLIENT_SECRET))
     server_public, _ = zmq.auth.load_certificate(str(keys_dir / SERVER_PUBLIC))
     return public, secret, server_public

@@ -10,7 +10,7 @@ from offload_msgs.msg import LinkLatency, PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathResponse
 from rospy.numpy_msg import numpy_msg
 
-from offload_planner_cpp.bridge import BridgeConfig, CloudBridge, PlanPathStatus, StampedPoint
+from offload_planner_cpp.cloud.bridge import BridgeConfig, CloudBridge, PlanPathStatus, StampedPoint
 
 
 def read_parameters() -> BridgeConfig:
