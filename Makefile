@@ -12,8 +12,7 @@ NOETIC := /opt/ros/noetic/setup.bash
 # Debian's own ROS 1 packages; skipped when ROS Noetic is installed in /opt/ros/noetic.
 ROS_DEBS := ros-base-dev python3-rospy python3-roslaunch python3-rostest python3-rosbag libnav-msgs-dev \
 	python3-nav-msgs catkin ros-message-generation librostest-dev
-BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv cppzmq-dev \
-	libzmq3-dev
+BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv
 DEBS := $(BUILD_DEBS) $(if $(wildcard $(NOETIC)),,$(ROS_DEBS))
 
 # Every recipe that needs ROS starts with this: Noetic's setup if present, then the devel space.

@@ -1,16 +1,19 @@
-"""Workspace-level checks: the cores stay free of ROS, and every launch file loads."""
+"""Workspace-level checks: the cores stay free of ROS, contracts are written once, every package declares
+what its code imports, and every launch file loads."""
+import ast
 import re
 import subprocess
 import sys
+import xml.etree.ElementTree as ElementTree
 from pathlib import Path
 
 import pytest
 
 WORKSPACE = Path(__file__).resolve().parents[1]
 PLANNER = WORKSPACE / "src" / "offload_planner_cpp"
-CORE_SOURCES = [PLANNER / "include" / "offload_planner_cpp" / "dijkstra.h",
-                PLANNER / "include" / "offload_planner_cpp" / "map_geometry.h",
-                PLANNER / "src" / "dijkstra.cpp", PLANNER / "src" / "bindings.cpp"]
+CORE_SOURCES = [PLANNER / "include" / "offload_planner_cpp" / name
+                for name in ("dijkstra.h", "map_geometry.h", "plan_status.h", "plan_request.h")] + \
+               [PLANNER / "src" / name for name in ("dijkstra.cpp", "plan_request.cpp", "bindings.cpp")]
 ROS_INCLUDE = re.compile(r'#\s*include\s*[<"](ros/|nav_msgs/|geometry_msgs/|std_msgs/|offload_msgs/|tf2)')
 
 
@@ -61,3 +64,62 @@ def test_launch_files_load(launch_file):
     config = roslaunch.config.ROSLaunchConfig()
     roslaunch.xmlloader.XmlLoader().load(str(launch_file), config, verbose=False)
     assert config.nodes, f"{launch_file.name} starts no node"
+
+
+PYTHON_SOURCES = sorted(p for p in (WORKSPACE / "src").rglob("*.py") if "/test/" not in str(p))
+STATUS_NAMES = ("NO_MAP", "BAD_FRAME", "START_OFF_MAP", "GOAL_OFF_MAP", "START_BLOCKED", "GOAL_BLOCKED",
+                "NO_PATH", "INVALID_MAP", "CLOUD_TIMEOUT", "CLOUD_ERROR", "INVALID_REQUEST")
+TYPED_STATUS = re.compile(r"\b(%s)\b\s*[=:]\s*\d" % "|".join(STATUS_NAMES))
+CONTRACT_DEFINITIONS = re.compile(r"def\s+(world_to_cell|cell_to_world|validate_map|in_map_frame|yaw_of)\b|"
+                                  r"math\.floor\(")
+
+
+def test_status_codes_and_the_request_contract_are_not_retyped_in_python():
+    """The codes live in plan_status.h (and, of necessity, PlanPath.srv, checked against them by a
+    static_assert and test_request_contract.py); world <-> cell conversion and request checks live in
+    plan_request.h. No Python module types either again."""
+    for source in PYTHON_SOURCES:
+        for number, line in enumerate(source.read_text().splitlines(), start=1):
+            assert not TYPED_STATUS.search(line), f"{source}:{number} types a status code: {line.strip()}"
+            assert not CONTRACT_DEFINITIONS.search(line), f"{source}:{number} re-implements the contract: {line}"
+
+
+# Top-level Python modules to the rosdep keys that provide them.
+ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-yaml", "PIL": "python3-pil",
+               "scipy": "python3-scipy", "matplotlib": "python3-matplotlib", "torch": "python3-torch",
+               "rosbags": "python3-rosbags-pip", "tqdm": "python3-tqdm", "rospy": "rospy", "rosbag": "rosbag",
+               "roslaunch": "roslaunch", "rostest": "rostest", "tf2_ros": "tf2_ros", "genpy": "genpy",
+               "nav_msgs": "nav_msgs", "geometry_msgs": "geometry_msgs", "std_msgs": "std_msgs",
+               "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp",
+               "offload_learner_py": "offload_learner_py", "rosgraph_msgs": "rosgraph_msgs",
+               "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph"}
+
+
+def imported_modules(source: Path):
+    for node in ast.walk(ast.parse(source.read_text())):
+        if isinstance(node, ast.Import):
+            yield from (alias.name.split(".")[0] for alias in node.names)
+        elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+            yield node.module.split(".")[0]
+
+
+@pytest.mark.parametrize("package", sorted(p.parent for p in (WORKSPACE / "src").glob("*/package.xml")),
+                         ids=lambda p: p.name)
+def test_package_xml_declares_what_the_code_imports(package):
+    manifest = ElementTree.parse(package / "package.xml").getroot()
+    run = {e.text for e in manifest if e.tag in ("depend", "exec_depend")}
+    test_only = {e.text for e in manifest if e.tag == "test_depend"}
+    missing = []
+    for source in sorted((package / "src").rglob("*.py")) + sorted((package / "scripts").glob("*")):
+        if source.suffix not in ("", ".py") or "__pycache__" in str(source):
+            continue
+        # Demo and test tools (devtools) may lean on test dependencies; everything else ships.
+        allowed = run | test_only if "devtools" in source.parts else run
+        for module in set(imported_modules(source)):
+            if module in sys.stdlib_module_names or module in ("_core", package.name):
+                continue
+            key = ROSDEP_KEYS.get(module)
+            assert key, f"{source}: no rosdep key known for import {module}: add it to ROSDEP_KEYS"
+            if key not in allowed:
+                missing.append(f"{source.relative_to(package)} imports {module}: declare {key}")
+    assert not missing, "package.xml misses run dependencies:\n" + "\n".join(missing)

@@ -1,18 +1,28 @@
 // pybind11 module of the planner core: offload_planner_cpp._core. The Python package wraps plan_raw()
-// into plan(), which raises; this layer never copies the grid and releases the GIL while planning.
+// into plan(), which raises; this layer never copies the grid and releases the GIL while planning. It
+// also exposes the request contract (plan_request.h) so the cloud bridge answers exactly as the ROS
+// node, and the status codes, so Python never types them again.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
+#include <pybind11/stl.h>
 
 #include <cstring>
 #include <sstream>
 
 #include "offload_planner_cpp/dijkstra.h"
+#include "offload_planner_cpp/plan_request.h"
 
 namespace py = pybind11;
 using offload_planner::Cell;
+using offload_planner::CellRequest;
 using offload_planner::DijkstraPlanner;
+using offload_planner::MapGeometry;
+using offload_planner::MapInfo;
+using offload_planner::Outcome;
 using offload_planner::PlannerOptions;
 using offload_planner::PlanResult;
+using offload_planner::PlanStatus;
+using offload_planner::Pose;
 
 namespace {
 
@@ -73,25 +83,135 @@ py::dict planRaw(const py::array& grid, const py::object& start, const py::objec
   static_assert(sizeof(Cell) == 2 * sizeof(std::int32_t), "Cell must be two packed ints");
   if (!result.path.empty()) std::memcpy(path.mutable_data(), result.path.data(), result.path.size() * sizeof(Cell));
   py::dict out;
-  out["status"] = offload_planner::statusName(result.status);
+  out["status"] = result.status;
   out["message"] = result.message;
   out["path"] = path;
   out["cost"] = result.cost;
   out["goal"] = py::make_tuple(result.goal.x, result.goal.y);
   out["expansions"] = result.expansions;
   out["seconds"] = result.seconds;
+  out["grid_address"] = reinterpret_cast<std::uintptr_t>(result.grid);
   return out;
 }
+
+Pose poseOf(const std::vector<double>& v, const char* name) {
+  if (v.size() != 7) throw py::value_error(std::string(name) + " must be (x, y, z, qx, qy, qz, qw)");
+  return {v[0], v[1], v[2], v[3], v[4], v[5], v[6]};
+}
+
+py::array_t<double> pathPoses(const MapGeometry& geometry, const py::array_t<std::int32_t, py::array::c_style |
+                                                                                              py::array::forcecast>& path,
+                              const std::vector<double>& start, const std::vector<double>& goal,
+                              bool reached_requested_goal) {
+  if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
+    throw py::value_error("path must be an N x 2 array of (x, y) cells");
+  }
+  std::vector<Cell> cells(static_cast<std::size_t>(path.shape(0)));
+  auto p = path.unchecked<2>();
+  for (py::ssize_t k = 0; k < path.shape(0); ++k) cells[k] = Cell{p(k, 0), p(k, 1)};
+  const std::vector<Pose> poses =
+      offload_planner::pathPoses(geometry, cells, poseOf(start, "start"), poseOf(goal, "goal"), reached_requested_goal);
+  py::array_t<double> out({static_cast<py::ssize_t>(poses.size()), static_cast<py::ssize_t>(7)});
+  static_assert(sizeof(Pose) == 7 * sizeof(double), "Pose must be seven packed doubles");
+  if (!poses.empty()) std::memcpy(out.mutable_data(), poses.data(), poses.size() * sizeof(Pose));
+  return out;
+}
+
+py::object cellOrNone(bool ok, Cell c) { return ok ? py::object(py::make_tuple(c.x, c.y)) : py::object(py::none()); }
 
 }  // namespace
 
 PYBIND11_MODULE(_core, m) {
   m.doc() = "Dijkstra on an OccupancyGrid-convention int8 grid (8-connected, no corner cutting).";
+
+  // Names come from the core (statusName), values from the enum: nothing is typed twice.
+  py::enum_<PlanStatus> status(m, "PlanStatus", "Status of a planning request; the offload_msgs/PlanPath codes.");
+  for (int code = 0; code < offload_planner::kPlanStatusCount; ++code) {
+    const auto value = static_cast<PlanStatus>(code);
+    status.value(offload_planner::statusName(value), value);
+  }
+
+  py::class_<Outcome>(m, "Outcome", "A status and, unless OK, why.")
+      .def_readonly("status", &Outcome::status)
+      .def_readonly("message", &Outcome::message)
+      .def_property_readonly("ok", &Outcome::ok)
+      .def("__repr__", [](const Outcome& o) {
+        return "Outcome(" + std::string(offload_planner::statusName(o.status)) + ", '" + o.message + "')";
+      });
+
+  py::class_<MapGeometry>(m, "MapGeometry", "World <-> cell conversion of a checked map (see check_map).")
+      .def_readonly("resolution", &MapGeometry::resolution)
+      .def_readonly("origin_x", &MapGeometry::origin_x)
+      .def_readonly("origin_y", &MapGeometry::origin_y)
+      .def_readonly("origin_yaw", &MapGeometry::origin_yaw)
+      .def_readonly("width", &MapGeometry::width)
+      .def_readonly("height", &MapGeometry::height)
+      .def(
+          "world_to_cell",
+          [](const MapGeometry& g, double x, double y) {
+            Cell c;
+            const bool ok = g.worldToCell(x, y, &c);
+            return cellOrNone(ok, c);
+          },
+          py::arg("x"), py::arg("y"), "Cell (x, y) containing the world point, or None off the grid.")
+      .def(
+          "cell_to_world",
+          [](const MapGeometry& g, int x, int y) {
+            double wx, wy;
+            g.cellToWorld(Cell{x, y}, &wx, &wy);
+            return py::make_tuple(wx, wy);
+          },
+          py::arg("x"), py::arg("y"), "World coordinates of the cell's centre.");
+
+  py::class_<CellRequest>(m, "CellRequest", "A request checked against a map and converted to cells.")
+      .def_readonly("outcome", &CellRequest::outcome)
+      .def_property_readonly("start", [](const CellRequest& r) { return py::make_tuple(r.start.x, r.start.y); })
+      .def_property_readonly("goal", [](const CellRequest& r) { return py::make_tuple(r.goal.x, r.goal.y); })
+      .def_readonly("tolerance_cells", &CellRequest::tolerance_cells);
+
+  m.def(
+      "check_map",
+      [](std::uint64_t width, std::uint64_t height, std::size_t data_size, double resolution, double origin_x,
+         double origin_y, const std::vector<double>& orientation, std::uint64_t max_cells) {
+        if (orientation.size() != 4) throw py::value_error("orientation must be (qx, qy, qz, qw)");
+        MapInfo info;
+        info.width = width;
+        info.height = height;
+        info.data_size = data_size;
+        info.resolution = resolution;
+        info.origin_x = origin_x;
+        info.origin_y = origin_y;
+        info.qx = orientation[0];
+        info.qy = orientation[1];
+        info.qz = orientation[2];
+        info.qw = orientation[3];
+        MapGeometry geometry;
+        const Outcome outcome = offload_planner::checkMap(info, max_cells, &geometry);
+        return py::make_tuple(outcome, outcome.ok() ? py::cast(geometry) : py::object(py::none()));
+      },
+      py::arg("width"), py::arg("height"), py::arg("data_size"), py::arg("resolution"), py::arg("origin_x"),
+      py::arg("origin_y"), py::arg("orientation"), py::arg("max_cells") = 0,
+      "(Outcome, MapGeometry or None) of an OccupancyGrid's metadata: INVALID_MAP and why when unusable.");
+  m.def("no_map_outcome", &offload_planner::noMapOutcome, py::arg("last_rejection"),
+        "The NO_MAP answer, naming why the last map was refused if one was.");
+  m.def("in_map_frame", &offload_planner::inMapFrame, py::arg("frame"), py::arg("map_frame"));
+  m.def(
+      "resolve_request",
+      [](const MapGeometry& g, const std::string& map_frame, const std::string& start_frame, double start_x,
+         double start_y, const std::string& goal_frame, double goal_x, double goal_y, float tolerance_m) {
+        return offload_planner::resolveRequest(g, map_frame, {start_frame, start_x, start_y},
+                                               {goal_frame, goal_x, goal_y}, tolerance_m);
+      },
+      py::arg("geometry"), py::arg("map_frame"), py::arg("start_frame"), py::arg("start_x"), py::arg("start_y"),
+      py::arg("goal_frame"), py::arg("goal_x"), py::arg("goal_y"), py::arg("tolerance_m"),
+      "Checks a PlanPath request against the map and converts it to cells (tolerance is float32 as in the "
+      "service).");
+  m.def("path_poses", &pathPoses, py::arg("geometry"), py::arg("path"), py::arg("start_pose"), py::arg("goal_pose"),
+        py::arg("reached_requested_goal"),
+        "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them.");
   m.def("plan_raw", &planRaw, py::arg("grid"), py::arg("start"), py::arg("goal"), py::arg("lethal_threshold") = 50,
         py::arg("unknown_is_obstacle") = true, py::arg("goal_tolerance") = 0.0, py::arg("stop_at_goal") = true,
-        "Plan without raising on planning failures: returns a dict with status, message, path, cost, goal, "
-        "expansions, seconds. Malformed arguments raise ValueError.");
-  m.def(
-      "grid_address", [](const py::array& grid) { return reinterpret_cast<std::uintptr_t>(viewOf(grid).data); },
-      py::arg("grid"), "Address of the buffer the planner reads for `grid` (proves it is not copied).");
+        "Plan without raising on planning failures: returns a dict with status (PlanStatus), message, path, "
+        "cost, goal, expansions, seconds and grid_address (the buffer planned on). Malformed arguments raise "
+        "ValueError.");
 }

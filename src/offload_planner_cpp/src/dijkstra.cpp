@@ -19,21 +19,6 @@ std::string cellText(Cell c) {
 
 }  // namespace
 
-const char* statusName(PlanStatus status) {
-  switch (status) {
-    case PlanStatus::kOk: return "ok";
-    case PlanStatus::kEmptyMap: return "empty_map";
-    case PlanStatus::kSizeMismatch: return "size_mismatch";
-    case PlanStatus::kStartOffMap: return "start_off_map";
-    case PlanStatus::kGoalOffMap: return "goal_off_map";
-    case PlanStatus::kStartBlocked: return "start_blocked";
-    case PlanStatus::kGoalBlocked: return "goal_blocked";
-    case PlanStatus::kNoPath: return "no_path";
-    case PlanStatus::kInvalidOptions: return "invalid_options";
-  }
-  return "unknown";
-}
-
 void DijkstraPlanner::beginSearch() {
   constexpr double kUnseen = std::numeric_limits<double>::infinity();
   const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
@@ -176,6 +161,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   const auto started = std::chrono::steady_clock::now();
   PlanResult result;
   result.goal = goal;
+  result.grid = data;
   auto finish = [&](PlanStatus status, const std::string& message) {
     result.status = status;
     result.message = message;
@@ -186,25 +172,25 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   if (width <= 0 || height <= 0 || size == 0 || data == nullptr) {
     std::ostringstream msg;
     msg << "empty map: " << width << " x " << height << " cells, " << size << " values";
-    return finish(PlanStatus::kEmptyMap, msg.str());
+    return finish(PlanStatus::kInvalidMap, msg.str());
   }
   if (static_cast<std::size_t>(width) * static_cast<std::size_t>(height) != size) {
     std::ostringstream msg;
     msg << "map size mismatch: " << width << " x " << height << " = "
         << static_cast<std::size_t>(width) * static_cast<std::size_t>(height) << " cells but " << size
         << " values";
-    return finish(PlanStatus::kSizeMismatch, msg.str());
+    return finish(PlanStatus::kInvalidMap, msg.str());
   }
   if (static_cast<std::size_t>(width) * static_cast<std::size_t>(height) >
       static_cast<std::size_t>(std::numeric_limits<int>::max())) {
-    return finish(PlanStatus::kSizeMismatch, "map too large: more than 2^31 cells");
+    return finish(PlanStatus::kInvalidMap, "map too large: more than 2^31 cells");
   }
   if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
-    return finish(PlanStatus::kInvalidOptions,
+    return finish(PlanStatus::kInvalidRequest,
                   "lethal_threshold must be in 1..101, got " + std::to_string(options.lethal_threshold));
   }
   if (!(options.goal_tolerance_cells >= 0.0) || !std::isfinite(options.goal_tolerance_cells)) {
-    return finish(PlanStatus::kInvalidOptions, "goal tolerance must be a finite number >= 0");
+    return finish(PlanStatus::kInvalidRequest, "goal tolerance must be a finite number >= 0");
   }
 
   grid_ = data;

@@ -17,9 +17,6 @@ int main(int argc, char** argv) {
   } catch (const std::invalid_argument&) {
     return 1;  // the reason is already logged; a non-zero exit tells roslaunch the node failed
   }
-  // Two threads: a new map is taken in while a long plan runs on the previous one.
-  ros::AsyncSpinner spinner(2);
-  spinner.start();
-  ros::waitForShutdown();
+  node->spin();
   return 0;
 }

@@ -1,8 +1,6 @@
 #include "offload_planner_cpp/planner_ros.h"
 
 #include <chrono>
-#include <cmath>
-#include <sstream>
 #include <stdexcept>
 
 namespace offload_planner {
@@ -10,73 +8,68 @@ namespace {
 
 using offload_msgs::PlanPath;
 
-std::string stripSlash(const std::string& frame) {
-  return !frame.empty() && frame[0] == '/' ? frame.substr(1) : frame;
+// The core's codes are the service's codes: nothing translates them.
+#define OFFLOAD_SAME_CODE(constant, core) \
+  static_assert(PlanPath::Response::constant == static_cast<std::uint8_t>(PlanStatus::core), #constant)
+OFFLOAD_SAME_CODE(OK, kOk);
+OFFLOAD_SAME_CODE(NO_MAP, kNoMap);
+OFFLOAD_SAME_CODE(BAD_FRAME, kBadFrame);
+OFFLOAD_SAME_CODE(START_OFF_MAP, kStartOffMap);
+OFFLOAD_SAME_CODE(GOAL_OFF_MAP, kGoalOffMap);
+OFFLOAD_SAME_CODE(START_BLOCKED, kStartBlocked);
+OFFLOAD_SAME_CODE(GOAL_BLOCKED, kGoalBlocked);
+OFFLOAD_SAME_CODE(NO_PATH, kNoPath);
+OFFLOAD_SAME_CODE(INVALID_MAP, kInvalidMap);
+OFFLOAD_SAME_CODE(CLOUD_TIMEOUT, kCloudTimeout);
+OFFLOAD_SAME_CODE(CLOUD_ERROR, kCloudError);
+OFFLOAD_SAME_CODE(INVALID_REQUEST, kInvalidRequest);
+#undef OFFLOAD_SAME_CODE
+
+StampedPoint pointOf(const geometry_msgs::PoseStamped& pose) {
+  return {pose.header.frame_id, pose.pose.position.x, pose.pose.position.y};
 }
 
-// An empty frame means the map frame, as RViz's and move_base's callers often leave it.
-bool inMapFrame(const std::string& frame, const std::string& map_frame) {
-  return frame.empty() || stripSlash(frame) == stripSlash(map_frame);
+Pose poseOf(const geometry_msgs::Pose& p) {
+  return {p.position.x, p.position.y, p.position.z, p.orientation.x, p.orientation.y, p.orientation.z,
+          p.orientation.w};
+}
+
+void setStatus(const Outcome& outcome, PlanPath::Response* res) {
+  res->status = static_cast<std::uint8_t>(outcome.status);
+  res->message = outcome.message;
 }
 
 }  // namespace
 
-MapGeometry geometryOf(const nav_msgs::MapMetaData& info) {
-  MapGeometry g;
-  g.resolution = info.resolution;
-  g.origin_x = info.origin.position.x;
-  g.origin_y = info.origin.position.y;
-  const auto& q = info.origin.orientation;
-  g.origin_yaw = yawOf(q.x, q.y, q.z, q.w);
-  g.width = static_cast<int>(info.width);
-  g.height = static_cast<int>(info.height);
-  return g;
-}
-
-std::string validateMap(const nav_msgs::OccupancyGrid& map) {
-  std::ostringstream why;
+MapInfo mapInfoOf(const nav_msgs::OccupancyGrid& map) {
   const auto& info = map.info;
-  if (info.width == 0 || info.height == 0) {
-    why << "map is empty (" << info.width << " x " << info.height << ")";
-  } else if (static_cast<std::uint64_t>(info.width) * info.height != map.data.size()) {
-    why << "map data has " << map.data.size() << " cells but " << info.width << " x " << info.height << " = "
-        << static_cast<std::uint64_t>(info.width) * info.height << " were declared";
-  } else if (!(info.resolution > 0.0f) || !std::isfinite(info.resolution)) {
-    why << "map resolution " << info.resolution << " is not a positive number";
-  } else if (!std::isfinite(info.origin.position.x) || !std::isfinite(info.origin.position.y) ||
-             !std::isfinite(info.origin.orientation.x) || !std::isfinite(info.origin.orientation.y) ||
-             !std::isfinite(info.origin.orientation.z) || !std::isfinite(info.origin.orientation.w)) {
-    why << "map origin is not finite";
-  } else if (info.width > 100000 || info.height > 100000) {
-    why << "map of " << info.width << " x " << info.height << " cells is larger than the planner accepts";
-  }
-  return why.str();
-}
-
-std::uint8_t toServiceStatus(PlanStatus status) {
-  switch (status) {
-    case PlanStatus::kOk: return PlanPath::Response::OK;
-    case PlanStatus::kEmptyMap:
-    case PlanStatus::kSizeMismatch: return PlanPath::Response::INVALID_MAP;
-    case PlanStatus::kStartOffMap: return PlanPath::Response::START_OFF_MAP;
-    case PlanStatus::kGoalOffMap: return PlanPath::Response::GOAL_OFF_MAP;
-    case PlanStatus::kStartBlocked: return PlanPath::Response::START_BLOCKED;
-    case PlanStatus::kGoalBlocked: return PlanPath::Response::GOAL_BLOCKED;
-    case PlanStatus::kNoPath: return PlanPath::Response::NO_PATH;
-    case PlanStatus::kInvalidOptions: return PlanPath::Response::INVALID_MAP;
-  }
-  return PlanPath::Response::INVALID_MAP;
+  const auto& q = info.origin.orientation;
+  MapInfo out;
+  out.width = info.width;
+  out.height = info.height;
+  out.resolution = info.resolution;
+  out.origin_x = info.origin.position.x;
+  out.origin_y = info.origin.position.y;
+  out.qx = q.x;
+  out.qy = q.y;
+  out.qz = q.z;
+  out.qw = q.w;
+  out.data_size = map.data.size();
+  return out;
 }
 
 bool PlanRequestHandler::setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, std::string* error) {
-  const std::string why = map ? validateMap(*map) : std::string("null map");
+  MapGeometry geometry;
+  const Outcome checked = map ? checkMap(mapInfoOf(*map), max_map_cells_, &geometry)
+                              : Outcome{PlanStatus::kInvalidMap, "null map"};
   std::lock_guard<std::mutex> lock(map_mutex_);
-  if (!why.empty()) {
-    rejected_ = why;
-    if (error) *error = why;
+  if (!checked.ok()) {
+    rejected_ = checked.message;
+    if (error) *error = checked.message;
     return false;
   }
   map_ = map;
+  geometry_ = geometry;
   return true;
 }
 
@@ -87,65 +80,27 @@ nav_msgs::OccupancyGrid::ConstPtr PlanRequestHandler::map() const {
 
 void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response* res) const {
   nav_msgs::OccupancyGrid::ConstPtr map;
+  MapGeometry geometry;
   std::string rejected;
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     map = map_;  // a map arriving now replaces map_, while this request keeps planning on its copy
+    geometry = geometry_;
     rejected = rejected_;
   }
-  res->path = nav_msgs::Path();
-  res->planning_time_s = 0.0;
-  res->expansions = 0;
-  res->cost_m = 0.0;
-  if (!map) {
-    res->status = PlanPath::Response::NO_MAP;
-    res->message = "no map received yet on the map topic";
-    if (!rejected.empty()) res->message += " (last map rejected: " + rejected + ")";
-    return;
-  }
+  *res = PlanPath::Response();
+  if (!map) return setStatus(noMapOutcome(rejected), res);
   res->map_stamp = map->header.stamp;
   const std::string& frame = map->header.frame_id;
-  for (const auto* pose : {&req.start, &req.goal}) {
-    if (!inMapFrame(pose->header.frame_id, frame)) {
-      res->status = PlanPath::Response::BAD_FRAME;
-      res->message = std::string(pose == &req.start ? "start" : "goal") + " is in frame '" +
-                     pose->header.frame_id + "' but the map is in '" + frame +
-                     "': transform it to the map frame first";
-      return;
-    }
-  }
-  const auto finite = [](const geometry_msgs::PoseStamped& p) {
-    return std::isfinite(p.pose.position.x) && std::isfinite(p.pose.position.y);
-  };
-  if (!finite(req.start) || !finite(req.goal) || !std::isfinite(req.tolerance) || req.tolerance < 0.0f) {
-    res->status = PlanPath::Response::INVALID_REQUEST;
-    res->message = "start and goal must be finite and tolerance a finite number >= 0 metres";
-    return;
-  }
-
-  const MapGeometry geometry = geometryOf(map->info);
-  Cell start, goal;
-  std::ostringstream where;
-  if (!geometry.worldToCell(req.start.pose.position.x, req.start.pose.position.y, &start)) {
-    where << "start (" << req.start.pose.position.x << ", " << req.start.pose.position.y << ") m is off the map";
-    res->status = PlanPath::Response::START_OFF_MAP;
-    res->message = where.str();
-    return;
-  }
-  if (!geometry.worldToCell(req.goal.pose.position.x, req.goal.pose.position.y, &goal)) {
-    where << "goal (" << req.goal.pose.position.x << ", " << req.goal.pose.position.y << ") m is off the map";
-    res->status = PlanPath::Response::GOAL_OFF_MAP;
-    res->message = where.str();
-    return;
-  }
+  const CellRequest request = resolveRequest(geometry, frame, pointOf(req.start), pointOf(req.goal), req.tolerance);
+  if (!request.outcome.ok()) return setStatus(request.outcome, res);
 
   PlannerOptions options = options_;
-  options.goal_tolerance_cells = req.tolerance / geometry.resolution;
+  options.goal_tolerance_cells = request.tolerance_cells;
   static thread_local DijkstraPlanner planner;
   const PlanResult result = planner.plan(map->data.data(), map->data.size(), geometry.width, geometry.height,
-                                         start, goal, options);
-  res->status = toServiceStatus(result.status);
-  res->message = result.message;
+                                         request.start, request.goal, options);
+  setStatus(Outcome{result.status, result.message}, res);
   res->planning_time_s = result.seconds;
   res->expansions = result.expansions;
   if (!result.ok()) return;
@@ -153,36 +108,60 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
   res->cost_m = result.cost * geometry.resolution;
   res->path.header.frame_id = frame;
   res->path.header.stamp = ros::Time::now();
-  res->path.poses.resize(result.path.size());
-  for (std::size_t k = 0; k < result.path.size(); ++k) {
-    auto& pose = res->path.poses[k];
-    pose.header = res->path.header;
-    geometry.cellToWorld(result.path[k], &pose.pose.position.x, &pose.pose.position.y);
-    pose.pose.orientation.w = 1.0;
+  const std::vector<Pose> poses = pathPoses(geometry, result.path, poseOf(req.start.pose), poseOf(req.goal.pose),
+                                            result.goal == request.goal);
+  res->path.poses.resize(poses.size());
+  for (std::size_t k = 0; k < poses.size(); ++k) {
+    auto& out = res->path.poses[k];
+    out.header = res->path.header;
+    out.pose.position.x = poses[k].x;
+    out.pose.position.y = poses[k].y;
+    out.pose.position.z = poses[k].z;
+    out.pose.orientation.x = poses[k].qx;
+    out.pose.orientation.y = poses[k].qy;
+    out.pose.orientation.z = poses[k].qz;
+    out.pose.orientation.w = poses[k].qw;
   }
-  // Start and goal keep the caller's exact poses so the path joins the robot and ends as asked.
-  if (result.goal == goal) res->path.poses.back().pose = req.goal.pose;
-  res->path.poses.front().pose = req.start.pose;
 }
 
 PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   PlannerOptions options;
+  int max_map_cells = 0;
   pnh.param("lethal_threshold", options.lethal_threshold, options.lethal_threshold);
   pnh.param("unknown_is_obstacle", options.unknown_is_obstacle, options.unknown_is_obstacle);
   pnh.param<std::string>("planner_name", planner_name_, "local");
+  pnh.param("planning_threads", planning_threads_, planning_threads_);
+  pnh.param("max_map_cells", max_map_cells, 64000000);
   if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
     ROS_FATAL("~lethal_threshold must be in 1..101, got %d", options.lethal_threshold);
     throw std::invalid_argument("bad ~lethal_threshold");
   }
-  handler_ = std::make_unique<PlanRequestHandler>(options);
+  if (planning_threads_ < 1 || max_map_cells < 0) {
+    ROS_FATAL("~planning_threads must be >= 1 and ~max_map_cells >= 0 (0: no limit), got %d and %d",
+              planning_threads_, max_map_cells);
+    throw std::invalid_argument("bad ~planning_threads or ~max_map_cells");
+  }
+  handler_ = std::make_unique<PlanRequestHandler>(options, static_cast<std::uint64_t>(max_map_cells));
   path_pub_ = pnh.advertise<nav_msgs::Path>("path", 1, true);
-  timing_pub_ = pnh.advertise<offload_msgs::PlanTiming>("timing", 10);
-  map_sub_ = nh.subscribe("map", 1, &PlannerNode::onMap, this);
+  // A deep queue: a burst of fast plans must not drop timings the learner and the bags rely on.
+  timing_pub_ = pnh.advertise<offload_msgs::PlanTiming>("timing", 1000);
+  ros::SubscribeOptions map_options = ros::SubscribeOptions::create<nav_msgs::OccupancyGrid>(
+      "map", 1, boost::bind(&PlannerNode::onMap, this, boost::placeholders::_1), ros::VoidPtr(), &map_queue_);
+  map_sub_ = nh.subscribe(map_options);
   plan_srv_ = pnh.advertiseService("plan", &PlannerNode::onPlan, this);
   make_plan_srv_ = pnh.advertiseService("make_plan", &PlannerNode::onMakePlan, this);
-  ROS_INFO("planner ready: lethal_threshold %d, unknown cells %s; waiting for a map on %s",
-           options.lethal_threshold, options.unknown_is_obstacle ? "blocked" : "free",
-           map_sub_.getTopic().c_str());
+  ROS_INFO("planner ready: lethal_threshold %d, unknown cells %s, %d planning threads, maps up to %d cells; "
+           "waiting for a map on %s",
+           options.lethal_threshold, options.unknown_is_obstacle ? "blocked" : "free", planning_threads_,
+           max_map_cells, map_sub_.getTopic().c_str());
+}
+
+void PlannerNode::spin() {
+  ros::AsyncSpinner map_spinner(1, &map_queue_);
+  ros::AsyncSpinner plan_spinner(planning_threads_);
+  map_spinner.start();
+  plan_spinner.start();
+  ros::waitForShutdown();
 }
 
 void PlannerNode::onMap(const nav_msgs::OccupancyGrid::ConstPtr& map) {
@@ -214,7 +193,7 @@ void PlannerNode::serve(const offload_msgs::PlanPath::Request& req, offload_msgs
     ROS_DEBUG("planned %zu poses, %.2f m, in %.2f ms", res->path.poses.size(), res->cost_m,
               res->planning_time_s * 1e3);
   } else {
-    ROS_WARN("plan failed (status %u): %s", res->status, res->message.c_str());
+    ROS_WARN("plan failed (%s): %s", statusName(static_cast<PlanStatus>(res->status)), res->message.c_str());
   }
 }
 
@@ -230,7 +209,13 @@ bool PlannerNode::onMakePlan(nav_msgs::GetPlan::Request& req, nav_msgs::GetPlan:
   plan_req.tolerance = req.tolerance;
   offload_msgs::PlanPath::Response plan_res;
   serve(plan_req, &plan_res);
-  res.plan = plan_res.path;  // empty on failure, as navfn answers; the reason is logged
+  res.plan = plan_res.path;
+  if (plan_res.status != offload_msgs::PlanPath::Response::OK) {
+    // Empty on failure, as navfn answers, but in the global frame and stamped now as navfn's is.
+    const auto map = handler_->map();
+    res.plan.header.frame_id = map ? map->header.frame_id : std::string();
+    res.plan.header.stamp = ros::Time::now();
+  }
   return true;
 }
 

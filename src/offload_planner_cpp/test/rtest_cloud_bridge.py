@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """rostest: the cloud_bridge node answers ~plan exactly as the local planner node does on the same map
-(statuses, messages, poses, costs), publishes ~latency heartbeats and per-request latencies, and answers
-CLOUD_TIMEOUT within its timeout once the cloud server is gone."""
+(statuses, poses, costs, expansions), with costs checked against the independent scipy oracle for both,
+also with non-default ~lethal_threshold and ~unknown_is_obstacle; serves ~make_plan and ~path; publishes
+~latency heartbeats and per-request latencies; and answers CLOUD_TIMEOUT within its timeout once the
+cloud server is gone."""
 import os
 import subprocess
 import sys
@@ -14,11 +16,15 @@ import rospkg
 import rospy
 import rostest
 from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import Path
+from nav_msgs.srv import GetPlan, GetPlanRequest
 from offload_msgs.msg import LinkLatency, PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+from scipy.sparse import csgraph
 
 from offload_planner_cpp.cloud import keys
 from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
+from offload_planner_cpp.devtools.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map
 
 R = PlanPathResponse
@@ -33,32 +39,45 @@ class CloudBridgeTest(unittest.TestCase):
         server_keys = keys.generate(cls.keys_dir.name, ["robot"])
         cls.server = CloudServer(ServerConfig(bind="tcp://127.0.0.1:0", keys_dir=str(server_keys), workers=2))
         endpoint = cls.server.start()
-        cls.bridge = subprocess.Popen(
-            [sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
-             f"_endpoint:={endpoint}", f"_keys_dir:={os.path.join(cls.keys_dir.name, 'robot')}",
-             f"_timeout_s:={TIMEOUT_S}", "_heartbeat_period_s:=0.2"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)   # its log is in ROS_HOME/log
+        common = [sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", f"_endpoint:={endpoint}",
+                  f"_keys_dir:={os.path.join(cls.keys_dir.name, 'robot')}", f"_timeout_s:={TIMEOUT_S}"]
+        # Their logs are in ROS_HOME/log.
+        cls.bridges = [subprocess.Popen(common + ["__name:=cloud_bridge", "_heartbeat_period_s:=0.2"],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL),
+                       subprocess.Popen(common + ["__name:=lenient_bridge", "_lethal_threshold:=101",
+                                                  "_unknown_is_obstacle:=false"],
+                                        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)]
         # Runs even when setUpClass fails: an orphaned node would outlive the test's master.
         cls.addClassCleanup(cls.stop_processes)
+        package = rospkg.RosPack().get_path("offload_planner_cpp")
+        cls.map = load_map(package + "/maps/turtlebot3_world/map.yaml")
+        cls.paths = []
+        rospy.Subscriber("/cloud_bridge/path", Path, cls.paths.append)
         cls.latencies, cls.timings = [], []
         rospy.Subscriber("/cloud_bridge/latency", LinkLatency, cls.latencies.append)
         rospy.Subscriber("/cloud_bridge/timing", PlanTiming, cls.timings.append)
-        for name in ("/planner/plan", "/cloud_bridge/plan"):
+        for name in ("/planner/plan", "/cloud_bridge/plan", "/lenient_planner/plan", "/lenient_bridge/plan"):
             rospy.wait_for_service(name, timeout=60)
         cls.local = rospy.ServiceProxy("/planner/plan", PlanPath)
         cls.cloud = rospy.ServiceProxy("/cloud_bridge/plan", PlanPath)
+        cls.lenient_local = rospy.ServiceProxy("/lenient_planner/plan", PlanPath)
+        cls.lenient_cloud = rospy.ServiceProxy("/lenient_bridge/plan", PlanPath)
+        cls.local_make_plan = rospy.ServiceProxy("/planner/make_plan", GetPlan)
+        cls.cloud_make_plan = rospy.ServiceProxy("/cloud_bridge/make_plan", GetPlan)
         deadline = time.monotonic() + 30
-        while time.monotonic() < deadline and R.NO_MAP in (cls.local(cls.request((0, 0), (0, 0))).status,
-                                                           cls.cloud(cls.request((0, 0), (0, 0))).status):
+        services = (cls.local, cls.cloud, cls.lenient_local, cls.lenient_cloud)
+        while time.monotonic() < deadline and R.NO_MAP in [s(cls.request((0, 0), (0, 0))).status for s in services]:
             rospy.sleep(0.1)
 
     @classmethod
     def stop_processes(cls):
-        cls.bridge.terminate()
-        try:
-            cls.bridge.wait(10)
-        except subprocess.TimeoutExpired:
-            cls.bridge.kill()
+        for bridge in cls.bridges:
+            bridge.terminate()
+        for bridge in cls.bridges:
+            try:
+                bridge.wait(10)
+            except subprocess.TimeoutExpired:
+                bridge.kill()
         cls.server.stop()
         cls.keys_dir.cleanup()
 
@@ -72,10 +91,9 @@ class CloudBridgeTest(unittest.TestCase):
             return p
         return PlanPathRequest(start=pose(start), goal=pose(goal), tolerance=tolerance)
 
-    def assert_same_answer(self, req):
-        local, cloud = self.local(req), self.cloud(req)
+    def assert_same_answer(self, req, local_service=None, cloud_service=None):
+        local, cloud = (local_service or self.local)(req), (cloud_service or self.cloud)(req)
         self.assertEqual(cloud.status, local.status, cloud.message)
-        self.assertEqual(cloud.message, local.message)
         self.assertEqual(cloud.expansions, local.expansions)
         self.assertEqual(cloud.cost_m, local.cost_m)
         self.assertEqual(cloud.map_stamp, local.map_stamp)
@@ -91,14 +109,8 @@ class CloudBridgeTest(unittest.TestCase):
             start, goal = rng.uniform(-12, 12, 2), rng.uniform(-12, 12, 2)
             statuses.add(self.assert_same_answer(self.request(start, goal, rng.choice([0.0, 0.3]))).status)
         # Pairs of free cells, so most requests plan; a point anywhere inside a cell, not only its centre.
-        package = rospkg.RosPack().get_path("offload_planner_cpp")
-        grid_map = load_map(package + "/maps/turtlebot3_world/map.yaml")
-        free = np.argwhere(grid_map.grid == 0)[:, ::-1]
-        for _ in range(30):
-            a, b = free[rng.choice(len(free), 2, replace=False)]
-            start, goal = ((grid_map.origin_x + (cell[0] + rng.uniform()) * grid_map.resolution,
-                            grid_map.origin_y + (cell[1] + rng.uniform()) * grid_map.resolution) for cell in (a, b))
-            statuses.add(self.assert_same_answer(self.request(start, goal)).status)
+        for answer in self.free_cell_pairs(rng, 30, self.local, self.cloud):
+            statuses.add(answer.status)
         self.assert_same_answer(self.request((0, 0), (1, 1), frame="odom"))
         self.assert_same_answer(self.request((0, 0), (1, 1), tolerance=float("nan")))
         self.assert_same_answer(self.request((0, 0), (1e3, 0)))
@@ -107,6 +119,65 @@ class CloudBridgeTest(unittest.TestCase):
         self.assertEqual(self.assert_same_answer(self.request((0, 0), (-1e308, 1e308))).status, R.GOAL_OFF_MAP)
         self.assertIn(R.OK, statuses)
         self.assertGreater(len(statuses), 1)
+
+    def free_cell_pairs(self, rng, count, local_service, cloud_service, **options):
+        """Same answers on random pairs of free cells, and the cost is the scipy oracle's (in metres)."""
+        grid_map = self.map
+        free = np.argwhere(grid_map.grid == 0)[:, ::-1]
+        graph = grid_graph(grid_map.grid, **options)
+        width = grid_map.grid.shape[1]
+        answers = []
+        for _ in range(count):
+            a, b = free[rng.choice(len(free), 2, replace=False)]
+            start, goal = ((grid_map.origin_x + (cell[0] + rng.uniform()) * grid_map.resolution,
+                            grid_map.origin_y + (cell[1] + rng.uniform()) * grid_map.resolution) for cell in (a, b))
+            answer = self.assert_same_answer(self.request(start, goal), local_service, cloud_service)
+            oracle = csgraph.dijkstra(graph, indices=int(a[1] * width + a[0]))[b[1] * width + b[0]]
+            if np.isinf(oracle):
+                self.assertEqual(answer.status, R.NO_PATH)
+            else:
+                self.assertEqual(answer.status, R.OK, answer.message)
+                self.assertAlmostEqual(answer.cost_m, oracle * grid_map.resolution, delta=1e-6)
+            answers.append(answer)
+        return answers
+
+    def test_1b_options_reach_node_and_bridge(self):
+        """With lethal_threshold 101 and unknown cells free every cell is passable: the answers follow
+        the oracle with those options, and differ from the defaults' on the same requests."""
+        rng = np.random.default_rng(11)
+        options = dict(lethal_threshold=101, unknown_is_obstacle=False)
+        answers = self.free_cell_pairs(rng, 8, self.lenient_local, self.lenient_cloud, **options)
+        self.assertTrue(all(a.status == R.OK for a in answers))
+        # Through the walls: from one corner of the map to the other, impossible with the defaults.
+        corner = (self.map.origin_x + 0.5 * self.map.resolution, self.map.origin_y + 0.5 * self.map.resolution)
+        far = (self.map.origin_x + (self.map.grid.shape[1] - 0.5) * self.map.resolution,
+               self.map.origin_y + (self.map.grid.shape[0] - 0.5) * self.map.resolution)
+        straight = self.assert_same_answer(self.request(corner, far), self.lenient_local, self.lenient_cloud)
+        self.assertEqual(straight.status, R.OK)
+        diagonal = min(self.map.grid.shape) - 1
+        self.assertAlmostEqual(straight.cost_m, (np.sqrt(2) * diagonal + max(self.map.grid.shape) - 1 - diagonal)
+                               * self.map.resolution, delta=1e-6)
+        self.assertNotEqual(self.local(self.request(corner, far)).status, R.OK)
+
+    def test_1c_make_plan_and_path(self):
+        home, away = (-1.0, -0.5), (1.0, 0.5)   # inside the TurtleBot3 world arena
+        req = self.request(home, away)
+        planned = self.cloud(req)
+        self.assertEqual(planned.status, R.OK)
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline and not (self.paths and self.paths[-1].poses == planned.path.poses):
+            rospy.sleep(0.05)
+        self.assertEqual(self.paths[-1].poses, planned.path.poses, "~path publishes the delivered path")
+        made = self.cloud_make_plan(GetPlanRequest(start=req.start, goal=req.goal, tolerance=0.0)).plan
+        self.assertEqual([p.pose for p in made.poses], [p.pose for p in planned.path.poses])
+        self.assertEqual(made.header.frame_id, "map")
+        # Failure: an empty plan in the global frame, stamped now, from both nodes alike.
+        before = rospy.Time.now()
+        for service in (self.cloud_make_plan, self.local_make_plan):
+            failed = service(GetPlanRequest(start=req.start, goal=self.request(home, (1e3, 0)).goal)).plan
+            self.assertEqual(failed.poses, [])
+            self.assertEqual(failed.header.frame_id, "map")
+            self.assertGreaterEqual(failed.header.stamp, before)
 
     def test_2_latency_is_published(self):
         before = len([m for m in self.latencies if m.source == LinkLatency.REQUEST])

@@ -1,7 +1,9 @@
 #!/usr/bin/env python3
 """rostest: the planner node on a real map answers ~plan and ~make_plan, reports bad requests with clear
-statuses, keeps serving after them, survives malformed and rapidly changing maps, and publishes ~path and
-~timing. Expected costs come from the pybind11 module on the same map file."""
+statuses, keeps serving after them, survives malformed and rapidly changing maps (each request on one whole
+map), lets neither a short plan nor a map update wait behind long plans, and publishes ~path and ~timing.
+Expected costs come from the pybind11 module on the same map file."""
+import dataclasses
 import threading
 import unittest
 
@@ -165,7 +167,23 @@ class PlannerNodeTest(unittest.TestCase):
         self.assertEqual(res.status, R.OK, "the last good map keeps serving")
         self.assertEqual(res.map_stamp, stamp)
 
-        # New maps arriving while requests run: every request plans on one whole map.
+        # Two different maps alternate while requests run (even stamps: the map as it is; odd: with a wall
+        # across the straight route): each answer's cost is that of the map its stamp names, so every
+        # request planned on one whole map.
+        route = offload_planner_cpp.plan(self.map.grid, self.home, self.away)
+        mx, my = route.path[len(route.path) // 2]
+        for radius in range(1, 20):   # a block on the route's middle, large enough to lengthen the route
+            walled = self.map.grid.copy()
+            walled[my - radius:my + radius + 1, mx - radius:mx + radius + 1] = 100
+            try:
+                detour = offload_planner_cpp.plan(walled, self.home, self.away).cost
+            except (offload_planner_cpp.NoPathError, offload_planner_cpp.PlanError):
+                continue
+            if detour > route.cost + 1e-6:
+                break
+        costs = {0: route.cost, 1: detour}
+        self.assertGreater(costs[1], costs[0])
+        variants = {0: self.map, 1: dataclasses.replace(self.map, grid=walled)}
         np_pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=10)
         while np_pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
             rospy.sleep(0.05)
@@ -174,22 +192,63 @@ class PlannerNodeTest(unittest.TestCase):
         def publish_maps():
             k = 1
             while not stop.is_set():
-                np_pub.publish(to_message(self.map, "map", rospy.Time(1000 + k)))
+                np_pub.publish(to_message(variants[k % 2], "map", rospy.Time(1000 + k)))
                 k += 1
                 rospy.sleep(0.01)
 
         publisher = threading.Thread(target=publish_maps)
         publisher.start()
         try:
-            stamps = set()
-            for _ in range(30):
+            seen = set()
+            for _ in range(40):
                 res = self.call(self.home, self.away)
                 self.assertEqual(res.status, R.OK, res.message)
-                stamps.add(res.map_stamp.to_sec())
+                variant = int(res.map_stamp.to_sec() - 1000) % 2
+                self.assertAlmostEqual(res.cost_m, costs[variant] * self.map.resolution, places=6)
+                seen.add(variant)
         finally:
             stop.set()
             publisher.join()
-        self.assertGreater(len(stamps), 1, "map updates reached the node during the requests")
+        self.assertEqual(seen, {0, 1}, "both maps reached the node during the requests")
+        np_pub.publish(to_message(self.map, "map", rospy.Time(5000)))   # leave the real map in place
+
+    def test_zz_long_plans_starve_neither_short_plans_nor_map_updates(self):
+        """Two long plans on a large map run while a new map arrives and a short plan is asked: the
+        short one is answered on the new map before either long one ends."""
+        big = np.zeros((5000, 5000), np.int8)
+        big_map = dataclasses.replace(self.map, grid=big)
+        pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2)
+        deadline = rospy.Time.now() + rospy.Duration(30)
+        while pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
+            rospy.sleep(0.05)
+        pub.publish(to_message(big_map, "map", rospy.Time(7000)))
+        corner, far = self.world((0, 0)), self.world((4999, 4999))
+        long_req = PlanPathRequest(start=self.pose(corner), goal=self.pose(far))
+        while self.plan(PlanPathRequest(start=self.pose(corner), goal=self.pose(self.world((1, 1))))) \
+                .map_stamp != rospy.Time(7000) and rospy.Time.now() < deadline:
+            rospy.sleep(0.1)
+        finished = {}
+
+        def long_plan(name):
+            res = rospy.ServiceProxy("/planner/plan", PlanPath)(long_req)
+            finished[name] = (rospy.get_time(), res.status)
+
+        threads = [threading.Thread(target=long_plan, args=(k,)) for k in range(2)]
+        for thread in threads:
+            thread.start()
+        rospy.sleep(0.2)
+        pub.publish(to_message(self.map, "map", rospy.Time(8000)))
+        res = self.call(self.home, self.away)
+        while res.map_stamp != rospy.Time(8000) and rospy.Time.now() < deadline:
+            res = self.call(self.home, self.away)
+        short_done = rospy.get_time()
+        self.assertEqual(res.status, R.OK)
+        self.assertEqual(res.map_stamp, rospy.Time(8000), "the new map was taken in during the long plans")
+        for thread in threads:
+            thread.join(120)
+        self.assertEqual([finished[k][1] for k in range(2)], [R.OK, R.OK])
+        self.assertLess(short_done, min(t for t, _ in finished.values()),
+                        "the short plan and the map update waited behind the long plans")
 
 
 if __name__ == "__main__":

@@ -7,8 +7,8 @@ import pytest
 from scipy.sparse import csgraph
 
 import offload_planner_cpp
-from offload_planner_cpp import NoPathError, PlanError, plan
-from offload_planner_cpp.devtools.grid_graph import grid_graph
+from offload_planner_cpp import NoPathError, PlanError, PlanStatus, plan
+from offload_planner_cpp.devtools.grid_graph import free_cells as grid_graph_free, grid_graph
 from offload_planner_cpp.maps import load_map
 
 
@@ -27,8 +27,12 @@ def test_result_fields():
 
 
 def test_grid_is_not_copied():
+    # The core reports the buffer it planned on: the caller's own array, for plan and plan_raw alike.
     grid = np.zeros((300, 200), np.int8)
-    assert offload_planner_cpp.grid_address(grid) == grid.ctypes.data
+    assert plan(grid, (0, 0), (199, 299)).grid_address == grid.ctypes.data
+    assert offload_planner_cpp.plan_raw(grid, (0, 0), (5, 5))["grid_address"] == grid.ctypes.data
+    failed = offload_planner_cpp.plan_raw(grid, (0, 0), (500, 5))
+    assert failed["status"] == PlanStatus.GOAL_OFF_MAP and failed["grid_address"] == grid.ctypes.data
     view = np.zeros((400, 300), np.int8)[50:350, 50:250]  # not contiguous: refused rather than copied
     with pytest.raises(ValueError, match="C-contiguous"):
         plan(view, (0, 0), (1, 1))
@@ -65,16 +69,16 @@ def test_gil_released_while_planning():
 
 
 @pytest.mark.parametrize("args, status", [
-    ((np.zeros((0, 5), np.int8), (0, 0), (0, 0)), "empty_map"),
-    ((np.zeros((4, 4), np.int8), (4, 0), (0, 0)), "start_off_map"),
-    ((np.zeros((4, 4), np.int8), (0, 0), (0, -1)), "goal_off_map"),
-    ((np.full((4, 4), 100, np.int8), (0, 0), (1, 1)), "start_blocked"),
+    ((np.zeros((0, 5), np.int8), (0, 0), (0, 0)), PlanStatus.INVALID_MAP),
+    ((np.zeros((4, 4), np.int8), (4, 0), (0, 0)), PlanStatus.START_OFF_MAP),
+    ((np.zeros((4, 4), np.int8), (0, 0), (0, -1)), PlanStatus.GOAL_OFF_MAP),
+    ((np.full((4, 4), 100, np.int8), (0, 0), (1, 1)), PlanStatus.START_BLOCKED),
 ])
 def test_bad_input_raises_value_error(args, status):
     with pytest.raises(ValueError) as error:
         plan(*args)
     assert isinstance(error.value, PlanError) and error.value.status == status
-    assert status in str(error.value)
+    assert status.name in str(error.value)
 
 
 def test_bad_arguments_are_clear():
@@ -98,7 +102,7 @@ def test_bad_arguments_are_clear():
 def test_goal_blocked_and_unreachable_are_distinct():
     grid = np.zeros((5, 5), np.int8)
     grid[:, 2] = 100
-    with pytest.raises(PlanError, match="goal_blocked"):
+    with pytest.raises(PlanError, match="GOAL_BLOCKED"):
         plan(grid, (0, 0), (2, 2))
     with pytest.raises(NoPathError, match="unreachable"):
         plan(grid, (0, 0), (4, 4))
@@ -126,3 +130,38 @@ def test_agrees_with_scipy_on_a_real_map(bundled_maps):
                 assert plan(grid, s, g).cost == pytest.approx(distances[goal], abs=1e-9)
                 agreed += 1
     assert agreed >= 20
+
+
+@pytest.mark.parametrize("lethal_threshold", [1, 30, 61, 100, 101])
+@pytest.mark.parametrize("unknown_is_obstacle", [True, False])
+def test_options_reach_the_core(lethal_threshold, unknown_is_obstacle):
+    """Every option changes the answer as the independent scipy oracle on the same move rules says."""
+    rng = np.random.default_rng(lethal_threshold + 7 * unknown_is_obstacle)
+    values = np.array([-1, 0, 20, 40, 60, 80, 100], np.int8)
+    grid = rng.choice(values, size=(30, 40), p=[0.04, 0.8, 0.04, 0.04, 0.04, 0.02, 0.02])
+    # A wall across the map whose cells take every value: which side reaches the other hangs on the options.
+    grid[:, 20] = np.resize(values[values != 0], 30)
+    options = dict(lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
+    graph = grid_graph(grid, **options)
+    free = np.flatnonzero(grid_graph_free(grid, **options).ravel())
+    width = grid.shape[1]
+    checked = 0
+    for start in rng.choice(free, 4, replace=False):
+        distances = csgraph.dijkstra(graph, indices=int(start))
+        for goal in rng.choice(free, 10, replace=False):
+            s, g = (int(start % width), int(start // width)), (int(goal % width), int(goal // width))
+            raw = offload_planner_cpp.plan_raw(grid, s, g, **options)
+            if np.isinf(distances[goal]):
+                assert raw["status"] == PlanStatus.NO_PATH
+            else:
+                assert raw["status"] == PlanStatus.OK and raw["cost"] == pytest.approx(distances[goal], abs=1e-9)
+                checked += 1
+    assert checked >= 5
+
+
+def test_stop_at_goal_reaches_the_core():
+    grid = np.zeros((200, 200), np.int8)
+    near = offload_planner_cpp.plan_raw(grid, (0, 0), (2, 2), stop_at_goal=True)
+    whole = offload_planner_cpp.plan_raw(grid, (0, 0), (2, 2), stop_at_goal=False)
+    assert near["cost"] == whole["cost"] == pytest.approx(2 * np.sqrt(2))
+    assert near["expansions"] < 100 and whole["expansions"] == grid.size

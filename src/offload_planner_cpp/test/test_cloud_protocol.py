@@ -5,7 +5,6 @@ import numpy as np
 import pytest
 
 from offload_planner_cpp.cloud import protocol
-from offload_planner_cpp.grid_geometry import MapGeometry, fmt, in_map_frame, validate_map, yaw_of
 from offload_planner_cpp.cloud.map_cache import MapCache
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
 
@@ -126,51 +125,3 @@ def test_map_cache_is_lru_and_bounded():
     assert cache.size_bytes == 200 and cache.evictions == 1
     assert not cache.put(b"big", np.zeros(251, np.int8))
     assert cache.get(b"b") is None and cache.misses == 1
-
-
-def test_geometry_matches_the_cpp_convention():
-    geometry = MapGeometry(resolution=0.5, origin_x=-1.0, origin_y=2.0, origin_yaw=0.0, width=10, height=4)
-    assert geometry.world_to_cell(-1.0, 2.0) == (0, 0)
-    assert geometry.world_to_cell(3.99, 3.99) == (9, 3)
-    assert geometry.world_to_cell(4.0, 2.0) is None          # right edge is off the map
-    assert geometry.world_to_cell(-1.01, 2.0) is None
-    assert geometry.cell_to_world(0, 0) == (-0.75, 2.25)
-    xs, ys = geometry.cells_to_world(np.array([[0, 0], [9, 3]]))
-    assert (xs.tolist(), ys.tolist()) == ([-0.75, 3.75], [2.25, 3.75])
-    rotated = MapGeometry(resolution=1.0, origin_yaw=math.pi / 2, width=5, height=5)
-    assert rotated.world_to_cell(-0.5, 2.5) == (2, 0)        # grid x runs along world y
-    x, y = rotated.cell_to_world(2, 0)
-    assert (round(x, 9), round(y, 9)) == (-0.5, 2.5)
-    assert yaw_of(0, 0, math.sin(0.3), math.cos(0.3)) == pytest.approx(0.6)
-
-
-@pytest.mark.parametrize("point", [(1e308, 2.5), (-1e308, 2.5), (0.0, 1e308), (1e300, -1e300), (math.inf, 0.0),
-                                   (0.0, -math.inf), (math.nan, 0.0), (0.0, math.nan)])
-def test_points_far_off_or_not_finite_are_off_the_map_without_raising(point):
-    # The C++ worldToCell compares and returns false; math.floor of inf would raise OverflowError here.
-    for yaw in (0.0, 0.7):
-        geometry = MapGeometry(resolution=0.05, origin_x=-1.0, origin_y=2.0, origin_yaw=yaw, width=10, height=4)
-        assert geometry.world_to_cell(*point) is None
-
-
-def test_map_validation_and_frames_word_as_the_local_node():
-    assert validate_map(0, 5, 0, 0.05, 0, 0) == "map is empty (0 x 5)"
-    assert validate_map(3, 2, 5, 0.05, 0, 0) == "map data has 5 cells but 3 x 2 = 6 were declared"
-    assert validate_map(3, 2, 6, 0.0, 0, 0) == "map resolution 0 is not a positive number"
-    assert validate_map(3, 2, 6, 0.05, math.nan, 0) == "map origin is not finite"
-    assert validate_map(3, 2, 6, 0.05, 0, math.inf) == "map origin is not finite"
-    for bad in ((math.nan, 0, 0, 1), (0, 0, 0, math.nan), (0, 0, math.inf, 1), (0, -math.inf, 0, 1)):
-        assert validate_map(3, 2, 6, 0.05, 0, 0, bad) == "map origin is not finite", bad
-    assert validate_map(3, 2, 6, 0.05, 0, 0, (0, 0, 0.6, 0.8)) == ""
-    assert validate_map(3, 2, 6, 0.05, 0, 0) == ""
-    assert fmt(1.5) == "1.5" and fmt(100.0) == "100" and fmt(1234567.0) == "1.23457e+06"
-    assert in_map_frame("", "map") and in_map_frame("/map", "map") and not in_map_frame("odom", "map")
-
-
-def test_bridge_status_codes_match_the_service():
-    srv = pytest.importorskip("offload_msgs.srv")
-    from offload_planner_cpp.cloud.bridge import PlanPathStatus
-    response = srv.PlanPathResponse
-    for name in ("OK", "NO_MAP", "BAD_FRAME", "START_OFF_MAP", "GOAL_OFF_MAP", "START_BLOCKED", "GOAL_BLOCKED",
-                 "NO_PATH", "INVALID_MAP", "CLOUD_TIMEOUT", "CLOUD_ERROR", "INVALID_REQUEST"):
-        assert getattr(PlanPathStatus, name) == getattr(response, name), name

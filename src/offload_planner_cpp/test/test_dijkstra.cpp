@@ -191,7 +191,7 @@ TEST(Dijkstra, HugeToleranceIsClampedToTheMap) {
     EXPECT_EQ(r.goal, (Cell{3, 3})) << tolerance;  // the free diagonal neighbour
   }
   o.goal_tolerance_cells = INFINITY;
-  EXPECT_EQ(g.plan({0, 0}, {4, 4}, o).status, PlanStatus::kInvalidOptions);
+  EXPECT_EQ(g.plan({0, 0}, {4, 4}, o).status, PlanStatus::kInvalidRequest);
 }
 
 TEST(Dijkstra, ToleranceCostsNothingWhenTheGoalIsReachable) {
@@ -223,10 +223,10 @@ TEST(Dijkstra, Errors) {
   Grid g({"..#", "...", "..."});
   DijkstraPlanner p;
   auto r = p.plan(g.data.data(), 0, 0, 0, {0, 0}, {1, 1});
-  EXPECT_EQ(r.status, PlanStatus::kEmptyMap);
+  EXPECT_EQ(r.status, PlanStatus::kInvalidMap);
   EXPECT_NE(r.message.find("empty"), std::string::npos);
   r = p.plan(g.data.data(), g.data.size(), 4, 3, {0, 0}, {1, 1});
-  EXPECT_EQ(r.status, PlanStatus::kSizeMismatch);
+  EXPECT_EQ(r.status, PlanStatus::kInvalidMap);
   EXPECT_NE(r.message.find("12 cells but 9"), std::string::npos) << r.message;
   r = g.plan({-1, 0}, {1, 1});
   EXPECT_EQ(r.status, PlanStatus::kStartOffMap);
@@ -242,20 +242,20 @@ TEST(Dijkstra, Errors) {
   EXPECT_NE(r.message.find("obstacle"), std::string::npos);
   PlannerOptions bad;
   bad.lethal_threshold = 0;
-  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidOptions);
+  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidRequest);
   bad = PlannerOptions();
   bad.goal_tolerance_cells = -1;
-  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidOptions);
+  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidRequest);
   bad.goal_tolerance_cells = NAN;
-  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidOptions);
+  EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidRequest);
   Grid walled({".#.", ".#.", ".#."});
   r = walled.plan({0, 0}, {2, 2});
   EXPECT_EQ(r.status, PlanStatus::kNoPath);
   EXPECT_NE(r.message.find("unreachable"), std::string::npos);
   EXPECT_TRUE(r.path.empty());
-  for (auto s : {PlanStatus::kOk, PlanStatus::kEmptyMap, PlanStatus::kSizeMismatch, PlanStatus::kStartOffMap,
+  for (auto s : {PlanStatus::kOk, PlanStatus::kInvalidMap, PlanStatus::kInvalidMap, PlanStatus::kStartOffMap,
                  PlanStatus::kGoalOffMap, PlanStatus::kStartBlocked, PlanStatus::kGoalBlocked, PlanStatus::kNoPath,
-                 PlanStatus::kInvalidOptions}) {
+                 PlanStatus::kInvalidRequest}) {
     EXPECT_STRNE(statusName(s), "unknown");
   }
 }

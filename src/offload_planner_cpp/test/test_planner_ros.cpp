@@ -1,7 +1,9 @@
 // The ROS request handler without a master: world/cell conversion, frames, malformed maps, statuses.
 #include <gtest/gtest.h>
 
+#include <algorithm>
 #include <cmath>
+#include <utility>
 
 #include "offload_planner_cpp/planner_ros.h"
 
@@ -72,18 +74,160 @@ TEST(MapGeometry, RoundTripsWithOffsetAndRotation) {
   EXPECT_FALSE(g.worldToCell(NAN, 5.0, &c));
 }
 
-TEST(MapGeometry, ReadsYawFromMapMetaData) {
-  nav_msgs::MapMetaData info;
-  info.origin.orientation.z = std::sin(0.35);  // yaw 0.7 about z
-  info.origin.orientation.w = std::cos(0.35);
-  info.origin.position.x = 1.5;
-  info.origin.position.y = -2.5;
-  info.resolution = 0.1f;
-  const MapGeometry g = geometryOf(info);
+TEST(MapGeometry, ReadsEveryFieldOfMapMetaData) {
+  auto map = makeMap();
+  map->info.origin.orientation.z = std::sin(0.35);  // yaw 0.7 about z
+  map->info.origin.orientation.w = std::cos(0.35);
+  map->info.origin.position.x = 1.5;
+  map->info.origin.position.y = -2.5;
+  map->info.resolution = 0.1f;
+  MapGeometry g;
+  ASSERT_TRUE(checkMap(mapInfoOf(*map), 0, &g).ok());
   EXPECT_NEAR(g.origin_yaw, 0.7, 1e-9);
   EXPECT_DOUBLE_EQ(g.origin_x, 1.5);
   EXPECT_DOUBLE_EQ(g.origin_y, -2.5);
   EXPECT_NEAR(g.resolution, 0.1, 1e-7);
+  EXPECT_EQ(g.width, 10);
+  EXPECT_EQ(g.height, 6);
+}
+
+TEST(MapGeometry, YawOfAQuaternionOfAnyLengthAsTf2GetYaw) {
+  auto map = makeMap();
+  MapGeometry g;
+  // (0, 0, 10, 10) is a 90 degree turn about z, only not of unit length.
+  map->info.origin.orientation.z = 10.0;
+  map->info.origin.orientation.w = 10.0;
+  ASSERT_TRUE(checkMap(mapInfoOf(*map), 0, &g).ok());
+  EXPECT_NEAR(g.origin_yaw, M_PI / 2, 1e-12);
+  // A yaw of -2 rad, scaled by 0.01.
+  map->info.origin.orientation.z = 0.01 * std::sin(-1.0);
+  map->info.origin.orientation.w = 0.01 * std::cos(-1.0);
+  ASSERT_TRUE(checkMap(mapInfoOf(*map), 0, &g).ok());
+  EXPECT_NEAR(g.origin_yaw, -2.0, 1e-12);
+  // No heading at all is an error, not yaw 0.
+  map->info.origin.orientation.z = 0.0;
+  map->info.origin.orientation.w = 0.0;
+  const Outcome zero = checkMap(mapInfoOf(*map), 0, &g);
+  EXPECT_EQ(zero.status, PlanStatus::kInvalidMap);
+  EXPECT_NE(zero.message.find("zero quaternion"), std::string::npos) << zero.message;
+}
+
+TEST(PlanRequestHandler, GoalsOnAMapTurnedByANonUnitQuaternion) {
+  // The map turned 90 degrees about its origin by (0, 0, 10, 10): cell (x, y) has its centre at
+  // origin + (-(y + 0.5), x + 0.5) * resolution.
+  auto map = makeMap();
+  map->info.origin.orientation.z = 10.0;
+  map->info.origin.orientation.w = 10.0;
+  PlanRequestHandler handler;
+  ASSERT_TRUE(handler.setMap(map, nullptr));
+  const auto centre = [](int x, int y) { return std::make_pair(-2.0 - (y + 0.5) * 0.5, 1.0 + (x + 0.5) * 0.5); };
+  const auto s = centre(1, 0);
+  const auto g = centre(8, 0);
+  PlanPath::Response res;
+  handler.handle(request(s.first, s.second, g.first, g.second), &res);
+  ASSERT_EQ(res.status, PlanPath::Response::OK) << res.message;
+  // The same path as on the unturned map.
+  PlanRequestHandler straight;
+  ASSERT_TRUE(straight.setMap(makeMap(), nullptr));
+  PlanPath::Response expected;
+  straight.handle(request(wx(1), wy(0), wx(8), wy(0)), &expected);
+  ASSERT_EQ(expected.status, PlanPath::Response::OK);
+  EXPECT_DOUBLE_EQ(res.cost_m, expected.cost_m);
+  EXPECT_EQ(res.path.poses.size(), expected.path.poses.size());
+}
+
+TEST(PlanRequestHandler, CostIsThePathLengthInMetres) {
+  // Open 10 x 6 map at 0.5 m: (0, 0) to (5, 5) is five diagonal steps, 5 * sqrt(2) * 0.5 m; a step count
+  // (2.5 m) or a length in cells (7.07) is wrong.
+  auto open = makeMap();
+  std::fill(open->data.begin(), open->data.end(), 0);
+  PlanRequestHandler handler;
+  ASSERT_TRUE(handler.setMap(open, nullptr));
+  PlanPath::Response res;
+  handler.handle(request(wx(0), wy(0), wx(5), wy(5)), &res);
+  ASSERT_EQ(res.status, PlanPath::Response::OK) << res.message;
+  EXPECT_NEAR(res.cost_m, 5 * std::sqrt(2.0) * 0.5, 1e-9);
+  EXPECT_EQ(res.path.poses.size(), 6u);
+  // Straight along a row: 9 cells of 0.5 m.
+  handler.handle(request(wx(0), wy(2), wx(9), wy(2)), &res);
+  ASSERT_EQ(res.status, PlanPath::Response::OK) << res.message;
+  EXPECT_NEAR(res.cost_m, 4.5, 1e-9);
+  EXPECT_GT(res.planning_time_s, 0.0) << "planning time is measured";
+}
+
+TEST(PlanRequestHandler, PlannerOptionsReachTheCore) {
+  // Occupancy 60 between start and goal, and unknown cells in a second row.
+  auto map = makeMap();
+  std::fill(map->data.begin(), map->data.end(), 100);
+  for (int x = 0; x < 10; ++x) map->data[1 * 10 + x] = (x == 5) ? 60 : 0;
+  for (int x = 0; x < 10; ++x) map->data[3 * 10 + x] = (x == 5) ? -1 : 0;
+  PlanPath::Response res;
+  PlannerOptions options;
+  PlanRequestHandler strict(options);  // lethal 50: 60 blocks
+  ASSERT_TRUE(strict.setMap(map, nullptr));
+  strict.handle(request(wx(0), wy(1), wx(9), wy(1)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::NO_PATH) << res.message;
+  options.lethal_threshold = 61;  // 60 passes
+  PlanRequestHandler lenient(options);
+  ASSERT_TRUE(lenient.setMap(map, nullptr));
+  lenient.handle(request(wx(0), wy(1), wx(9), wy(1)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::OK) << res.message;
+  EXPECT_NEAR(res.cost_m, 4.5, 1e-9);
+  strict.handle(request(wx(0), wy(3), wx(9), wy(3)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::NO_PATH) << "unknown cells block by default";
+  options.unknown_is_obstacle = false;
+  PlanRequestHandler explorer(options);
+  ASSERT_TRUE(explorer.setMap(map, nullptr));
+  explorer.handle(request(wx(0), wy(3), wx(9), wy(3)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::OK) << res.message;
+}
+
+TEST(PlanRequestHandler, PathPosesHaveUnitQuaternionsFacingAlongThePath) {
+  PlanRequestHandler handler;
+  ASSERT_TRUE(handler.setMap(makeMap(), nullptr));
+  auto req = request(wx(1), wy(0), wx(8), wy(0));
+  req.start.pose.orientation.w = 0.0;  // a caller that leaves both ends' orientation zero
+  req.goal.pose.orientation.w = 0.0;
+  PlanPath::Response res;
+  handler.handle(req, &res);
+  ASSERT_EQ(res.status, PlanPath::Response::OK) << res.message;
+  const auto& poses = res.path.poses;
+  ASSERT_GE(poses.size(), 3u);
+  for (std::size_t k = 1; k + 1 < poses.size(); ++k) {
+    const auto& q = poses[k].pose.orientation;
+    EXPECT_NEAR(q.x * q.x + q.y * q.y + q.z * q.z + q.w * q.w, 1.0, 1e-12) << "pose " << k;
+    const double yaw = 2.0 * std::atan2(q.z, q.w);
+    const double dx = poses[k + 1].pose.position.x - poses[k].pose.position.x;
+    const double dy = poses[k + 1].pose.position.y - poses[k].pose.position.y;
+    EXPECT_NEAR(std::remainder(yaw - std::atan2(dy, dx), 2 * M_PI), 0.0, 1e-9) << "pose " << k;
+  }
+  // The ends stay the caller's poses.
+  EXPECT_EQ(poses.front().pose, req.start.pose);
+  EXPECT_EQ(poses.back().pose, req.goal.pose);
+}
+
+TEST(PlanRequestHandler, ToleranceFallbackEndsInTheCellReachedNotInTheObstacle) {
+  PlanRequestHandler handler;
+  ASSERT_TRUE(handler.setMap(makeMap(), nullptr));
+  auto req = request(wx(1), wy(1), wx(4), wy(1) + 0.1);  // goal inside the wall
+  req.tolerance = 0.5f;                                  // one cell: (3, 1) is the nearest free cell
+  PlanPath::Response res;
+  handler.handle(req, &res);
+  ASSERT_EQ(res.status, PlanPath::Response::OK) << res.message;
+  const auto& last = res.path.poses.back().pose;
+  EXPECT_DOUBLE_EQ(last.position.x, wx(3));
+  EXPECT_DOUBLE_EQ(last.position.y, wy(1));
+  EXPECT_NE(last, req.goal.pose);
+  EXPECT_NEAR(res.cost_m, 1.0, 1e-9);
+}
+
+TEST(PlanRequestHandler, RefusesMapsAboveTheCellLimit) {
+  PlanRequestHandler handler(PlannerOptions(), 59);
+  std::string error;
+  EXPECT_FALSE(handler.setMap(makeMap(), &error));
+  EXPECT_NE(error.find("exceeds the limit of 59 cells"), std::string::npos) << error;
+  PlanRequestHandler roomy(PlannerOptions(), 60);
+  EXPECT_TRUE(roomy.setMap(makeMap(), &error));
 }
 
 TEST(PlanRequestHandler, PlansAroundTheWallInWorldCoordinates) {
@@ -106,10 +250,11 @@ TEST(PlanRequestHandler, PlansAroundTheWallInWorldCoordinates) {
     }
   }
   EXPECT_TRUE(through_gap);
-  // 4 cells up, through the gap, 4 down: cost in metres follows the resolution.
-  EXPECT_GT(res.cost_m, 7 * 0.5);
+  // (1, 0) to (3, 5): 2 diagonals and 3 straight; through the gap (3, 5) -> (4, 5) -> (5, 5), since no
+  // diagonal may cut the wall's corner; (5, 5) to (8, 0): 3 diagonals and 2 straight. In metres.
+  EXPECT_NEAR(res.cost_m, (7.0 + 5.0 * std::sqrt(2.0)) * 0.5, 1e-9);
   EXPECT_GT(res.expansions, 0u);
-  EXPECT_GE(res.planning_time_s, 0.0);
+  EXPECT_GT(res.planning_time_s, 0.0);
 }
 
 TEST(PlanRequestHandler, ClearStatusesForBadRequests) {

@@ -13,6 +13,8 @@
 #include <string>
 #include <vector>
 
+#include "offload_planner_cpp/plan_status.h"
+
 namespace offload_planner {
 
 struct Cell {
@@ -33,21 +35,6 @@ struct PlannerOptions {
   bool stop_at_goal = true;
 };
 
-enum class PlanStatus {
-  kOk = 0,
-  kEmptyMap,
-  kSizeMismatch,
-  kStartOffMap,
-  kGoalOffMap,
-  kStartBlocked,
-  kGoalBlocked,
-  kNoPath,
-  kInvalidOptions,
-};
-
-// Stable identifier for logs and bindings, e.g. "goal_blocked".
-const char* statusName(PlanStatus status);
-
 struct PlanResult {
   PlanStatus status = PlanStatus::kOk;
   std::string message;       // human-readable reason when status != kOk
@@ -56,6 +43,7 @@ struct PlanResult {
   Cell goal;                 // the cell actually reached (differs from the request within tolerance)
   std::uint64_t expansions = 0;  // cells settled
   double seconds = 0.0;      // wall time inside plan()
+  const std::int8_t* grid = nullptr;  // the buffer planned on: bindings prove with it that nothing was copied
   bool ok() const { return status == PlanStatus::kOk; }
 };
 

@@ -8,9 +8,11 @@
 
 namespace offload_planner {
 
-// Heading of a quaternion about z (the map plane), as tf2::getYaw computes it.
+// Heading of a quaternion about z (the map plane), as tf2::getYaw computes it. Both arguments of atan2
+// scale with the squared norm, so a quaternion that is not of unit length gives the yaw of its
+// normalised self: (0, 0, 10, 10) is 90 degrees. The caller rejects zero and non-finite quaternions.
 inline double yawOf(double qx, double qy, double qz, double qw) {
-  return std::atan2(2.0 * (qw * qz + qx * qy), 1.0 - 2.0 * (qy * qy + qz * qz));
+  return std::atan2(2.0 * (qx * qy + qw * qz), qw * qw + qx * qx - qy * qy - qz * qz);
 }
 
 struct MapGeometry {

@@ -1,8 +1,10 @@
 // ROS side of the local planner: converts offload_msgs/PlanPath and nav_msgs/GetPlan requests on the
-// latest nav_msgs/OccupancyGrid into calls of the ROS-free core. PlanRequestHandler needs no NodeHandle,
-// so gtests exercise it without a master; PlannerNode only wires topics, services and parameters.
+// latest nav_msgs/OccupancyGrid into calls of the ROS-free core and its request contract
+// (plan_request.h). PlanRequestHandler needs no NodeHandle, so gtests exercise it without a master;
+// PlannerNode only wires topics, services and parameters.
 #pragma once
 
+#include <cstdint>
 #include <memory>
 #include <mutex>
 #include <string>
@@ -11,24 +13,22 @@
 #include <nav_msgs/OccupancyGrid.h>
 #include <offload_msgs/PlanPath.h>
 #include <offload_msgs/PlanTiming.h>
+#include <ros/callback_queue.h>
 #include <ros/ros.h>
 
 #include "offload_planner_cpp/dijkstra.h"
-#include "offload_planner_cpp/map_geometry.h"
+#include "offload_planner_cpp/plan_request.h"
 
 namespace offload_planner {
 
-MapGeometry geometryOf(const nav_msgs::MapMetaData& info);
-
-// Empty when the map is usable, else why not.
-std::string validateMap(const nav_msgs::OccupancyGrid& map);
-
-// offload_msgs/PlanPath status code for a core status.
-std::uint8_t toServiceStatus(PlanStatus status);
+// The contract's view of a map message.
+MapInfo mapInfoOf(const nav_msgs::OccupancyGrid& map);
 
 class PlanRequestHandler {
  public:
-  explicit PlanRequestHandler(const PlannerOptions& options = PlannerOptions()) : options_(options) {}
+  // `max_map_cells` 0: no bound beyond the core's side limit.
+  explicit PlanRequestHandler(const PlannerOptions& options = PlannerOptions(), std::uint64_t max_map_cells = 0)
+      : options_(options), max_map_cells_(max_map_cells) {}
 
   // Keeps the previous map and returns false (with the reason) when `map` is malformed.
   bool setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, std::string* error);
@@ -39,14 +39,19 @@ class PlanRequestHandler {
 
  private:
   PlannerOptions options_;
+  std::uint64_t max_map_cells_;
   mutable std::mutex map_mutex_;
   nav_msgs::OccupancyGrid::ConstPtr map_;
+  MapGeometry geometry_;  // of map_
   std::string rejected_;  // why the last rejected map was rejected, for NO_MAP replies
 };
 
 class PlannerNode {
  public:
   PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh);
+  // Serves until shutdown: maps on their own thread, so a new map is never stuck behind long plans, and
+  // `planning_threads` for requests, so a short plan is not stuck behind long ones either.
+  void spin();
 
  private:
   void onMap(const nav_msgs::OccupancyGrid::ConstPtr& map);
@@ -56,6 +61,8 @@ class PlannerNode {
 
   std::unique_ptr<PlanRequestHandler> handler_;
   std::string planner_name_;
+  int planning_threads_ = 4;
+  ros::CallbackQueue map_queue_;
   ros::Subscriber map_sub_;
   ros::ServiceServer plan_srv_;
   ros::ServiceServer make_plan_srv_;

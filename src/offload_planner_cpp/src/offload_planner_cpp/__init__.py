@@ -11,26 +11,26 @@ from typing import Tuple
 
 import numpy as np
 
-from offload_planner_cpp._core import grid_address, plan_raw
+from offload_planner_cpp._core import PlanStatus, plan_raw
 
-__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "grid_address", "plan_raw"]
+__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "plan_raw"]
 
 
 class PlanError(ValueError):
-    """A request the planner cannot serve: empty map, start or goal off the map or blocked, bad options.
+    """A request the planner cannot serve: invalid map, start or goal off the map or blocked, bad options.
 
-    `status` names the cause: empty_map, size_mismatch, start_off_map, goal_off_map, start_blocked,
-    goal_blocked or invalid_options."""
+    `status` is the PlanStatus: INVALID_MAP, START_OFF_MAP, GOAL_OFF_MAP, START_BLOCKED, GOAL_BLOCKED or
+    INVALID_REQUEST."""
 
-    def __init__(self, status: str, message: str):
-        super().__init__(f"{status}: {message}")
+    def __init__(self, status: PlanStatus, message: str):
+        super().__init__(f"{status.name}: {message}")
         self.status = status
 
 
 class NoPathError(RuntimeError):
     """The goal (and every free cell within the tolerance) is unreachable from the start."""
 
-    status = "no_path"
+    status = PlanStatus.NO_PATH
 
 
 @dataclass(frozen=True)
@@ -40,6 +40,7 @@ class PlanResult:
     goal: Tuple[int, int]     # the cell reached: the goal, or the nearest reachable one within tolerance
     expansions: int           # cells settled
     seconds: float            # time inside the C++ planner
+    grid_address: int         # address of the buffer planned on: the caller's own array, never a copy
 
 
 def plan(grid, start, goal, *, lethal_threshold=50, unknown_is_obstacle=True, goal_tolerance=0.0,
@@ -51,9 +52,9 @@ def plan(grid, start, goal, *, lethal_threshold=50, unknown_is_obstacle=True, go
                    unknown_is_obstacle=unknown_is_obstacle, goal_tolerance=goal_tolerance,
                    stop_at_goal=stop_at_goal)
     status = raw["status"]
-    if status == "no_path":
+    if status == PlanStatus.NO_PATH:
         raise NoPathError(raw["message"])
-    if status != "ok":
+    if status != PlanStatus.OK:
         raise PlanError(status, raw["message"])
     return PlanResult(path=raw["path"], cost=raw["cost"], goal=raw["goal"], expansions=raw["expansions"],
-                      seconds=raw["seconds"])
+                      seconds=raw["seconds"], grid_address=raw["grid_address"])

@@ -1,7 +1,8 @@
-"""Robot-side bridge to the cloud planner, without ROS: the rospy node (cloud_bridge_node) only converts
-messages. It answers a PlanPath request exactly as the local planner node's PlanRequestHandler does
-(same checks, same order, same statuses and messages), except that the core runs in the cloud and a
-silent cloud gives CLOUD_TIMEOUT."""
+"""Robot-side bridge to the cloud planner, without ROS: the rospy node (nodes.cloud_bridge) only converts
+messages. The request contract (map validation, frames, request checks, world <-> cell conversion, the
+poses of a path) is the C++ core's, called through the binding exactly as the local planner node calls
+it, so both answer a request alike; only the planning runs in the cloud, and a silent cloud gives
+CLOUD_TIMEOUT."""
 import logging
 import math
 import threading
@@ -12,45 +13,15 @@ from typing import Any, Optional, Tuple
 import numpy as np
 import zmq
 
+from offload_planner_cpp import PlanStatus
+from offload_planner_cpp._core import MapGeometry, check_map, no_map_outcome, path_poses, resolve_request
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout, KnownMaps
-from offload_planner_cpp.grid_geometry import MapGeometry, fmt, in_map_frame, validate_map, yaw_of
 from offload_planner_cpp.cloud.protocol import PlanOptions, Status
 
 # A child of rospy's "rosout" logger: under the node its records reach /rosout and the node's log like
 # rospy.logwarn's; without ROS it is an ordinary Python logger.
 LOG = logging.getLogger("rosout.offload_planner_cpp.cloud.bridge")
-
-
-class PlanPathStatus:
-    """offload_msgs/PlanPath response codes, repeated here so this module needs no ROS (a test checks
-    they match the generated message)."""
-    OK = 0
-    NO_MAP = 1
-    BAD_FRAME = 2
-    START_OFF_MAP = 3
-    GOAL_OFF_MAP = 4
-    START_BLOCKED = 5
-    GOAL_BLOCKED = 6
-    NO_PATH = 7
-    INVALID_MAP = 8
-    CLOUD_TIMEOUT = 9
-    CLOUD_ERROR = 10
-    INVALID_REQUEST = 11
-
-
-# Protocol status to PlanPath status, as toServiceStatus() maps the core's statuses.
-_SERVICE_STATUS = {
-    Status.OK: PlanPathStatus.OK,
-    Status.EMPTY_MAP: PlanPathStatus.INVALID_MAP,
-    Status.SIZE_MISMATCH: PlanPathStatus.INVALID_MAP,
-    Status.START_OFF_MAP: PlanPathStatus.START_OFF_MAP,
-    Status.GOAL_OFF_MAP: PlanPathStatus.GOAL_OFF_MAP,
-    Status.START_BLOCKED: PlanPathStatus.START_BLOCKED,
-    Status.GOAL_BLOCKED: PlanPathStatus.GOAL_BLOCKED,
-    Status.NO_PATH: PlanPathStatus.NO_PATH,
-    Status.INVALID_OPTIONS: PlanPathStatus.INVALID_MAP,
-}
 
 
 @dataclass(frozen=True)
@@ -63,18 +34,23 @@ class MapSnapshot:
 
 
 @dataclass(frozen=True)
-class StampedPoint:
+class StampedPose:
+    """A geometry_msgs/PoseStamped in plain types; the orientation only matters for the path's ends."""
     frame_id: str
     x: float
     y: float
+    z: float = 0.0
+    orientation: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)   # qx, qy, qz, qw
+
+    def pose(self) -> Tuple[float, ...]:
+        return (self.x, self.y, self.z, *self.orientation)
 
 
 @dataclass
 class BridgeResult:
-    status: int
+    status: PlanStatus
     message: str = ""
-    path_x_m: np.ndarray = field(default_factory=lambda: np.empty(0))   # cell centres, start to goal
-    path_y_m: np.ndarray = field(default_factory=lambda: np.empty(0))
+    poses: np.ndarray = field(default_factory=lambda: np.empty((0, 7)))   # x, y, z, qx, qy, qz, qw per pose
     reached_goal: bool = False       # the path ends in the requested goal cell (not a tolerance fallback)
     planning_time_s: float = 0.0
     expansions: int = 0
@@ -96,6 +72,7 @@ class BridgeConfig:
     upload_retry_max_s: float = 60.0   # a failed map upload is retried after the heartbeat period, doubling to this
     lethal_threshold: int = 50
     unknown_is_obstacle: bool = True
+    max_map_cells: int = 64_000_000   # larger maps are refused, as by the local planner node
 
 
 class CloudBridge:
@@ -142,16 +119,17 @@ class CloudBridge:
                 origin_y: float, orientation: Tuple[float, float, float, float], frame_id: str, stamp) -> str:
         """Takes a new map (data: the message's int8 array, not copied); keeps the previous one and returns
         why when it is malformed, else returns ""."""
-        why = validate_map(width, height, int(np.asarray(data).size), resolution, origin_x, origin_y,
-                           tuple(orientation))
-        if not why and np.asarray(data).dtype != np.int8:
-            why = f"map data has dtype {np.asarray(data).dtype}, expected int8"
+        data = np.asarray(data)
+        checked, geometry = check_map(width, height, int(data.size), resolution, origin_x, origin_y,
+                                      tuple(orientation), self.config.max_map_cells)
+        why = checked.message
+        if checked.ok and data.dtype != np.int8:
+            why = f"map data has dtype {data.dtype}, expected int8"
         if why:
             with self._lock:
                 self._rejected = why
             return why
         grid = np.ascontiguousarray(data).reshape(height, width)
-        geometry = MapGeometry(resolution, origin_x, origin_y, yaw_of(*orientation), width, height)
         snapshot = MapSnapshot(grid, geometry, frame_id, stamp, protocol.grid_hash(grid))
         with self._lock:
             self._map = snapshot
@@ -206,7 +184,7 @@ class CloudBridge:
             if reply.status != Status.OK:
                 why = f"the cloud answered {reply.status.name}: {reply.message}"
         except CloudTimeout:
-            why = (f"no answer within {fmt(self.config.timeout_s)} s: the map may exceed the server's "
+            why = (f"no answer within {self.config.timeout_s:g} s: the map may exceed the server's "
                    f"--max-message-mib (libzmq then drops the connection), or the cloud is down")
         except Exception as error:   # never let the upload thread die silently
             why = f"{type(error).__name__}: {error}"
@@ -219,7 +197,7 @@ class CloudBridge:
         if self._failed_upload != snapshot.map_hash:
             LOG.warning("upload of map %s (%d bytes) to %s failed: %s; retrying with backoff up to every %s s, "
                         "plans on this map carry it along meanwhile", short_hash, snapshot.grid.nbytes,
-                        self.config.endpoint, why, fmt(self.config.upload_retry_max_s))
+                        self.config.endpoint, why, f"{self.config.upload_retry_max_s:g}")
             self._failed_upload = snapshot.map_hash
             self._upload_retry_s = self._heartbeat_period_s
         else:
@@ -234,52 +212,33 @@ class CloudBridge:
 
     # -- plan -----------------------------------------------------------------------------------------
 
-    def plan(self, start: StampedPoint, goal: StampedPoint, tolerance_m: float) -> BridgeResult:
-        """The PlanPath answer for a request, checked as PlanRequestHandler::handle() checks it."""
+    def plan(self, start: StampedPose, goal: StampedPose, tolerance_m: float) -> BridgeResult:
+        """The PlanPath answer for a request: checked and converted by the core's request contract,
+        planned in the cloud."""
         with self._lock:
             snapshot, rejected = self._map, self._rejected
         if snapshot is None:
-            message = "no map received yet on the map topic"
-            if rejected:
-                message += f" (last map rejected: {rejected})"
-            return BridgeResult(PlanPathStatus.NO_MAP, message)
-        result = BridgeResult(PlanPathStatus.OK, map_stamp=snapshot.stamp, frame_id=snapshot.frame_id)
-        for name, point in (("start", start), ("goal", goal)):
-            if not in_map_frame(point.frame_id, snapshot.frame_id):
-                result.status = PlanPathStatus.BAD_FRAME
-                result.message = (f"{name} is in frame '{point.frame_id}' but the map is in '{snapshot.frame_id}': "
-                                  f"transform it to the map frame first")
-                return result
-        finite = all(math.isfinite(v) for v in (start.x, start.y, goal.x, goal.y))
-        # The service's tolerance is float32, as the local node reads it: a larger value is inf there.
-        with np.errstate(over="ignore"):
-            tolerance_m = float(np.float32(tolerance_m))
-        if not finite or not math.isfinite(tolerance_m) or tolerance_m < 0.0:
-            result.status = PlanPathStatus.INVALID_REQUEST
-            result.message = "start and goal must be finite and tolerance a finite number >= 0 metres"
-            return result
+            outcome = no_map_outcome(rejected)
+            return BridgeResult(outcome.status, outcome.message)
+        result = BridgeResult(PlanStatus.OK, map_stamp=snapshot.stamp, frame_id=snapshot.frame_id)
         geometry = snapshot.geometry
-        start_cell = geometry.world_to_cell(start.x, start.y)
-        if start_cell is None:
-            result.status = PlanPathStatus.START_OFF_MAP
-            result.message = f"start ({fmt(start.x)}, {fmt(start.y)}) m is off the map"
-            return result
-        goal_cell = geometry.world_to_cell(goal.x, goal.y)
-        if goal_cell is None:
-            result.status = PlanPathStatus.GOAL_OFF_MAP
-            result.message = f"goal ({fmt(goal.x)}, {fmt(goal.y)}) m is off the map"
+        # tolerance_m becomes float32, as the service carries it (a larger value is inf, so refused).
+        request = resolve_request(geometry, snapshot.frame_id, start.frame_id, start.x, start.y, goal.frame_id,
+                                  goal.x, goal.y, tolerance_m)
+        if not request.outcome.ok:
+            result.status, result.message = request.outcome.status, request.outcome.message
             return result
 
-        options = PlanOptions(goal_tolerance_cells=tolerance_m / geometry.resolution,
+        options = PlanOptions(goal_tolerance_cells=request.tolerance_cells,
                               lethal_threshold=self.config.lethal_threshold,
                               unknown_is_obstacle=self.config.unknown_is_obstacle)
         client = self._borrow_client()
         try:
-            outcome = client.plan(snapshot.grid, start_cell, goal_cell, options, snapshot.map_hash)
+            outcome = client.plan(snapshot.grid, request.start, request.goal, options, snapshot.map_hash)
         except CloudTimeout:
-            result.status = PlanPathStatus.CLOUD_TIMEOUT
+            result.status = PlanStatus.CLOUD_TIMEOUT
             result.message = (f"cloud planner at {self.config.endpoint} did not answer within "
-                              f"{fmt(self.config.timeout_s)} s: plan locally")
+                              f"{self.config.timeout_s:g} s: plan locally")
             result.link_round_trip_s = self.config.timeout_s
             result.reachable = False
             return result
@@ -288,19 +247,20 @@ class CloudBridge:
         reply = outcome.reply
         # The link's share of the round trip: what the learner's b_t measures.
         result.link_round_trip_s = max(0.0, outcome.round_trip_s - reply.planning_time_s)
-        if reply.status not in _SERVICE_STATUS:
-            result.status = PlanPathStatus.CLOUD_ERROR
+        if not protocol.is_planner_status(reply.status):
+            result.status = PlanStatus.CLOUD_ERROR
             result.message = f"cloud planner refused the request ({reply.status.name}): {reply.message}"
             return result
-        result.status = _SERVICE_STATUS[reply.status]
+        # The planner's outcome codes are the core's: the cloud's answer reaches the robot untranslated.
+        result.status = PlanStatus(int(reply.status))
         result.message = reply.message
         result.planning_time_s = reply.planning_time_s
         result.expansions = reply.expansions
-        if reply.status != Status.OK:
+        if result.status != PlanStatus.OK:
             return result
         result.cost_m = reply.cost_cells * geometry.resolution
-        result.path_x_m, result.path_y_m = geometry.cells_to_world(reply.path)
-        result.reached_goal = tuple(reply.goal) == tuple(goal_cell)
+        result.reached_goal = tuple(reply.goal) == tuple(request.goal)
+        result.poses = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
         return result
 
     def _borrow_client(self) -> CloudClient:

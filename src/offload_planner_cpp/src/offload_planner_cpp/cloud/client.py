@@ -64,10 +64,6 @@ class PlanOutcome:
     uploaded: bool         # the map travelled with this call
 
 
-# Statuses after which the server holds the map (it planned on it).
-_PLANNED = {Status.OK, Status.START_OFF_MAP, Status.GOAL_OFF_MAP, Status.START_BLOCKED, Status.GOAL_BLOCKED,
-            Status.NO_PATH, Status.INVALID_OPTIONS, Status.EMPTY_MAP, Status.SIZE_MISMATCH}
-
 
 class CloudClient:
     """Not thread safe: one client per thread (they can share `known_maps` and `context`)."""
@@ -200,7 +196,7 @@ class CloudClient:
                 self.known_maps.discard(map_hash)
                 upload = True
                 continue
-            if reply.status in _PLANNED:
+            if protocol.is_planner_status(reply.status):   # it planned, so it holds the map
                 self.known_maps.add(map_hash)
             return PlanOutcome(reply, time.perf_counter() - started, upload)
 

@@ -31,8 +31,11 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
+from offload_planner_cpp._core import PlanStatus
+
 MAGIC = b"OFPL"
-VERSION = 1
+# 2: planner outcomes carry the PlanPath codes (version 1 had its own numbering).
+VERSION = 2
 ENVELOPE = struct.Struct("<4sBBQ")
 PLAN_BODY = struct.Struct("<16s4idhB")
 REPLY_BODY = struct.Struct("<B2iQdd")
@@ -51,17 +54,8 @@ class Kind(enum.IntEnum):
     REPLY = 4
 
 
-class Status(enum.IntEnum):
-    """Reply status. The planner's own outcomes first, in the core's order, then the link's."""
-    OK = 0
-    EMPTY_MAP = 1
-    SIZE_MISMATCH = 2
-    START_OFF_MAP = 3
-    GOAL_OFF_MAP = 4
-    START_BLOCKED = 5
-    GOAL_BLOCKED = 6
-    NO_PATH = 7
-    INVALID_OPTIONS = 8
+class LinkStatus(enum.IntEnum):
+    """Reply codes of the link itself, apart from the planner's."""
     MAP_UNKNOWN = 20           # the hash is not (or no longer) cached: upload the map and retry
     BAD_REQUEST = 21           # malformed message; the reply says what is wrong
     UNSUPPORTED_VERSION = 22
@@ -70,13 +64,15 @@ class Status(enum.IntEnum):
     SERVER_ERROR = 25
 
 
-# plan_raw() status names to protocol codes.
-CORE_STATUS = {
-    "ok": Status.OK, "empty_map": Status.EMPTY_MAP, "size_mismatch": Status.SIZE_MISMATCH,
-    "start_off_map": Status.START_OFF_MAP, "goal_off_map": Status.GOAL_OFF_MAP,
-    "start_blocked": Status.START_BLOCKED, "goal_blocked": Status.GOAL_BLOCKED, "no_path": Status.NO_PATH,
-    "invalid_options": Status.INVALID_OPTIONS,
-}
+# Reply status: the planner's outcomes are the core's PlanStatus codes, taken from the binding (the
+# offload_msgs/PlanPath codes: a reply's planner status reaches the robot untranslated), then the link's.
+Status = enum.IntEnum("Status", [(name, int(code)) for name, code in PlanStatus.__members__.items()] +
+                      [(code.name, code.value) for code in LinkStatus], module=__name__)
+
+
+def is_planner_status(status: int) -> bool:
+    """True for the planner's own outcomes (the server planned on the map), False for the link's codes."""
+    return status < min(LinkStatus)
 
 
 class ProtocolError(ValueError):

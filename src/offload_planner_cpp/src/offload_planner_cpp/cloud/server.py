@@ -22,7 +22,7 @@ import zmq
 import zmq.auth
 import zmq.auth.thread
 
-from offload_planner_cpp import plan_raw
+from offload_planner_cpp import PlanStatus, plan_raw
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.keys import load_server_keys
 from offload_planner_cpp.cloud.map_cache import MapCache
@@ -283,7 +283,7 @@ class CloudServer:
             source = "uploaded"
         options = request.options
         raw = protocol_plan(grid, request, options)
-        status = protocol.CORE_STATUS.get(raw["status"], Status.SERVER_ERROR)
+        status = Status(int(raw["status"]))
         LOG.info("request %d: map %s %s, %s -> %s: %s, plan %.2f ms, %d expansions, %.2f ms in server",
                  request_id, short_hash, source, request.start, request.goal, raw["status"], raw["seconds"] * 1e3,
                  raw["expansions"], (time.perf_counter() - started) * 1e3)
@@ -298,7 +298,7 @@ def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: prot
                         unknown_is_obstacle=options.unknown_is_obstacle,
                         goal_tolerance=options.goal_tolerance_cells, stop_at_goal=options.stop_at_goal)
     except ValueError as error:
-        return {"status": "invalid_options", "message": str(error), "path": np.empty((0, 2), np.int32),
+        return {"status": PlanStatus.INVALID_REQUEST, "message": str(error), "path": np.empty((0, 2), np.int32),
                 "goal": request.goal, "expansions": 0, "seconds": 0.0, "cost": 0.0}
 
 

@@ -10,7 +10,20 @@ from offload_msgs.msg import LinkLatency, PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathResponse
 from rospy.numpy_msg import numpy_msg
 
-from offload_planner_cpp.cloud.bridge import BridgeConfig, CloudBridge, PlanPathStatus, StampedPoint
+from offload_planner_cpp.cloud.bridge import BridgeConfig, CloudBridge, StampedPose
+
+
+def stamped_pose(msg) -> StampedPose:
+    p, q = msg.pose.position, msg.pose.orientation
+    return StampedPose(msg.header.frame_id, p.x, p.y, p.z, (q.x, q.y, q.z, q.w))
+
+
+def pose_stamped(header, row) -> PoseStamped:
+    """A PoseStamped from one (x, y, z, qx, qy, qz, qw) row of the core's path poses."""
+    pose = PoseStamped(header=header)
+    p, q = pose.pose.position, pose.pose.orientation
+    p.x, p.y, p.z, q.x, q.y, q.z, q.w = row
+    return pose
 
 
 def read_parameters() -> BridgeConfig:
@@ -26,7 +39,8 @@ def read_parameters() -> BridgeConfig:
                           retries=int(rospy.get_param("~retries", 1)),
                           heartbeat_timeout_s=float(rospy.get_param("~heartbeat_timeout_s", 1.0)),
                           lethal_threshold=int(rospy.get_param("~lethal_threshold", 50)),
-                          unknown_is_obstacle=bool(rospy.get_param("~unknown_is_obstacle", True)))
+                          unknown_is_obstacle=bool(rospy.get_param("~unknown_is_obstacle", True)),
+                          max_map_cells=int(rospy.get_param("~max_map_cells", 64_000_000)))
     if not 1 <= config.lethal_threshold <= 101:
         raise ValueError(f"~lethal_threshold must be in 1..101, got {config.lethal_threshold}")
     if config.timeout_s <= 0 or config.retries < 0 or config.heartbeat_timeout_s <= 0:
@@ -87,30 +101,16 @@ class CloudBridgeNode:
 
     def serve(self, req) -> PlanPathResponse:
         started = rospy.get_time()
-        result = self.bridge.plan(StampedPoint(req.start.header.frame_id, req.start.pose.position.x,
-                                               req.start.pose.position.y),
-                                  StampedPoint(req.goal.header.frame_id, req.goal.pose.position.x,
-                                               req.goal.pose.position.y), req.tolerance)
-        res = PlanPathResponse(status=result.status, message=result.message,
+        result = self.bridge.plan(stamped_pose(req.start), stamped_pose(req.goal), req.tolerance)
+        res = PlanPathResponse(status=int(result.status), message=result.message,
                                planning_time_s=result.planning_time_s, expansions=result.expansions,
                                cost_m=result.cost_m)
         if result.map_stamp is not None:
             res.map_stamp = result.map_stamp
-        if result.status == PlanPathStatus.OK:
+        if res.status == PlanPathResponse.OK:
             res.path.header.frame_id = result.frame_id
             res.path.header.stamp = rospy.Time.now()
-            poses = []
-            for x, y in zip(result.path_x_m.tolist(), result.path_y_m.tolist()):
-                pose = PoseStamped(header=res.path.header)
-                pose.pose.position.x = x
-                pose.pose.position.y = y
-                pose.pose.orientation.w = 1.0
-                poses.append(pose)
-            # Start and goal keep the caller's exact poses, as the local planner node does.
-            if result.reached_goal:
-                poses[-1].pose = req.goal.pose
-            poses[0].pose = req.start.pose
-            res.path.poses = poses
+            res.path.poses = [pose_stamped(res.path.header, row) for row in result.poses.tolist()]
         if result.link_round_trip_s is not None:
             self.publish_latency(LinkLatency.REQUEST, result.reachable, result.link_round_trip_s)
         timing = PlanTiming(planner=self.planner_name, status=res.status, planning_time_s=res.planning_time_s,
@@ -118,17 +118,23 @@ class CloudBridgeNode:
                             path_cells=len(res.path.poses), cost_m=res.cost_m, map_stamp=res.map_stamp)
         timing.header.stamp = rospy.Time.now()
         self.timing_pub.publish(timing)
-        if res.status == PlanPathStatus.OK:
+        if res.status == PlanPathResponse.OK:
             self.path_pub.publish(res.path)
         else:
-            rospy.logwarn("plan failed (status %d): %s", res.status, res.message)
+            rospy.logwarn("plan failed (%s): %s", result.status.name, res.message)
         return res
 
     def on_plan(self, req) -> PlanPathResponse:
         return self.serve(req)   # failures travel in res.status so the caller always learns why
 
     def on_make_plan(self, req) -> GetPlanResponse:
-        return GetPlanResponse(plan=self.serve(req).path)   # empty on failure, as navfn answers
+        res = self.serve(req)
+        if res.status != PlanPathResponse.OK:
+            # Empty on failure, as navfn answers, but in the global frame and stamped now as navfn's is.
+            snapshot = self.bridge.map
+            res.path.header.frame_id = snapshot.frame_id if snapshot is not None else ""
+            res.path.header.stamp = rospy.Time.now()
+        return GetPlanResponse(plan=res.path)
 
 
 def main():
@@ -144,6 +150,7 @@ def main():
       ~heartbeat_timeout_s (float, 1.0)  deadline of one ping
       ~lethal_threshold (int, 50)        occupancy >= this is an obstacle (1..101)
       ~unknown_is_obstacle (bool, true)
+      ~max_map_cells (int, 64000000)     larger maps are refused (0: no limit)
       ~planner_name (str, "cloud")       `planner` field of ~timing
     Topics: subscribes map (nav_msgs/OccupancyGrid); publishes ~latency (offload_msgs/LinkLatency),
     ~timing (offload_msgs/PlanTiming), ~path (nav_msgs/Path, latched).
