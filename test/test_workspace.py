@@ -1,6 +1,7 @@
 """Workspace-level checks: the cores stay free of ROS, contracts are written once, every package declares
 what its code imports, and every launch file loads."""
 import ast
+import os
 import re
 import subprocess
 import sys
@@ -123,3 +124,37 @@ def test_package_xml_declares_what_the_code_imports(package):
             if key not in allowed:
                 missing.append(f"{source.relative_to(package)} imports {module}: declare {key}")
     assert not missing, "package.xml misses run dependencies:\n" + "\n".join(missing)
+
+
+def test_ros_free_pip_install_plans_serves_and_pings(tmp_path):
+    """What a cloud host runs: `pip install ./src/offload_planner_cpp` into a venv without ROS installs the
+    core, the cloud subpackage and its commands, and none of the rospy nodes or demo tools."""
+    venv = tmp_path / "venv"
+    # Nothing of the sourced workspace (PYTHONPATH, ROS_*) may leak in: a host without ROS.
+    env = {name: value for name, value in os.environ.items()
+           if not name.startswith(("ROS", "PYTHON", "CMAKE", "PKG_CONFIG", "LD_LIBRARY", "CATKIN"))}
+    subprocess.run(["/usr/bin/python3", "-m", "venv", str(venv)], check=True, env=env)
+    python = str(venv / "bin" / "python")
+    built = subprocess.run([python, "-m", "pip", "install", "-q", str(PLANNER)], capture_output=True, text=True,
+                           env=env)
+    assert built.returncode == 0, built.stderr[-3000:]
+    code = ("import importlib.util, subprocess, sys, numpy as np, offload_planner_cpp\n"
+            "assert importlib.util.find_spec('rospy') is None\n"
+            "assert importlib.util.find_spec('offload_planner_cpp.nodes') is None\n"
+            "assert importlib.util.find_spec('offload_planner_cpp.devtools') is None\n"
+            "from offload_planner_cpp.cloud.server import CloudServer, ServerConfig\n"
+            "from offload_planner_cpp.cloud.client import CloudClient\n"
+            "server = CloudServer(ServerConfig(bind='tcp://127.0.0.1:0', insecure=True, workers=1))\n"
+            "endpoint = server.start()\n"
+            "client = CloudClient(endpoint, insecure=True, timeout_s=10)\n"
+            "reply = client.plan(np.zeros((5, 5), np.int8), (0, 0), (4, 4)).reply\n"
+            "ping = subprocess.run([sys.executable, '-m', 'offload_planner_cpp.cloud.client', endpoint, '--ping',\n"
+            "                       '--insecure'], capture_output=True, text=True)\n"
+            "client.close(); server.stop()\n"
+            "print(int(reply.status), round(reply.cost_cells, 6), ping.returncode)\n")
+    done = subprocess.run([python, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120, env=env)
+    assert done.returncode == 0, done.stderr
+    assert done.stdout.split() == ["0", "5.656854", "0"]
+    for command in ("offload-cloud-server", "offload-cloud-ping", "offload-cloud-keys"):
+        assert (venv / "bin" / command).exists(), command
+    assert not (venv / "bin" / "offload-wan-emulator").exists()
