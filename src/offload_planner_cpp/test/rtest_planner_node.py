@@ -151,6 +151,31 @@ class PlannerNodeTest(unittest.TestCase):
         self.assertGreaterEqual(timing.service_time_s, timing.planning_time_s)
         self.assertTrue(self.paths and self.paths[-1].header.frame_id == "map")
 
+    def test_every_request_gets_a_timing(self):
+        """A burst of short plans from four callers: one ~timing message each, none dropped."""
+        rospy.sleep(0.5)   # timings of earlier tests' requests have arrived
+        began = rospy.Time.now()
+        per_caller = 150
+
+        def caller():
+            plan = rospy.ServiceProxy("/planner/plan", PlanPath, persistent=True)
+            req = PlanPathRequest(start=self.pose(self.world(self.home)), goal=self.pose(self.world(self.home)))
+            for _ in range(per_caller):
+                self.assertEqual(plan(req).status, R.OK)
+            plan.close()
+
+        threads = [threading.Thread(target=caller) for _ in range(4)]
+        for thread in threads:
+            thread.start()
+        for thread in threads:
+            thread.join(120)
+        count = lambda: sum(1 for t in list(self.timings) if t.header.stamp >= began)   # noqa: E731
+        deadline = rospy.Time.now() + rospy.Duration(10)
+        while count() < 4 * per_caller and rospy.Time.now() < deadline:
+            rospy.sleep(0.05)
+        rospy.sleep(0.5)
+        self.assertEqual(count(), 4 * per_caller)
+
     def test_malformed_and_changing_maps(self):
         stamp = self.call(self.home, self.away).map_stamp
         pub = rospy.Publisher("/map", OccupancyGrid, queue_size=10)

@@ -54,7 +54,8 @@ class CloudBridgeNode:
         self.planner_name = planner_name
         self.heartbeat_period_s = heartbeat_period_s
         self.latency_pub = rospy.Publisher("~latency", LinkLatency, queue_size=10)
-        self.timing_pub = rospy.Publisher("~timing", PlanTiming, queue_size=10)
+        # A deep queue: a burst of fast plans must not drop timings the learner and the bags rely on.
+        self.timing_pub = rospy.Publisher("~timing", PlanTiming, queue_size=1000)
         self.path_pub = rospy.Publisher("~path", Path, queue_size=1, latch=True)
         # numpy_msg keeps the grid as one int8 array: no per-cell Python ints.
         self.map_sub = rospy.Subscriber("map", numpy_msg(OccupancyGrid), self.on_map, queue_size=1,
