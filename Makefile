@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test bench-planner bench-link bench-decision clean
+.PHONY: help deps venv build test bench-planner bench-link bench-decision bench-fleet fuzz clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -13,7 +13,10 @@ NOETIC := /opt/ros/noetic/setup.bash
 ROS_DEBS := ros-base-dev python3-rospy python3-roslaunch python3-rostest python3-rosbag libnav-msgs-dev \
 	python3-nav-msgs catkin ros-message-generation librostest-dev
 BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv
-DEBS := $(BUILD_DEBS) $(if $(wildcard $(NOETIC)),,$(ROS_DEBS))
+# Test and benchmark tools: HAProxy in front of several cloud servers (fleet test, make bench-fleet) and
+# systemd-analyze for the unit file check.
+TEST_DEBS := haproxy systemd
+DEBS := $(BUILD_DEBS) $(TEST_DEBS) $(if $(wildcard $(NOETIC)),,$(ROS_DEBS))
 
 # Every recipe that needs ROS starts with this: Noetic's setup if present, then the devel space.
 ROSENV := set -eo pipefail; export ROS_HOME=$(ROOT)/.ros; \
@@ -26,6 +29,8 @@ help:
 	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
 	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
+	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
+	@echo "make fuzz           coverage-guided fuzzing of the protocol and map loaders (FUZZ_SECONDS each)"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -60,6 +65,17 @@ bench-planner: build
 
 bench-link: build
 	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_link.py
+
+bench-fleet: build
+	@$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fleet --robots 50 --servers 3 --requests 40 --kill-at-s 1.5
+
+# Longer coverage-guided runs than `make test` does; FUZZ_SECONDS per target.
+FUZZ_SECONDS ?= 120
+fuzz: build
+	@mkdir -p build/fuzz && cd build/fuzz && for target in protocol movingai map_yaml map_image; do \
+		echo "== $$target ($(FUZZ_SECONDS) s)"; \
+		$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fuzz $$target -max_total_time=$(FUZZ_SECONDS) -max_len=4096 \
+			2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error' || exit 1; done
 
 bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision

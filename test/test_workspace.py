@@ -93,7 +93,8 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-
                "nav_msgs": "nav_msgs", "geometry_msgs": "geometry_msgs", "std_msgs": "std_msgs",
                "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp",
                "offload_learner_py": "offload_learner_py", "rosgraph_msgs": "rosgraph_msgs",
-               "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph"}
+               "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph",
+               "atheris": "python3-atheris-pip"}
 
 
 def imported_modules(source: Path):

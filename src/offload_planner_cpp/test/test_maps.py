@@ -81,6 +81,24 @@ def test_map_server_rejects_garbage_yaml(tmp_path):
         load_map_server_yaml(tmp_path / "h.yaml")
 
 
+@pytest.mark.parametrize("content", [b"\xfcimage: map.pgm\n", b"[" * 20000, b"a: " + b"{b: " * 20000],
+                         ids=["not utf-8", "deep list", "deep mapping"])
+def test_map_server_yaml_that_is_not_text_or_too_deep_is_a_map_format_error(tmp_path, content):
+    # Found by the fuzzer (devtools.fuzz map_yaml): a UnicodeDecodeError escaped the loader.
+    path = tmp_path / "map.yaml"
+    path.write_bytes(content)
+    with pytest.raises(MapFormatError, match="cannot read map YAML"):
+        load_map_server_yaml(path)
+
+
+def test_map_server_yaml_too_large_is_refused_unread(tmp_path):
+    path = tmp_path / "map.yaml"
+    with open(path, "wb") as out:
+        out.truncate(64 << 20)   # sparse: 64 MiB of nothing
+    with pytest.raises(MapFormatError, match="not a map_server YAML"):
+        load_map_server_yaml(path)
+
+
 def test_bundled_maps_load(bundled_maps):
     playpen = load_map(bundled_maps / "husky_playpen" / "playpen_map.yaml")
     assert playpen.grid.shape == (1984, 1984) and playpen.resolution == pytest.approx(0.05)

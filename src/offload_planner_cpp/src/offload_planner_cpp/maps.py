@@ -24,6 +24,10 @@ _MOVINGAI_PASSABLE = frozenset(".GS")
 _MOVINGAI_BLOCKED = frozenset("@OTW")
 
 
+# A map_server YAML is a few lines; anything past this is not one.
+MAX_YAML_BYTES = 1 << 20
+
+
 class MapFormatError(ValueError):
     """A map, scenario or map_server YAML file that cannot be read as one."""
 
@@ -151,9 +155,13 @@ def load_map_server_yaml(path) -> OccupancyMap:
 
     path = Path(path)
     try:
-        meta = yaml.safe_load(path.read_text())
-    except (OSError, yaml.YAMLError) as error:
-        raise MapFormatError(f"{path}: cannot read map YAML: {error}") from error
+        if path.stat().st_size > MAX_YAML_BYTES:
+            raise MapFormatError(f"{path}: a map YAML of {path.stat().st_size} bytes is not a map_server YAML "
+                                 f"(at most {MAX_YAML_BYTES})")
+        meta = yaml.safe_load(path.read_text(encoding="utf-8"))
+    except (OSError, UnicodeDecodeError, RecursionError, yaml.YAMLError) as error:
+        # RecursionError: PyYAML composes nested collections recursively ("[" * 10000 is a short file).
+        raise MapFormatError(f"{path}: cannot read map YAML: {type(error).__name__}: {error}") from error
     if not isinstance(meta, dict):
         raise MapFormatError(f"{path}: map YAML must be a mapping")
     try:
