@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test bench-planner bench-link bench-decision clean
+.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -27,6 +27,8 @@ help:
 	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
 	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
+	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
+	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -64,6 +66,16 @@ bench-link: build
 
 bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
+
+STEPS ?= 400
+POLICY ?= dqn
+SEED ?= 1
+demo: build
+	@$(ROSENV) $(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
+		--policy $(POLICY) --seed $(SEED) $(if $(MAP),--map $(MAP)) $(if $(RVIZ),--rviz)
+
+bench-online: build
+	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online
 
 clean:
 	rm -rf build devel .ros
