@@ -125,6 +125,7 @@ class LearnerNode:
         self._recent = deque(maxlen=self.window)      # (loss or nan, correct or nan)
         self._delivered_ms = deque(maxlen=self.window)
         self._learned_since_checkpoint = 0
+        self._count = 0
         self.tf_buffer = self._tf_buffer()
 
         local = PlannerProxy(str(p("local_service", "/planner/plan")))
@@ -146,12 +147,23 @@ class LearnerNode:
         self.router = OffloadRouter(self.policy, local, cloud, statuses, self.router_config,
                                     on_decision=self.publish_decision, on_outcome=self.on_outcome)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
-        rospy.Subscriber(str(p("latency_topic", "/cloud_bridge/latency")), LinkLatency, self.on_latency,
-                         queue_size=10)
+        latency_topic = str(p("latency_topic", "/cloud_bridge/latency"))
+        rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
+        # s_t needs the map's size and a first round trip: serve once both are in (or the wait is over).
+        deadline = time.monotonic() + wait_s
+        while (self.map_info is None or self.round_trip_s is None) and time.monotonic() < deadline \
+                and not rospy.is_shutdown():
+            time.sleep(0.05)
+        if self.map_info is None or self.round_trip_s is None:
+            rospy.logwarn("no %s yet: requests are planned locally and not learned until it arrives",
+                          "map_metadata" if self.map_info is None else latency_topic)
         rospy.Subscriber("/move_base_simple/goal", PoseStamped, self.on_goal, queue_size=10)
         rospy.Subscriber("/initialpose", PoseWithCovarianceStamped, self.on_initial_pose, queue_size=1)
         self.plan_srv = rospy.Service("~plan", PlanPath, self.on_plan)
         self.make_plan_srv = rospy.Service("~make_plan", GetPlan, self.on_make_plan)
+        # Request ids continue across restarts (a bag may hold several sessions): microseconds since
+        # the epoch at start, then one per request.
+        self.router.next_request_id = time.time_ns() // 1000
         rospy.on_shutdown(self.shutdown)
         rospy.loginfo("offload learner ready: policy %s, learn %s, probe rate %.2f, routing between %s and %s",
                       self.policy_name, self.learn and self.policy.learns, self.router_config.probe_rate,
@@ -294,19 +306,20 @@ class LearnerNode:
         with self._lock:
             self._recent.append((outcome.loss if outcome.loss is not None else float("nan"), correct))
             self._delivered_ms.append(1000.0 * outcome.delivered_s)
+            self._count += 1
             if outcome.learned:
                 self._learned_since_checkpoint += 1
         self.publish_stats()
         if self.agent is not None and self.checkpoint_every > 0 and \
                 self._learned_since_checkpoint >= self.checkpoint_every:
             self.save()
-        if self.progress_every > 0 and (outcome.request_id + 1) % self.progress_every == 0:
+        if self.progress_every > 0 and len(self._delivered_ms) and self._count % self.progress_every == 0:
             with self._lock:
                 recent = np.array(self._recent, dtype=np.float64).reshape(-1, 2)
                 delivered = float(np.mean(self._delivered_ms))
             accuracy = np.nanmean(recent[:, 1]) if np.any(np.isfinite(recent[:, 1])) else float("nan")
             rospy.loginfo("request %d: last %d mean %.1f ms to path, accuracy %.0f%% vs oracle, model steps %d",
-                          outcome.request_id + 1, len(recent), delivered, 100 * accuracy, self.policy.steps)
+                          self._count, len(recent), delivered, 100 * accuracy, self.policy.steps)
 
     def publish_stats(self):
         stats = self.policy.stats()
