@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.cpu import CgroupBudgetReader, CpuAvailability, parse_cpu_list, read_proc_stat_cores
+from offload_learner_py.cpu import CgroupBudgetReader, CpuAvailability, LatestCpuAvailability, parse_cpu_list, \
+    read_proc_stat_cores
 from offload_learner_py.dataset import TransitionTable
 from offload_learner_py.goals import GoalSampler, GridFrame, default_start_cell, free_cells
 from offload_learner_py.records import RecordMismatchError, pair_records, transition_table
@@ -229,3 +230,13 @@ def test_cgroup_budget_availability_is_the_unused_share_of_the_quota(tmp_path):
 def test_cgroup_without_a_quota_is_a_clear_error(tmp_path):
     with pytest.raises(ValueError, match="cgroup 'nothere'"):
         CgroupBudgetReader("nothere", root=str(tmp_path))
+
+
+def test_latest_availability_never_waits_and_keeps_the_last_measured_window():
+    readings = iter([(0, 0), (50, 100), (50, 101), (60, 102), (110, 300)])
+    slept = []
+    cpu = LatestCpuAvailability(lambda: next(readings), min_window=10, sleep=slept.append)
+    assert cpu.value == 0.5 and len(slept) == 1          # the first window, measured at construction
+    assert cpu.sample() == 0.5 and cpu.sample() == 0.5   # 1 and 2 ticks later: too short, last value kept
+    assert cpu.sample() == pytest.approx(60 / 200)       # 200 ticks since the last measured reading
+    assert len(slept) == 1

@@ -121,3 +121,32 @@ class CgroupBudgetReader:
     def __call__(self) -> Tuple[int, int]:
         total = int(self._clock() * self.budget_cores)
         return total - self._read_usage(), total
+
+
+class LatestCpuAvailability:
+    """u_t for the request path, which must never wait: the idle share over the latest window in which
+    the counters advanced by at least min_window (jiffy counters tick every 10 ms). A request arriving
+    sooner gets the last measured value instead of a sleep. The first measurement is taken at
+    construction, so there always is one."""
+
+    def __init__(self, reader: Callable[[], Tuple[int, int]], min_window: int,
+                 sleep: Callable[[float], None] = time.sleep, first_interval_s: float = 0.05):
+        self._reader = reader
+        self._min_window = min_window
+        self._previous = reader()
+        sleep(first_interval_s)
+        self.value = float("nan")
+        self._measure(force=True)
+
+    def _measure(self, force: bool = False) -> float:
+        idle, total = self._reader()
+        elapsed = total - self._previous[1]
+        if elapsed >= self._min_window or (force and elapsed > 0):
+            self.value = min(1.0, max(0.0, (idle - self._previous[0]) / elapsed))
+            self._previous = (idle, total)
+        elif force:
+            raise RuntimeError("CPU time counters did not advance; cannot measure availability")
+        return self.value
+
+    def sample(self) -> float:
+        return self._measure()

@@ -19,7 +19,7 @@ from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
 from offload_learner_py.config import DQNConfig
-from offload_learner_py.cpu import CgroupBudgetReader, CpuAvailability, parse_cpu_list, read_proc_stat, \
+from offload_learner_py.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
     read_proc_stat_cores
 from offload_learner_py.dqn import DQNAgent
 from offload_learner_py.reward import CostWeights
@@ -54,15 +54,16 @@ class PlannerProxy:
             self._proxy = None
 
 
-def make_cpu_sampler(cores: str, cgroup: str) -> CpuAvailability:
+def make_cpu_sampler(cores: str, cgroup: str) -> LatestCpuAvailability:
     """u_t of the robot: what is left of its cgroup CPU budget when it has one, else the idle share of
-    the cores it is pinned to, else of the whole host."""
+    the cores it is pinned to, else of the whole host. Never waits on the request path."""
     if cgroup:
-        return CpuAvailability(CgroupBudgetReader(cgroup), min_interval_s=0.02)
+        reader = CgroupBudgetReader(cgroup)
+        return LatestCpuAvailability(reader, min_window=int(0.02 * 1e9 * reader.budget_cores))   # 20 ms
     if cores:
         pinned = parse_cpu_list(cores)
-        return CpuAvailability(lambda: read_proc_stat_cores(pinned))
-    return CpuAvailability(read_proc_stat)
+        return LatestCpuAvailability(lambda: read_proc_stat_cores(pinned), min_window=2 * len(pinned))
+    return LatestCpuAvailability(read_proc_stat, min_window=2 * (os.cpu_count() or 1))
 
 
 def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, dqn_overrides: dict,
