@@ -19,7 +19,7 @@ import time
 import numpy as np
 
 from offload_learner_py import plots
-from offload_learner_py.demo_keys import ensure_demo_keys
+from offload_learner_py.nodes.demo_keys import ensure_demo_keys
 from offload_learner_py.evaluation import confusion_matrix
 from offload_learner_py.records import pair_records, transition_table
 from offload_learner_py.summary import format_summary, summarise

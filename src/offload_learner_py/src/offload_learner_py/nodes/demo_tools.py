@@ -7,7 +7,7 @@ import threading
 import rospy
 from std_msgs.msg import Float64
 
-from offload_learner_py.demo_keys import ensure_demo_keys
+from offload_learner_py.nodes.demo_keys import ensure_demo_keys
 from offload_learner_py.workload import LoadSchedule, parse_levels, run_workload
 
 
