@@ -149,6 +149,12 @@ def test_oracle_share_by_tercile_on_a_cpu_rule():
     assert shares[0] == 1.0 and shares[2] == 0.0
 
 
+def test_summary_names_requests_cut_off_by_the_end_of_the_run():
+    log = pair_records([decision(1), decision(2)], [outcome(1)])
+    text = format_summary(summarise(log, transition_table(log)))
+    assert "paths delivered 1/2" in text and "1 request(s) still in flight" in text
+
+
 def test_summary_of_a_run_without_probe_steps():
     log = pair_records([decision(1)], [outcome(1, reward_valid=False)])
     summary = summarise(log, transition_table(log))

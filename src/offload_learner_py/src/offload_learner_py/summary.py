@@ -98,6 +98,9 @@ def format_summary(summary: dict) -> str:
     lines = [f"requests {summary['requests']}, paths delivered {summary['paths_delivered']}/"
              f"{summary['requests']}, probe steps {summary['probe_steps']}, cloud timeouts "
              f"{summary['cloud_timeouts']}/{summary['cloud_calls']} cloud calls, policy {summary['policy']}"]
+    unfinished = summary["requests"] - summary["answered"]
+    if unfinished:
+        lines.append(f"({unfinished} request(s) still in flight when the run stopped: no outcome recorded)")
     if "whole_run" not in summary:
         lines.append("no probe step finished: nothing to compare")
         return "\n".join(lines)
