@@ -67,7 +67,7 @@ bench-link: build
 bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
 
-STEPS ?= 400
+STEPS ?= 360
 POLICY ?= dqn
 SEED ?= 1
 demo: build

@@ -13,7 +13,6 @@ import unittest
 import rosbag
 import rospy
 import rostest
-from geometry_msgs.msg import PoseStamped
 from offload_msgs.msg import OffloadDecision, OffloadOutcome, TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 

@@ -126,12 +126,13 @@ def test_summary_compares_against_the_baselines_on_the_same_probe_steps():
     assert second["accuracy"] == 1.0
     assert second["mean_latency_s"] == pytest.approx(summary["second_half_oracle_mean_latency_s"])
     assert second["mean_latency_s"] < min(second["mean_latency_always_local_s"], second["mean_latency_always_cloud_s"])
+    assert summary["second_half_beats_both"] is True
     assert summary["final_greedy_accuracy"] == 1.0
     assert summary["learned_offload_input_size"] == pytest.approx(1.0, rel=0.02)
     shares = summary["oracle_cloud_share_by_tercile"]["d_t"]["cloud_share"]
     assert shares[0] == 0.0 and shares[2] == 1.0
     text = format_summary(summary)
-    for line in ("always local", "always cloud", "oracle", "accuracy", "d_t:", "u_t:", "b_t:", "paths delivered 60/60"):
+    for line in ("beats both fixed policies", "always local", "always cloud", "oracle", "accuracy", "d_t:", "u_t:", "b_t:", "paths delivered 60/60"):
         assert line in text
 
 

@@ -1,7 +1,6 @@
 """The learner's decision and outcome records (OffloadDecision / OffloadOutcome messages, or anything
 with the same fields) turned back into the one transition table. No ROS import: the records may come
 from rosbag, from the rosbags library or from a test."""
-import math
 from dataclasses import dataclass
 from typing import Dict, Iterable
 
@@ -94,7 +93,3 @@ def transition_table(log: RequestLog, metadata: Dict = None) -> TransitionTable:
                            action=pick("action").astype(np.int64), action_propensity=pick("action_propensity"),
                            reward=rewards, metadata=dict(metadata or {}))
 
-
-def finite_or_nan(value) -> float:
-    value = float(value)
-    return value if math.isfinite(value) else float("nan")

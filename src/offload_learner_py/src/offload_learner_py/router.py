@@ -16,7 +16,7 @@ import threading
 import time
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
-from typing import Any, Callable, FrozenSet, Optional, Tuple
+from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
 

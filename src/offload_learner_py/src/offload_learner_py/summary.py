@@ -72,6 +72,8 @@ def summarise(log: RequestLog, table: TransitionTable, q_values: Optional[Callab
     half = len(table) // 2
     second = table.slice(half, len(table))
     result["second_half"] = evaluate(second.action, second)
+    result["second_half_beats_both"] = bool(result["second_half"]["mean_latency_s"] < min(
+        result["second_half"]["mean_latency_always_local_s"], result["second_half"]["mean_latency_always_cloud_s"]))
     oracle = oracle_actions(table)
     result["oracle_cloud_share"] = float(np.mean(oracle == CLOUD))
     result["oracle_mean_latency_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
@@ -125,6 +127,7 @@ def format_summary(summary: dict) -> str:
                  f"{second['savings_vs_local_pct']:10.1f}")
     lines.append(f"{'savings vs cloud (%)':28}{whole['savings_vs_cloud_pct']:10.1f}{'':12}"
                  f"{second['savings_vs_cloud_pct']:10.1f}")
+    lines.append(f"{'beats both fixed policies':28}{'':22}{'yes' if summary['second_half_beats_both'] else 'no':>10}")
     lines.append(f"{'accuracy, actions taken (%)':28}{100 * whole['accuracy']:10.1f}{'':12}"
                  f"{100 * second['accuracy']:10.1f}")
     if "final_greedy_accuracy" in summary:

@@ -32,6 +32,8 @@ def main():
       ~service (str, /offload_learner/plan)  PlanPath service to call
       ~count (int, 100)              requests to send, then exit; 0 sends until shutdown
       ~period_s (float, 0.2)         pause between the answer to one request and the next request
+      ~rate_hz (float, 0)            instead, send at this fixed rate (a request still waits for the
+                                     previous answer); 0 uses ~period_s
       ~seed (int, 1)                 goal draws
       ~start_x, ~start_y (float)     start in the map frame (default: free cell nearest the map centre)
       ~min_distance_m (float, 0.0)   goals at least this far from the start
@@ -43,7 +45,7 @@ def main():
     rospy.init_node("goal_generator")
     p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
     service = str(p("service", "/offload_learner/plan"))
-    count, period_s = int(p("count", 100)), float(p("period_s", 0.2))
+    count, period_s, rate_hz = int(p("count", 100)), float(p("period_s", 0.2)), float(p("rate_hz", 0.0))
     try:
         grid_msg = rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=float(p("map_wait_s", 60.0)))
         info = grid_msg.info
@@ -68,6 +70,7 @@ def main():
     plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
     tolerance = float(p("tolerance", 0.0))
     sent = delivered = 0
+    rate = rospy.Rate(rate_hz) if rate_hz > 0 else None
     while not rospy.is_shutdown() and (count <= 0 or sent < count):
         goal = pose(frame_id, frame.cell_centre_m(*sampler.draw()))
         goal_pub.publish(goal)
@@ -83,8 +86,13 @@ def main():
             plan.close()
             plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
         sent += 1
-        if period_s > 0:
-            rospy.sleep(period_s)
+        try:
+            if rate is not None:
+                rate.sleep()
+            elif period_s > 0:
+                rospy.sleep(period_s)
+        except rospy.ROSInterruptException:
+            break
     rospy.loginfo("goal generator done: %d paths delivered for %d requests", delivered, sent)
     plan.close()
 
