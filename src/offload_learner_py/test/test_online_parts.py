@@ -138,7 +138,11 @@ def test_summary_compares_against_the_baselines_on_the_same_probe_steps():
 
 def test_learned_offload_point_is_nan_when_the_policy_never_switches():
     states = np.array([[0.1, 0.5, 0.1], [3.0, 0.5, 0.1]])
-    assert math.isnan(learned_offload_input_size(lambda s: np.tile([1.0, 0.0], (len(s), 1)), states))
+    always_local = lambda s: np.tile([1.0, 0.0], (len(s), 1))  # noqa: E731
+    assert math.isnan(learned_offload_input_size(always_local, states))
+    log = pair_records([decision(1, d=0.1), decision(2, d=3.0)], [outcome(1, local_s=0.1), outcome(2, local_s=0.1)])
+    text = format_summary(summarise(log, transition_table(log), always_local))
+    assert "none in the observed d_t range" in text and "none in the observed u_t range" in text
 
 
 def test_oracle_share_by_tercile_on_a_cpu_rule():

@@ -2,6 +2,7 @@
 on the run's own probe steps, over the whole run and its second half; accuracy; timeouts; paths
 delivered; the learned offload point in d_t and threshold in u_t; and the oracle's cloud share by
 tercile of d_t, u_t and b_t, which shows whether each feature matters on this run."""
+import math
 from typing import Callable, Optional
 
 import numpy as np
@@ -134,9 +135,11 @@ def format_summary(summary: dict) -> str:
         lines.append(f"{'accuracy, final greedy (%)':28}{100 * summary['final_greedy_accuracy']:10.1f}{'':12}"
                      f"{100 * summary['final_greedy_second_half_accuracy']:10.1f}")
         lines.append("")
-        lines.append(f"learned offload point: d_t > {summary['learned_offload_input_size']:.4g} "
-                     f"(u_t, b_t at their medians); learned CPU threshold: u_t < "
-                     f"{summary['learned_cpu_threshold']:.3f}")
+        point, threshold = summary["learned_offload_input_size"], summary["learned_cpu_threshold"]
+        lines.append("learned offload point: " + (f"d_t > {point:.4g}" if math.isfinite(point) else
+                                                  "none in the observed d_t range") +
+                     " (u_t, b_t at their medians); learned CPU threshold: " +
+                     (f"u_t < {threshold:.3f}" if math.isfinite(threshold) else "none in the observed u_t range"))
     lines.append(f"oracle picks the cloud on {100 * summary['oracle_cloud_share']:.1f}% of probe steps; by tercile "
                  f"(low / mid / high):")
     for label, entry in summary["oracle_cloud_share_by_tercile"].items():
