@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test bench-planner bench-link bench-decision bench-fleet fuzz clean
+.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-fleet fuzz clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -31,6 +31,8 @@ help:
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
 	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
 	@echo "make fuzz           coverage-guided fuzzing of the protocol and map loaders (FUZZ_SECONDS each)"
+	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
+	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -79,6 +81,16 @@ fuzz: build
 
 bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
+
+STEPS ?= 360
+POLICY ?= dqn
+SEED ?= 1
+demo: build
+	@$(ROSENV) $(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
+		--policy $(POLICY) --seed $(SEED) $(if $(MAP),--map $(MAP)) $(if $(RVIZ),--rviz)
+
+bench-online: build
+	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online
 
 clean:
 	rm -rf build devel .ros

@@ -1,7 +1,8 @@
 """CPU availability u_t in [0, 1], measured from the OS as the idle share of CPU time between two
 readings of /proc/stat (the kernel's own accounting, so no extra dependency is needed)."""
+import os
 import time
-from typing import Callable, Optional, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 
 def read_proc_stat(path: str = "/proc/stat") -> Tuple[int, int]:
@@ -47,3 +48,105 @@ class CpuAvailability:
             if elapsed <= 0:
                 raise RuntimeError("CPU time counters did not advance; cannot measure availability")
         return min(1.0, max(0.0, (idle - previous_idle) / elapsed))
+
+
+def parse_cpu_list(text: str) -> Tuple[int, ...]:
+    """Core numbers from a taskset-style list such as "0", "0,2" or "0-3"."""
+    cores = set()
+    for part in str(text).replace(" ", "").split(","):
+        if not part:
+            continue
+        low, _, high = part.partition("-")
+        try:
+            first, last = int(low), int(high or low)
+        except ValueError:
+            raise ValueError(f"bad CPU list {text!r}: expected numbers like 0 or 0,2 or 0-3") from None
+        if first < 0 or last < first:
+            raise ValueError(f"bad CPU list {text!r}: range {part} is empty or negative")
+        cores.update(range(first, last + 1))
+    if not cores:
+        raise ValueError(f"bad CPU list {text!r}: no core named")
+    return tuple(sorted(cores))
+
+
+def read_proc_stat_cores(cores: Sequence[int], path: str = "/proc/stat") -> Tuple[int, int]:
+    """(idle, total) jiffies summed over the per-core lines `cpuN` of the given cores only: the
+    robot's availability is that of the cores its processes are pinned to, not the whole host's."""
+    wanted = {f"cpu{core}" for core in cores}
+    idle = total = 0
+    found = set()
+    with open(path) as stat:
+        for line in stat:
+            fields = line.split()
+            if fields and fields[0] in wanted:
+                values = [int(v) for v in fields[1:]]
+                idle += values[3] + (values[4] if len(values) > 4 else 0)
+                total += sum(values[:8])
+                found.add(fields[0])
+    missing = wanted - found
+    if missing:
+        raise ValueError(f"{path} has no line for {', '.join(sorted(missing))}: no such core")
+    return idle, total
+
+
+class CgroupBudgetReader:
+    """(idle, total) nanoseconds of a cgroup v1 CPU budget, for CpuAvailability: total is wall time
+    times the budget in cores (cpu.cfs_quota_us / cpu.cfs_period_us), idle is that minus the CPU time
+    the group used (cpuacct.usage). Under a quota the robot's cores look mostly idle to /proc/stat
+    while the robot itself is starved; this measures what is left of the robot's own budget."""
+
+    def __init__(self, group: str, root: str = "/sys/fs/cgroup",
+                 clock: Callable[[], int] = time.monotonic_ns):
+        self.group = group.strip("/")
+        cpu_dir = os.path.join(root, "cpu", self.group)
+        self.usage_path = os.path.join(root, "cpuacct", self.group, "cpuacct.usage")
+        try:
+            with open(os.path.join(cpu_dir, "cpu.cfs_quota_us")) as quota_file:
+                quota_us = int(quota_file.read())
+            with open(os.path.join(cpu_dir, "cpu.cfs_period_us")) as period_file:
+                period_us = int(period_file.read())
+            self._read_usage()
+        except (OSError, ValueError) as error:
+            raise ValueError(f"cgroup {self.group!r} has no readable cpu quota and cpuacct usage under "
+                             f"{root}: {error}") from error
+        if quota_us <= 0 or period_us <= 0:
+            raise ValueError(f"cgroup {self.group!r} has no CPU quota (cpu.cfs_quota_us is {quota_us})")
+        self.budget_cores = quota_us / period_us
+        self._clock = clock
+
+    def _read_usage(self) -> int:
+        with open(self.usage_path) as usage:
+            return int(usage.read())
+
+    def __call__(self) -> Tuple[int, int]:
+        total = int(self._clock() * self.budget_cores)
+        return total - self._read_usage(), total
+
+
+class LatestCpuAvailability:
+    """u_t for the request path, which must never wait: the idle share over the latest window in which
+    the counters advanced by at least min_window (jiffy counters tick every 10 ms). A request arriving
+    sooner gets the last measured value instead of a sleep. The first measurement is taken at
+    construction, so there always is one."""
+
+    def __init__(self, reader: Callable[[], Tuple[int, int]], min_window: int,
+                 sleep: Callable[[float], None] = time.sleep, first_interval_s: float = 0.05):
+        self._reader = reader
+        self._min_window = min_window
+        self._previous = reader()
+        sleep(first_interval_s)
+        self.value = float("nan")
+        self._measure(force=True)
+
+    def _measure(self, force: bool = False) -> float:
+        idle, total = self._reader()
+        elapsed = total - self._previous[1]
+        if elapsed >= self._min_window or (force and elapsed > 0):
+            self.value = min(1.0, max(0.0, (idle - self._previous[0]) / elapsed))
+            self._previous = (idle, total)
+        elif force:
+            raise RuntimeError("CPU time counters did not advance; cannot measure availability")
+        return self.value
+
+    def sample(self) -> float:
+        return self._measure()

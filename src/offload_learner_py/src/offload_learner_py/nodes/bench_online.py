@@ -1,0 +1,129 @@
+"""`make bench-online`: what the learner node adds to a request over calling the chosen planner
+directly, measured in the same run.
+
+A private master runs map_publisher and planner_node on the TurtleBot3 map, a cloud server and bridge
+(for a real b_t), and the learner with a frozen DQN, probe rate 0 and both of its sides pointed at the
+local planner node, so whatever it decides the chosen planner is the one the direct call uses. Requests
+alternate direct / through the learner on the same goals; the overhead of each pair is the routed time
+minus the direct time. Both are persistent service connections, as a robot's caller would hold."""
+import argparse
+import os
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from offload_learner_py.goals import GoalSampler, GridFrame, default_start_cell, free_cells
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--requests", type=int, default=400, help="pairs of requests (default 400)")
+    parser.add_argument("--seed", type=int, default=1)
+    args = parser.parse_args(argv)
+
+    import rospkg
+
+    map_yaml = os.path.join(rospkg.RosPack().get_path("offload_planner_cpp"), "maps", "turtlebot3_world", "map.yaml")
+    port = free_port()
+    env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{port}")
+    os.environ["ROS_MASTER_URI"] = env["ROS_MASTER_URI"]
+    quiet = dict(stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL, env=env)
+    processes = [subprocess.Popen(["roscore", "-p", str(port)], **quiet)]
+    try:
+        time.sleep(2.0)   # roscore has no readiness signal short of polling the master
+        import rospy
+        from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+
+        from offload_planner_cpp.maps import load_map
+
+        server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
+                                   "tcp://127.0.0.1:0", "--insecure", "--workers", "1", "--log-level", "WARNING"],
+                                  stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
+        processes.append(server)
+        endpoint = server.stdout.readline().split()[-1]
+        processes += [
+            subprocess.Popen(["rosrun", "offload_planner_cpp", "map_publisher", f"_map:={map_yaml}"], **quiet),
+            subprocess.Popen(["rosrun", "offload_planner_cpp", "planner_node", "__name:=planner"], **quiet),
+            subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
+                              f"_endpoint:={endpoint}", "_insecure:=true"], **quiet),
+            subprocess.Popen([sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
+                              "_policy:=dqn", "_learn:=false", "_probe_rate:=0.0", "_cloud_service:=/planner/plan",
+                              "_progress_every:=0"], **quiet),
+        ]
+        rospy.init_node("bench_online", anonymous=True)
+        for service in ("/planner/plan", "/offload_learner/plan"):
+            rospy.wait_for_service(service, timeout=120)
+        occupancy = load_map(map_yaml)
+        frame = GridFrame(occupancy.resolution, occupancy.origin_x, occupancy.origin_y, occupancy.origin_yaw)
+        free = free_cells(occupancy.grid)
+        start = default_start_cell(free)
+        sampler = GoalSampler(free, start, seed=args.seed)
+        from offload_msgs.msg import OffloadDecision
+
+        decisions = []
+        rospy.Subscriber("/offload_learner/decision", OffloadDecision, decisions.append)
+        direct = rospy.ServiceProxy("/planner/plan", PlanPath, persistent=True)
+        routed = rospy.ServiceProxy("/offload_learner/plan", PlanPath, persistent=True)
+
+        def request(goal_cell):
+            req = PlanPathRequest()
+            for pose, cell in ((req.start, start), (req.goal, goal_cell)):
+                pose.header.frame_id = "map"
+                pose.pose.position.x, pose.pose.position.y = frame.cell_centre_m(*cell)
+                pose.pose.orientation.w = 1.0
+            return req
+
+        def timed(proxy, req):
+            began = time.perf_counter()
+            response = proxy(req)
+            elapsed = time.perf_counter() - began
+            if response.status != PlanPathResponse.OK:
+                raise RuntimeError(f"planning failed: {response.message}")
+            return elapsed
+
+        deadline = time.monotonic() + 30
+        while direct(request(sampler.draw())).status == PlanPathResponse.NO_MAP and time.monotonic() < deadline:
+            time.sleep(0.1)
+        for _ in range(20):   # warm both paths (connections, caches) before measuring
+            req = request(sampler.draw())
+            timed(direct, req)
+            timed(routed, req)
+        direct_s, routed_s = [], []
+        for k in range(args.requests):
+            req = request(sampler.draw())
+            first, second = (direct, routed) if k % 2 == 0 else (routed, direct)   # alternate the order
+            a, b = timed(first, req), timed(second, req)
+            direct_s.append(a if first is direct else b)
+            routed_s.append(b if first is direct else a)
+        direct_s, routed_s = np.array(direct_s) * 1e3, np.array(routed_s) * 1e3
+        overhead = routed_s - direct_s
+        print(f"bench-online: {args.requests} request pairs on the TurtleBot3 map, same goals, same run")
+        print(f"{'':34}{'median (ms)':>12}{'p99 (ms)':>10}")
+        print(f"{'direct to /planner/plan':34}{np.median(direct_s):12.3f}{np.percentile(direct_s, 99):10.3f}")
+        print(f"{'through /offload_learner/plan':34}{np.median(routed_s):12.3f}{np.percentile(routed_s, 99):10.3f}")
+        print(f"{'added by the learner (per pair)':34}{np.median(overhead):12.3f}{np.percentile(overhead, 99):10.3f}")
+        time.sleep(0.5)
+        print(f"decisions the learner published: {len(decisions)} (a decision per routed request)")
+        print(f"budget: 2 ms median -> {'within' if np.median(overhead) <= 2.0 else 'OVER'}")
+        return 0
+    finally:
+        for process in reversed(processes):
+            process.terminate()
+            try:
+                process.wait(10)
+            except subprocess.TimeoutExpired:
+                process.kill()
+                process.wait()
+
+
+if __name__ == "__main__":
+    sys.exit(main())

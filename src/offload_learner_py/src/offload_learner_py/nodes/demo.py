@@ -1,0 +1,203 @@
+"""`make demo`: the whole offloading system on one machine, with a real trade-off.
+
+The robot's processes (planner, bridge, learner, workload) run pinned to one core inside a cgroup v1
+CPU budget; the cloud server and the WAN emulator run on the other core. roslaunch runs
+launch/offload_demo.launch on a master port of its own; when the goal generator has sent its requests
+the launch ends, and the bag it recorded is read back into the transition table, summarised, plotted
+and written to runs/<timestamp>/ with the checkpoint. Ctrl-C stops everything cleanly (and still
+summarises what was recorded)."""
+import argparse
+import json
+import os
+import pathlib
+import signal
+import socket
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from offload_learner_py import plots
+from offload_learner_py.nodes.demo_keys import ensure_demo_keys
+from offload_learner_py.evaluation import confusion_matrix
+from offload_learner_py.records import pair_records, transition_table
+from offload_learner_py.summary import format_summary, summarise
+
+CGROUP_ROOT = "/sys/fs/cgroup"
+CGROUP_PERIOD_US = 4000   # the kernel's smallest quota is 1 ms, so 4 ms is the shortest period for 25 %
+
+
+def free_port() -> int:
+    with socket.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return probe.getsockname()[1]
+
+
+class RobotBudget:
+    """A cgroup v1 group (cpu + cpuacct) with a CPU quota of `cores` cores, removed on close."""
+
+    def __init__(self, name: str, cores: float):
+        self.name = name
+        self.dirs = [os.path.join(CGROUP_ROOT, controller, name) for controller in ("cpu", "cpuacct")]
+        for directory in self.dirs:
+            os.makedirs(directory, exist_ok=True)
+        with open(os.path.join(self.dirs[0], "cpu.cfs_period_us"), "w") as period:
+            period.write(str(CGROUP_PERIOD_US))
+        with open(os.path.join(self.dirs[0], "cpu.cfs_quota_us"), "w") as quota:
+            quota.write(str(max(1000, int(round(cores * CGROUP_PERIOD_US)))))
+
+    def close(self) -> None:
+        for directory in self.dirs:
+            # Stray processes (none after a clean shutdown) go back to the root group so rmdir works.
+            try:
+                with open(os.path.join(directory, "cgroup.procs")) as procs:
+                    pids = procs.read().split()
+                for pid in pids:
+                    with open(os.path.join(os.path.dirname(directory), "cgroup.procs"), "w") as root:
+                        root.write(pid)
+                os.rmdir(directory)
+            except OSError:
+                pass
+
+
+def read_bag(path: str):
+    """Decision and outcome messages of a demo bag (Debian's rosbag reader)."""
+    import rosbag
+
+    decisions, outcomes, topics = [], [], {}
+    with rosbag.Bag(path) as bag:
+        topics = {topic: info.message_count for topic, info in bag.get_type_and_topic_info().topics.items()}
+        for topic, msg, _ in bag.read_messages(topics=["/offload_learner/decision", "/offload_learner/outcome"]):
+            (decisions if topic.endswith("decision") else outcomes).append(msg)
+    return decisions, outcomes, topics
+
+
+def analyse(out_dir: pathlib.Path, policy: str) -> dict:
+    """Bag -> transition table -> summary.json, table.npz, figures; prints the summary table."""
+    from offload_learner_py.checkpoint import load_checkpoint
+
+    bag = out_dir / "offload.bag"
+    if not bag.exists():
+        active = out_dir / "offload.bag.active"
+        if active.exists():
+            subprocess.run(["rosbag", "reindex", str(active)], capture_output=True)
+            active.rename(bag)
+        else:
+            raise FileNotFoundError(f"no bag in {out_dir}")
+    decisions, outcomes, topics = read_bag(str(bag))
+    log = pair_records(decisions, outcomes)
+    table = transition_table(log, {"source": str(bag), "policy": policy})
+    table.save_npz(str(out_dir / "transitions.npz"))
+    q_values = None
+    checkpoint = out_dir / "checkpoint.pt"
+    if policy == "dqn" and checkpoint.exists():
+        q_values = load_checkpoint(str(checkpoint)).q_values
+    summary = summarise(log, table, q_values)
+    summary["bag_topics"] = topics
+    figures = out_dir / "figures"
+    figures.mkdir(exist_ok=True)
+    if len(table):
+        answered = log["has_outcome"].astype(bool)
+        losses = np.asarray(log["outcome_loss"][answered], dtype=np.float64)
+        rewards = np.asarray(log["outcome_reward"][answered], dtype=np.float64)
+        plots.plot_training(losses, np.nan_to_num(rewards), str(figures / "fig6_loss_reward.png"),
+                            title="online learning: loss and cumulative reward")
+        plots.plot_action_vs_input_size(table.input_size, table.action, str(figures / "fig7_action_vs_input_size.png"))
+        plots.plot_action_vs_cpu(table.cpu_availability, table.action, str(figures / "fig11_action_vs_cpu.png"),
+                                 learned_threshold=summary.get("learned_cpu_threshold"))
+        plots.plot_confusion_matrix(confusion_matrix(table.action, table), str(figures / "fig12_confusion.png"))
+    with open(out_dir / "summary.json", "w") as out:
+        json.dump(summary, out, indent=2, default=float)
+    print(format_summary(summary))
+    return summary
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--launch", required=True, help="launch/offload_demo.launch")
+    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--map", default="", help="map_server YAML (default: the bundled Husky playpen)")
+    parser.add_argument("--policy", default="dqn")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--runs-dir", default="runs")
+    parser.add_argument("--budget-cores", type=float, default=0.5,
+                        help="robot CPU budget in cores (cgroup quota), 0 for none")
+    parser.add_argument("--robot-core", default="0")
+    parser.add_argument("--cloud-core", default="1")
+    parser.add_argument("--rtt-profile", default="")
+    parser.add_argument("--rviz", action="store_true")
+    parser.add_argument("--analyse-only", metavar="RUN_DIR", help="summarise an existing run directory")
+    args = parser.parse_args(argv)
+    if args.analyse_only:
+        analyse(pathlib.Path(args.analyse_only), args.policy)
+        return 0
+    if args.steps < 1:
+        print("error: STEPS must be at least 1", file=sys.stderr)
+        return 2
+    out_dir = pathlib.Path(args.runs_dir).resolve() / time.strftime("%Y%m%d-%H%M%S")
+    out_dir.mkdir(parents=True)
+    ros_home = os.environ.get("ROS_HOME", str(pathlib.Path.home() / ".ros"))
+    keys_root = ensure_demo_keys(pathlib.Path(ros_home) / "offload_demo_keys")
+    budget = None
+    cgroup = f"offload_robot_{os.getpid()}"
+    if args.budget_cores > 0:
+        try:
+            budget = RobotBudget(cgroup, args.budget_cores)
+        except OSError as error:
+            print(f"warning: no robot CPU budget ({error}); local planning runs at full speed of core "
+                  f"{args.robot_core}", file=sys.stderr)
+    confine = os.path.join(os.path.dirname(os.path.abspath(args.launch)), "..", "src", "offload_learner_py",
+                           "scripts", "robot_confine")
+    robot_prefix = f"{os.path.abspath(confine)} {args.robot_core} {cgroup if budget else '-'}"
+    master_port = free_port()
+    launch_args = [f"steps:={args.steps}", f"policy:={args.policy}", f"seed:={args.seed}", f"out_dir:={out_dir}",
+                   f"keys_root:={keys_root}", f"server_port:={free_port()}", f"wan_port:={free_port()}",
+                   f"robot_prefix:={robot_prefix}", f"cloud_prefix:=taskset -c {args.cloud_core}",
+                   f"cpu_cgroup:={cgroup if budget else ''}", f"cpu_cores:={args.robot_core}",
+                   f"budget_cores:={args.budget_cores if budget else 1.0}", f"rviz:={str(args.rviz).lower()}"]
+    if args.map:
+        launch_args.append(f"map:={os.path.abspath(args.map)}")
+    if args.rtt_profile:
+        launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
+    env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home)
+    print(f"demo: {args.steps} requests, policy {args.policy}, robot on core {args.robot_core} with "
+          f"{args.budget_cores if budget else 'no'} core budget, cloud on core {args.cloud_core}; output {out_dir}",
+          flush=True)
+    launch = subprocess.Popen(["roslaunch", "-p", str(master_port), args.launch]
+                              + launch_args, env=env, start_new_session=True)
+    interrupted = False
+    try:
+        while launch.poll() is None:
+            try:
+                launch.wait(timeout=1.0)
+            except subprocess.TimeoutExpired:
+                pass
+            except KeyboardInterrupt:
+                interrupted = True
+                print("\ndemo: stopping (Ctrl-C)...", flush=True)
+                os.killpg(launch.pid, signal.SIGINT)
+    finally:
+        if launch.poll() is None:
+            try:
+                launch.wait(timeout=40)
+            except subprocess.TimeoutExpired:
+                os.killpg(launch.pid, signal.SIGKILL)
+                launch.wait()
+        if budget:
+            budget.close()
+    try:
+        summary = analyse(out_dir, args.policy)
+    except (FileNotFoundError, ValueError) as error:
+        print(f"error: cannot summarise the run: {error}", file=sys.stderr)
+        return 1
+    print(f"\nrun directory: {out_dir}")
+    if interrupted:
+        return 130
+    if summary["paths_delivered"] < summary["requests"]:
+        print(f"warning: {summary['requests'] - summary['paths_delivered']} requests got no path", file=sys.stderr)
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

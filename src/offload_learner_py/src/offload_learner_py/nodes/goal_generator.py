@@ -1,0 +1,101 @@
+"""goal_generator: random reachable goals, as in the paper, sent to a planner's PlanPath service (the
+learner's ~plan by default) at a rate or for a count. Exits after the count, so a launch file can mark
+it required and end the run."""
+import math
+
+import rospy
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import OccupancyGrid
+from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+from rospy.numpy_msg import numpy_msg
+
+from offload_learner_py.goals import GoalSampler, GridFrame, default_start_cell, free_cells
+
+
+def yaw_of(q) -> float:
+    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+
+
+def pose(frame_id: str, xy) -> PoseStamped:
+    msg = PoseStamped()
+    msg.header.frame_id = frame_id
+    msg.header.stamp = rospy.Time.now()
+    msg.pose.position.x, msg.pose.position.y = xy
+    msg.pose.orientation.w = 1.0
+    return msg
+
+
+def main():
+    """Goal generator node.
+
+    Parameters (private):
+      ~service (str, /offload_learner/plan)  PlanPath service to call
+      ~count (int, 100)              requests to send, then exit; 0 sends until shutdown
+      ~period_s (float, 0.2)         pause between the answer to one request and the next request
+      ~rate_hz (float, 0)            instead, send at this fixed rate (a request still waits for the
+                                     previous answer); 0 uses ~period_s
+      ~seed (int, 1)                 goal draws
+      ~start_x, ~start_y (float)     start in the map frame (default: free cell nearest the map centre)
+      ~min_distance_m (float, 0.0)   goals at least this far from the start
+      ~lethal_threshold (int, 50), ~unknown_is_obstacle (bool, true)   the planner's rules of free cells
+      ~tolerance (float, 0.0)        PlanPath tolerance of each request
+      ~map_wait_s (float, 60)        how long to wait for the map
+    Topics: subscribes map (nav_msgs/OccupancyGrid, once); publishes ~goal (geometry_msgs/PoseStamped).
+    """
+    rospy.init_node("goal_generator")
+    p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
+    service = str(p("service", "/offload_learner/plan"))
+    count, period_s, rate_hz = int(p("count", 100)), float(p("period_s", 0.2)), float(p("rate_hz", 0.0))
+    try:
+        grid_msg = rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=float(p("map_wait_s", 60.0)))
+        info = grid_msg.info
+        frame = GridFrame(info.resolution, info.origin.position.x, info.origin.position.y,
+                          yaw_of(info.origin.orientation))
+        grid = grid_msg.data.reshape(info.height, info.width)
+        free = free_cells(grid, int(p("lethal_threshold", 50)), bool(p("unknown_is_obstacle", True)))
+        start_x, start_y = float(p("start_x", float("nan"))), float(p("start_y", float("nan")))
+        start_cell = frame.cell_of(start_x, start_y) if math.isfinite(start_x) and math.isfinite(start_y) else None
+        start_cell = default_start_cell(free, start_cell)
+        sampler = GoalSampler(free, start_cell, int(p("seed", 1)),
+                              float(p("min_distance_m", 0.0)) / info.resolution)
+        rospy.wait_for_service(service, timeout=float(p("service_wait_s", 120.0)))
+    except (ValueError, rospy.ROSException) as error:
+        rospy.logfatal("%s", error)
+        raise SystemExit(1) from None
+    frame_id = grid_msg.header.frame_id or "map"
+    start_xy = frame.cell_centre_m(*start_cell)
+    rospy.loginfo("goal generator: %s requests from (%.2f, %.2f) to random goals among %d reachable cells -> %s",
+                  count or "unbounded", start_xy[0], start_xy[1], sampler.reachable_cells, service)
+    goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
+    plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
+    tolerance = float(p("tolerance", 0.0))
+    sent = delivered = 0
+    rate = rospy.Rate(rate_hz) if rate_hz > 0 else None
+    while not rospy.is_shutdown() and (count <= 0 or sent < count):
+        goal = pose(frame_id, frame.cell_centre_m(*sampler.draw()))
+        goal_pub.publish(goal)
+        try:
+            response = plan(PlanPathRequest(start=pose(frame_id, start_xy), goal=goal, tolerance=tolerance))
+            delivered += response.status == PlanPathResponse.OK
+            if response.status != PlanPathResponse.OK:
+                rospy.logwarn("request %d: no path (status %d): %s", sent + 1, response.status, response.message)
+        except (rospy.ServiceException, rospy.ROSException) as error:
+            if rospy.is_shutdown():
+                break
+            rospy.logwarn("request %d failed: %s; reconnecting", sent + 1, error)
+            plan.close()
+            plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
+        sent += 1
+        try:
+            if rate is not None:
+                rate.sleep()
+            elif period_s > 0:
+                rospy.sleep(period_s)
+        except rospy.ROSInterruptException:
+            break
+    rospy.loginfo("goal generator done: %d paths delivered for %d requests", delivered, sent)
+    plan.close()
+
+
+if __name__ == "__main__":
+    main()

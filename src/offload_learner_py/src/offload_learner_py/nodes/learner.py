@@ -1,0 +1,400 @@
+"""offload_learner: the offloading router node. It serves the same PlanPath and GetPlan services as the
+two planners it routes to (the local planner node and the cloud bridge), decides per request with
+offload_learner_py.router, and publishes every decision, outcome and training statistic so a bag
+rebuilds the transition table. Thin: all logic lives in the ROS-free router."""
+import math
+import os
+import threading
+import time
+from collections import deque
+
+import numpy as np
+import rospy
+from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
+from nav_msgs.msg import MapMetaData, Path
+from nav_msgs.srv import GetPlan, GetPlanResponse
+from offload_msgs.msg import LinkLatency, OffloadDecision, OffloadOutcome, TrainingStats
+from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
+from offload_learner_py.config import DQNConfig
+from offload_learner_py.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
+    read_proc_stat_cores
+from offload_learner_py.dqn import DQNAgent
+from offload_learner_py.reward import CostWeights
+from offload_learner_py.router import NO_PATH_DELIVERED, DQNDecision, FixedPolicy, InputSizeThresholdDecision, \
+    OffloadRouter, RandomDecision, RouterConfig, Statuses
+from offload_learner_py.state import State, input_size
+
+POLICIES = ("dqn", "local", "cloud", "random", "threshold")
+
+
+class PlannerProxy:
+    """A persistent connection to one planner's ~plan, reopened after any failure. Each side is
+    called by one thread at a time (the router serialises requests), so one connection suffices."""
+
+    def __init__(self, service: str):
+        self.service = service
+        self._proxy = None
+
+    def __call__(self, request):
+        if self._proxy is None:
+            self._proxy = rospy.ServiceProxy(self.service, PlanPath, persistent=True)
+        try:
+            response = self._proxy(request)
+        except Exception:
+            self.close()
+            raise
+        return response.status, response
+
+    def close(self):
+        if self._proxy is not None:
+            self._proxy.close()
+            self._proxy = None
+
+
+def make_cpu_sampler(cores: str, cgroup: str) -> LatestCpuAvailability:
+    """u_t of the robot: what is left of its cgroup CPU budget when it has one, else the idle share of
+    the cores it is pinned to, else of the whole host. Never waits on the request path."""
+    if cgroup:
+        reader = CgroupBudgetReader(cgroup)
+        return LatestCpuAvailability(reader, min_window=int(0.02 * 1e9 * reader.budget_cores))   # 20 ms
+    if cores:
+        pinned = parse_cpu_list(cores)
+        return LatestCpuAvailability(lambda: read_proc_stat_cores(pinned), min_window=2 * len(pinned))
+    return LatestCpuAvailability(read_proc_stat, min_window=2 * (os.cpu_count() or 1))
+
+
+def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, dqn_overrides: dict,
+                threshold: float):
+    if name == "local":
+        return FixedPolicy(LOCAL, "local"), None
+    if name == "cloud":
+        return FixedPolicy(CLOUD, "cloud"), None
+    if name == "random":
+        return RandomDecision(seed), None
+    if name == "threshold":
+        return InputSizeThresholdDecision(threshold), None
+    config = DQNConfig.from_dict({"seed": seed, **dqn_overrides})
+    source = None
+    if checkpoint and os.path.exists(checkpoint):
+        source = checkpoint          # a restarted node resumes where it stopped
+    elif model:
+        source = model
+    if source:
+        agent = load_checkpoint(source, config)
+        rospy.loginfo("loaded %s: %d steps, %d gradient steps", source, agent.steps, agent.gradient_steps)
+    else:
+        agent = DQNAgent(config)
+    return DQNDecision(agent, learn=learn, seed=seed + agent.steps), agent
+
+
+class LearnerNode:
+    def __init__(self):
+        p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
+        self.policy_name = str(p("policy", "dqn"))
+        if self.policy_name not in POLICIES:
+            raise ValueError(f"~policy must be one of {', '.join(POLICIES)}, got {self.policy_name!r}")
+        self.checkpoint_path = os.path.expanduser(str(p("checkpoint", "")))
+        self.checkpoint_every = int(p("checkpoint_every", 50))
+        self.learn = bool(p("learn", True))
+        seed = int(p("seed", 1))
+        dqn_overrides = p("dqn", {}) or {}
+        if not isinstance(dqn_overrides, dict):
+            raise ValueError(f"~dqn must be a dictionary of DQNConfig fields, got {dqn_overrides!r}")
+        alpha = float(p("alpha", 0.5))
+        self.router_config = RouterConfig(probe_rate=float(p("probe_rate", 1.0)),
+                                          cloud_timeout_s=float(p("cloud_timeout_s", 5.0)),
+                                          weights=CostWeights(alpha, 1.0 - alpha), seed=seed)
+        self.policy, self.agent = make_policy(self.policy_name, self.checkpoint_path, os.path.expanduser(
+            str(p("model", ""))), self.learn, seed, dqn_overrides, float(p("threshold_input_size", 1.1)))
+        self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
+        # With a cgroup budget (nanosecond counters) u_t covers the time since the last request ended,
+        # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
+        # are too coarse for that and keep the window from request to request.
+        self.cpu_window_from_outcome = bool(p("cpu_cgroup", ""))
+        self.goal_tolerance = float(p("goal_tolerance", 0.5))
+        self.start_xy = (float(p("start_x", float("nan"))), float(p("start_y", float("nan"))))
+        self.base_frame = str(p("base_frame", "base_link"))
+        self.progress_every = int(p("progress_every", 25))
+        self.window = int(p("stats_window", 50))
+        self.map_info = None
+        self.map_frame = "map"
+        self.round_trip_s = None
+        self._lock = threading.Lock()
+        self._recent = deque(maxlen=self.window)      # (loss or nan, correct or nan)
+        self._delivered_ms = deque(maxlen=self.window)
+        self._learned_since_checkpoint = 0
+        self._count = 0
+        self.tf_buffer = self._tf_buffer()
+
+        local = PlannerProxy(str(p("local_service", "/planner/plan")))
+        cloud = PlannerProxy(str(p("cloud_service", "/cloud_bridge/plan")))
+        self.sides = (local, cloud)
+        wait_s = float(p("service_wait_s", 60.0))
+        for side in self.sides:
+            rospy.loginfo("waiting for %s", side.service)
+            rospy.wait_for_service(side.service, timeout=wait_s)
+        statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
+                            cloud_error=PlanPathResponse.CLOUD_ERROR)
+        self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
+        self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
+        self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
+        self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
+                          CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
+        self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
+        self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)))
+        self.router = OffloadRouter(self.policy, local, cloud, statuses, self.router_config,
+                                    on_decision=self.publish_decision, on_outcome=self.on_outcome)
+        rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
+        latency_topic = str(p("latency_topic", "/cloud_bridge/latency"))
+        rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
+        # s_t needs the map's size and a first round trip: serve once both are in (or the wait is over).
+        deadline = time.monotonic() + wait_s
+        while (self.map_info is None or self.round_trip_s is None) and time.monotonic() < deadline \
+                and not rospy.is_shutdown():
+            time.sleep(0.05)
+        if self.map_info is None or self.round_trip_s is None:
+            rospy.logwarn("no %s yet: requests are planned locally and not learned until it arrives",
+                          "map_metadata" if self.map_info is None else latency_topic)
+        rospy.Subscriber("/move_base_simple/goal", PoseStamped, self.on_goal, queue_size=10)
+        rospy.Subscriber("/initialpose", PoseWithCovarianceStamped, self.on_initial_pose, queue_size=1)
+        self.plan_srv = rospy.Service("~plan", PlanPath, self.on_plan)
+        self.make_plan_srv = rospy.Service("~make_plan", GetPlan, self.on_make_plan)
+        # Request ids continue across restarts (a bag may hold several sessions): microseconds since
+        # the epoch at start, then one per request.
+        self.router.next_request_id = time.time_ns() // 1000
+        rospy.on_shutdown(self.shutdown)
+        rospy.loginfo("offload learner ready: policy %s, learn %s, probe rate %.2f, routing between %s and %s",
+                      self.policy_name, self.learn and self.policy.learns, self.router_config.probe_rate,
+                      local.service, cloud.service)
+
+    def _wait_for_recorder(self, timeout_s: float) -> None:
+        """Before serving, wait until something (rosbag) subscribes to ~decision and ~outcome, so a
+        recording starts with the first request."""
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline and not rospy.is_shutdown():
+            if self.decision_pub.get_num_connections() > 0 and self.outcome_pub.get_num_connections() > 0:
+                return
+            time.sleep(0.05)
+        if timeout_s > 0:
+            rospy.logwarn("nothing subscribed to %s within %g s: serving anyway", self.decision_pub.resolved_name,
+                          timeout_s)
+
+    @staticmethod
+    def _tf_buffer():
+        try:
+            import tf2_ros
+        except ImportError:
+            rospy.loginfo("tf2_ros not installed: RViz goals start from ~start_x/~start_y or /initialpose")
+            return None
+        buffer = tf2_ros.Buffer()
+        tf2_ros.TransformListener(buffer)
+        return buffer
+
+    # --- inputs ---------------------------------------------------------------------------------
+    def on_map_metadata(self, msg):
+        self.map_info = msg
+
+    def on_latency(self, msg):
+        self.round_trip_s = msg.round_trip_s
+
+    def on_initial_pose(self, msg):
+        self.start_xy = (msg.pose.pose.position.x, msg.pose.pose.position.y)
+
+    def robot_start(self, goal: PoseStamped) -> PoseStamped:
+        start = PoseStamped()
+        start.header.frame_id = goal.header.frame_id or self.map_frame
+        start.pose.orientation.w = 1.0
+        if self.tf_buffer is not None:
+            try:
+                transform = self.tf_buffer.lookup_transform(start.header.frame_id, self.base_frame, rospy.Time(0),
+                                                            rospy.Duration(0.2))
+                start.pose.position.x = transform.transform.translation.x
+                start.pose.position.y = transform.transform.translation.y
+                return start
+            except Exception as error:  # tf raises several lookup errors; any means "no pose"
+                rospy.logdebug("no robot pose in tf: %s", error)
+        x, y = self.start_xy
+        if not (math.isfinite(x) and math.isfinite(y)):
+            info = self.map_info
+            if info is None:
+                raise ValueError("no start: no tf pose, no ~start_x/~start_y and no map yet")
+            x = info.origin.position.x + 0.5 * info.width * info.resolution
+            y = info.origin.position.y + 0.5 * info.height * info.resolution
+        start.pose.position.x, start.pose.position.y = x, y
+        return start
+
+    def on_goal(self, goal: PoseStamped):
+        """RViz 2D Nav Goal: plan from the robot's pose through the router, like any other request."""
+        try:
+            start = self.robot_start(goal)
+        except ValueError as error:
+            rospy.logwarn("goal ignored: %s", error)
+            return
+        response = self.serve(PlanPathRequest(start=start, goal=goal, tolerance=self.goal_tolerance))
+        if response.status != PlanPathResponse.OK:
+            rospy.logwarn("no path to the RViz goal (status %d): %s", response.status, response.message)
+
+    def build_state(self, request):
+        """s_t, or None when it cannot be built (no map metadata yet, a pose that is not finite): such a
+        request still goes to the local planner, which names the problem, and teaches nothing."""
+        info = self.map_info
+        if info is None or self.round_trip_s is None:
+            return None
+        a, b = request.start.pose.position, request.goal.pose.position
+        try:
+            d = input_size((a.x, a.y), (b.x, b.y), info.resolution, info.width * info.height)
+            return State(d, self.cpu.sample(), self.round_trip_s)
+        except (ValueError, RuntimeError, OSError) as error:
+            rospy.logwarn("request not learnable: %s", error)
+            return None
+
+    # --- serving --------------------------------------------------------------------------------
+    def serve(self, request) -> PlanPathResponse:
+        self.goal_pub.publish(request.goal)
+        result = self.router.route(request, self.build_state(request))
+        if result.response is None:
+            return PlanPathResponse(status=result.status, message=f"planner call failed: {result.raised}")
+        return result.response
+
+    def on_plan(self, request):
+        return self.serve(request)
+
+    def on_make_plan(self, request):
+        response = self.serve(PlanPathRequest(start=request.start, goal=request.goal, tolerance=request.tolerance))
+        return GetPlanResponse(plan=response.path if response.status == PlanPathResponse.OK else Path())
+
+    # --- records --------------------------------------------------------------------------------
+    def publish_decision(self, request_id, state, decision, probe):
+        msg = OffloadDecision(request_id=request_id, input_size=state.input_size,
+                              cpu_availability=state.cpu_availability, round_trip_s=state.round_trip_s,
+                              action=decision.action, action_propensity=decision.propensity,
+                              q_local=decision.q_local, q_cloud=decision.q_cloud, policy=self.policy_name,
+                              model_steps=self.policy.steps, probe=probe)
+        msg.header.stamp = rospy.Time.now()
+        self.decision_pub.publish(msg)
+
+    def on_outcome(self, outcome):
+        if self.cpu_window_from_outcome:
+            try:
+                self.cpu.sample()
+            except (OSError, RuntimeError) as error:
+                rospy.logwarn_throttle(10, "cannot read the robot's CPU budget: %s", error)
+        if outcome.state is None:
+            return   # not a decision: nothing to pair it with (the planner's status told the caller why)
+        msg = OffloadOutcome(request_id=outcome.request_id, action=outcome.decision.action,
+                             delivered=outcome.delivered, delivered_s=outcome.delivered_s)
+        msg.header.stamp = rospy.Time.now()
+        if outcome.local is not None:
+            msg.local_measured, msg.local_s, msg.local_status = True, outcome.local_s, outcome.local.status
+        if outcome.cloud is not None:
+            msg.cloud_measured, msg.cloud_s, msg.cloud_status = True, outcome.cloud_s, outcome.cloud.status
+            msg.cloud_timeout = outcome.cloud_timeout
+        msg.reward_valid = outcome.reward is not None
+        msg.reward = outcome.reward if outcome.reward is not None else float("nan")
+        msg.loss_valid = outcome.loss is not None
+        msg.loss = outcome.loss if outcome.loss is not None else float("nan")
+        self.outcome_pub.publish(msg)
+        if outcome.delivered != NO_PATH_DELIVERED:
+            side = outcome.local if outcome.delivered == LOCAL else outcome.cloud
+            self.path_pubs[outcome.delivered].publish(side.response.path)
+        correct = float("nan")
+        if outcome.reward is not None:
+            best = CLOUD if outcome.cloud_s < outcome.local_s else LOCAL
+            correct = float(outcome.decision.action == best or outcome.cloud_s == outcome.local_s)
+        with self._lock:
+            self._recent.append((outcome.loss if outcome.loss is not None else float("nan"), correct))
+            self._delivered_ms.append(1000.0 * outcome.delivered_s)
+            self._count += 1
+            if outcome.learned:
+                self._learned_since_checkpoint += 1
+        self.publish_stats()
+        if self.agent is not None and self.checkpoint_every > 0 and \
+                self._learned_since_checkpoint >= self.checkpoint_every:
+            self.save()
+        if self.progress_every > 0 and len(self._delivered_ms) and self._count % self.progress_every == 0:
+            with self._lock:
+                recent = np.array(self._recent, dtype=np.float64).reshape(-1, 2)
+                delivered = float(np.mean(self._delivered_ms))
+            accuracy = np.nanmean(recent[:, 1]) if np.any(np.isfinite(recent[:, 1])) else float("nan")
+            rospy.loginfo("request %d: last %d mean %.1f ms to path, accuracy %.0f%% vs oracle, model steps %d",
+                          self._count, len(recent), delivered, 100 * accuracy, self.policy.steps)
+
+    def publish_stats(self):
+        stats = self.policy.stats()
+        with self._lock:
+            recent = np.array(self._recent, dtype=np.float64).reshape(-1, 2)
+        finite = lambda column: recent[:, column][np.isfinite(recent[:, column])]  # noqa: E731
+        msg = TrainingStats(policy=self.policy_name, learning=bool(self.policy.learns), steps=stats["steps"],
+                            gradient_steps=stats["gradient_steps"], replay_size=stats["replay_size"],
+                            epsilon=stats["epsilon"], recent_window=len(recent),
+                            recent_loss=float(finite(0).mean()) if len(finite(0)) else float("nan"),
+                            recent_accuracy=float(finite(1).mean()) if len(finite(1)) else float("nan"))
+        msg.header.stamp = rospy.Time.now()
+        self.stats_pub.publish(msg)
+
+    def save(self):
+        if not self.checkpoint_path or self.agent is None or not self.policy.learns:
+            return
+        with self.policy._lock:
+            save_checkpoint(self.agent, self.checkpoint_path)
+        with self._lock:
+            self._learned_since_checkpoint = 0
+        rospy.logdebug("checkpoint %s at %d steps", self.checkpoint_path, self.agent.steps)
+
+    def shutdown(self):
+        if not self.router.wait_idle(10.0):
+            rospy.logwarn("the last request did not finish within 10 s")
+        if isinstance(self.policy, DQNDecision):
+            self.policy.flush()
+        try:
+            self.save()
+            if self.checkpoint_path and self.agent is not None and self.policy.learns:
+                rospy.loginfo("checkpoint %s: %d steps", self.checkpoint_path, self.agent.steps)
+        except OSError as error:
+            rospy.logerr("could not write checkpoint %s: %s", self.checkpoint_path, error)
+        for side in self.sides:
+            side.close()
+
+
+def main():
+    """Offloading learner node.
+
+    Parameters (private):
+      ~policy (str, "dqn")               dqn, local, cloud, random or threshold
+      ~model (str, "")                   checkpoint to start from (when ~checkpoint does not exist yet)
+      ~checkpoint (str, "")              checkpoint written every ~checkpoint_every learned steps and on
+                                         shutdown; loaded at start when it exists (resume)
+      ~checkpoint_every (int, 50)
+      ~learn (bool, true)                false freezes the model (greedy, no training)
+      ~probe_rate (float, 1.0)           share of requests planned on both sides
+      ~cloud_timeout_s (float, 5.0)      l_cloud of a cloud timeout or error
+      ~alpha (float, 0.5)                weight of local time in the cost (beta = 1 - alpha)
+      ~seed (int, 1)                     exploration and probe draws, network initialisation
+      ~dqn (dict, {})                    DQNConfig overrides (learning_starts, epsilon, ...)
+      ~threshold_input_size (float, 1.1) d_t above which the threshold policy offloads
+      ~local_service (str, /planner/plan), ~cloud_service (str, /cloud_bridge/plan)
+      ~latency_topic (str, /cloud_bridge/latency)   b_t source (offload_msgs/LinkLatency)
+      ~cpu_cgroup (str, "")              cgroup v1 of the robot's processes: u_t = unused share of its quota
+      ~cpu_cores (str, "")               else u_t = idle share of these cores ("0", "0-1"); else of the host
+      ~goal_tolerance (float, 0.5)       tolerance of RViz goals (m)
+      ~start_x, ~start_y (float)         start of RViz goals when tf has no robot pose (default map centre)
+      ~base_frame (str, base_link)
+      ~service_wait_s (float, 60)        how long to wait for both planners at start
+      ~wait_for_recorder_s (float, 0)    wait this long for a subscriber (rosbag) of ~decision and ~outcome
+      ~progress_every (int, 25), ~stats_window (int, 50)
+    """
+    rospy.init_node("offload_learner")
+    try:
+        node = LearnerNode()
+    except (ValueError, OSError, IncompatibleCheckpointError, rospy.ROSException) as error:
+        rospy.logfatal("%s", error)
+        raise SystemExit(1) from None
+    rospy.spin()
+    return node
+
+
+if __name__ == "__main__":
+    main()

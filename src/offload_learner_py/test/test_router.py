@@ -1,0 +1,241 @@
+"""The online router without ROS: fake planners with scripted costs on a per-thread virtual clock (no
+sleeps, no timing assertions), every routing path, eq. 10 on probe steps, fallback and learning."""
+import threading
+
+import pytest
+
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.config import DQNConfig
+from offload_learner_py.dqn import DQNAgent
+from offload_learner_py.reward import CostWeights, reward
+from offload_learner_py.router import NO_PATH_DELIVERED, Decision, DecisionPolicy, DQNDecision, FixedPolicy, \
+    InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
+from offload_learner_py.state import State
+
+OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10
+STATUSES = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR)
+STATE = State(1.2, 0.6, 0.05)
+
+
+class VirtualClock:
+    """Each thread has its own time; a fake planner advances the calling thread's time by its cost."""
+
+    def __init__(self):
+        self.local = threading.local()
+
+    def __call__(self):
+        return getattr(self.local, "now", 0.0)
+
+    def advance(self, seconds):
+        self.local.now = self() + seconds
+
+
+class FakePlanner:
+    def __init__(self, clock, cost_s, status=OK, raises=None, gate=None):
+        self.clock, self.cost_s, self.status, self.raises, self.gate = clock, cost_s, status, raises, gate
+        self.calls = []
+
+    def __call__(self, request):
+        self.calls.append(request)
+        if self.gate is not None:
+            assert self.gate.wait(10), "test gate never opened"
+        self.clock.advance(self.cost_s)
+        if self.raises:
+            raise self.raises
+        return self.status, {"side": self, "request": request}
+
+
+class Recorder:
+    def __init__(self):
+        self.decisions, self.outcomes = [], []
+
+    def decision(self, request_id, state, decision, probe):
+        self.decisions.append((request_id, state, decision, probe))
+
+    def outcome(self, outcome):
+        self.outcomes.append(outcome)
+
+
+def make_router(policy, local, cloud, clock, probe_rate=0.0, timeout_s=5.0):
+    recorder = Recorder()
+    router = OffloadRouter(policy, local, cloud, STATUSES, RouterConfig(probe_rate=probe_rate, cloud_timeout_s=timeout_s),
+                           on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock)
+    return router, recorder
+
+
+def finish(router):
+    assert router.wait_idle(10)
+    router.close()
+
+
+def test_local_decision_calls_only_the_local_planner():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.120), FakePlanner(clock, 0.050)
+    router, recorder = make_router(FixedPolicy(LOCAL, "local"), local, cloud, clock)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == OK and result.response["side"] is local
+    assert len(local.calls) == 1 and not cloud.calls
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == LOCAL and outcome.local_s == pytest.approx(0.120)
+    assert outcome.cloud_s is None and outcome.reward is None and not outcome.learned
+    assert recorder.decisions[0][0] == outcome.request_id == 0 and recorder.decisions[0][3] is False
+
+
+def test_probe_runs_both_and_rewards_with_eq10():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.200), FakePlanner(clock, 0.080)
+    router, recorder = make_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=1.0)
+    router.route("req", STATE)
+    finish(router)
+    (outcome,) = recorder.outcomes
+    assert outcome.probe and len(local.calls) == 1 and len(cloud.calls) == 1
+    assert outcome.local_s == pytest.approx(0.200) and outcome.cloud_s == pytest.approx(0.080)
+    assert outcome.reward == pytest.approx(reward(LOCAL, 0.200, 0.080, CostWeights()))
+    assert outcome.reward == 0.0   # eq. 10: choosing local costs nothing relative to local
+
+
+def test_probe_delivers_the_first_good_path_while_the_other_side_still_runs():
+    clock = VirtualClock()
+    gate = threading.Event()
+    local, cloud = FakePlanner(clock, 0.300, gate=gate), FakePlanner(clock, 0.090)
+    router, recorder = make_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=1.0)
+    result = router.route("req", STATE)
+    assert result.response["side"] is cloud      # returned before the local planner was allowed to finish
+    assert not recorder.outcomes                   # the outcome waits for both latencies
+    gate.set()
+    finish(router)
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == CLOUD and outcome.local_s == pytest.approx(0.300)
+    assert outcome.reward == pytest.approx(reward(LOCAL, 0.300, 0.090))
+
+
+def test_next_request_waits_for_the_previous_probe_to_finish():
+    clock = VirtualClock()
+    gate = threading.Event()
+    local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.1)
+    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
+    router.route("first", STATE)
+    second = threading.Thread(target=router.route, args=("second", STATE))
+    second.start()
+    second.join(0.2)
+    assert second.is_alive() and len(cloud.calls) == 1   # blocked behind the first probe's local side
+    gate.set()
+    second.join(10)
+    finish(router)
+    assert [o.request_id for o in recorder.outcomes] == [0, 1]
+
+
+@pytest.mark.parametrize("failure", ["timeout", "error", "raises"])
+def test_cloud_failure_falls_back_to_a_local_path_and_costs_the_timeout(failure):
+    clock = VirtualClock()
+    local = FakePlanner(clock, 0.150)
+    cloud = {"timeout": FakePlanner(clock, 2.0, status=TIMEOUT), "error": FakePlanner(clock, 0.01, status=ERROR),
+             "raises": FakePlanner(clock, 0.01, raises=RuntimeError("bridge gone"))}[failure]
+    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, timeout_s=2.0)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == OK and result.response["side"] is local
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == LOCAL
+    assert outcome.cloud_s == 2.0 and outcome.cloud_timeout == (failure == "timeout")
+    # Both latencies are known (the cloud's is the timeout), so the step is still a transition.
+    assert outcome.reward == pytest.approx(reward(CLOUD, 0.150, 2.0))
+
+
+def test_unreachable_goal_gets_the_planner_status_and_teaches_nothing():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.05, status=NO_PATH), FakePlanner(clock, 0.09, status=NO_PATH)
+    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=0)))
+    router, recorder = make_router(policy, local, cloud, clock, probe_rate=1.0)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == NO_PATH
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == NO_PATH_DELIVERED and outcome.reward is None and not outcome.learned
+    assert policy.steps == 0
+
+
+def test_request_without_a_state_goes_to_the_local_planner_without_a_decision():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.05, status=NO_PATH), FakePlanner(clock, 0.09)
+    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
+    assert router.route("req", None).status == NO_PATH
+    finish(router)
+    assert not recorder.decisions and not cloud.calls
+    assert recorder.outcomes[0].state is None
+
+
+def test_request_ids_are_consecutive_from_the_configured_base():
+    clock = VirtualClock()
+    router, recorder = make_router(FixedPolicy(LOCAL, "local"), FakePlanner(clock, 0.01), FakePlanner(clock, 0.01),
+                                   clock)
+    router.next_request_id = 1000
+    for _ in range(3):
+        router.route("req", STATE)
+    finish(router)
+    assert [d[0] for d in recorder.decisions] == [1000, 1001, 1002]
+
+
+def test_dqn_learns_on_probe_steps_and_prefers_the_faster_side():
+    """Cloud is faster for long requests, local for short ones: after online learning over real
+    rewards, the greedy policy follows the rule."""
+    clock = VirtualClock()
+    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=40, train_frequency=1, target_update_interval=10,
+                                            seed=3)))
+
+    class ScriptedSide:
+        def __init__(self, cloud):
+            self.cloud, self.state = cloud, None
+
+        def __call__(self, request):
+            d = request
+            cost = 0.05 + (0.02 if self.cloud else 0.1 * d)   # cloud wins above d = 0.2
+            clock.advance(cost)
+            return OK, None
+
+    router, recorder = make_router(policy, ScriptedSide(False), ScriptedSide(True), clock, probe_rate=1.0)
+    sizes = [0.01 * (k % 50) for k in range(300)]
+    for d in sizes:
+        router.route(d, State(d, 0.5, 0.05))
+    finish(router)
+    policy.flush()
+    assert policy.steps == len(sizes)
+    assert all(o.learned for o in recorder.outcomes)
+    assert any(o.loss is not None for o in recorder.outcomes)
+    assert policy.decide(State(0.45, 0.5, 0.05)).q_cloud > policy.decide(State(0.45, 0.5, 0.05)).q_local
+    assert policy.agent.greedy_action(State(0.02, 0.5, 0.05).as_array()) == LOCAL
+
+
+def test_frozen_dqn_is_greedy_and_does_not_learn():
+    agent = DQNAgent(DQNConfig(learning_starts=0))
+    policy = DQNDecision(agent, learn=False)
+    decision = policy.decide(STATE)
+    assert decision.propensity == 1.0
+    assert decision.action == (CLOUD if decision.q_cloud > decision.q_local else LOCAL)
+    assert policy.learn(STATE, decision.action, 0.3) is None and agent.steps == 0
+
+
+def test_dqn_warm_up_explores_uniformly_with_propensity_one_half():
+    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=100)))
+    decisions = [policy.decide(STATE) for _ in range(200)]
+    assert {d.propensity for d in decisions} == {0.5}
+    assert {d.action for d in decisions} == {LOCAL, CLOUD}
+
+
+def test_baseline_policies():
+    assert InputSizeThresholdDecision(1.1).decide(State(1.2, 0.5, 0.0)).action == CLOUD
+    assert InputSizeThresholdDecision(1.1).decide(State(1.0, 0.5, 0.0)).action == LOCAL
+    actions = {RandomDecision(seed=2).decide(STATE).action for _ in range(1)}
+    assert actions <= {LOCAL, CLOUD}
+    assert isinstance(FixedPolicy(CLOUD, "cloud"), DecisionPolicy) and FixedPolicy(CLOUD, "c").decide(STATE) == \
+        Decision(CLOUD, 1.0)
+    with pytest.raises(ValueError, match="threshold"):
+        InputSizeThresholdDecision(float("nan"))
+
+
+@pytest.mark.parametrize("kwargs, message", [({"probe_rate": 1.5}, "probe_rate"),
+                                              ({"cloud_timeout_s": 0.0}, "cloud_timeout_s")])
+def test_router_config_rejects_bad_values(kwargs, message):
+    with pytest.raises(ValueError, match=message):
+        RouterConfig(**kwargs)

@@ -1,0 +1,205 @@
+#!/usr/bin/env python3
+"""rostest of the online system (see online_stack.test): the learner between the local planner node
+and the cloud bridge, with the goal generator and rosbag, then a learner restart and a cloud failure."""
+import os
+import signal
+import subprocess
+import sys
+import tempfile
+import threading
+import time
+import unittest
+
+import rosbag
+import rospy
+import rostest
+from offload_msgs.msg import OffloadDecision, OffloadOutcome, TrainingStats
+from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+
+from offload_learner_py.checkpoint import load_checkpoint
+from offload_learner_py.records import NO_PATH_DELIVERED, pair_records, transition_table
+
+WORKSPACE = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
+CLOUD_TIMEOUT_S = 1.0
+FIRST_RUN = 24
+RECORDED_TOPICS = ("/offload_learner/decision", "/offload_learner/outcome", "/offload_learner/stats",
+                   "/offload_learner/goal", "/cloud_bridge/latency", "/cloud_bridge/timing", "/planner/timing",
+                   "/goal_generator/goal", "/map_metadata")
+
+
+def launch_file(name):
+    """record.launch from the workspace's launch/ (the test may run from devel/ or from the source)."""
+    for base in (WORKSPACE, os.environ.get("OFFLOAD_WORKSPACE", ""), os.getcwd()):
+        path = os.path.join(base, "launch", name)
+        if os.path.exists(path):
+            return path
+    raise FileNotFoundError(f"launch/{name} not found from {WORKSPACE}")
+
+
+def stop(process, sig=signal.SIGINT, timeout_s=20):
+    if process is None or process.poll() is not None:
+        return
+    process.send_signal(sig)
+    try:
+        process.wait(timeout_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
+
+
+class OnlineStackTest(unittest.TestCase):
+    @classmethod
+    def setUpClass(cls):
+        rospy.init_node("rtest_online_stack")
+        cls.tmp = tempfile.TemporaryDirectory()
+        cls.checkpoint = os.path.join(cls.tmp.name, "learner.pt")
+        cls.bag = os.path.join(cls.tmp.name, "online.bag")
+        cls.processes = {}
+        cls.addClassCleanup(cls.stop_all)
+        cls.start_server()
+        cls.processes["bridge"] = subprocess.Popen(
+            [sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
+             f"_endpoint:={cls.endpoint}", "_insecure:=true", f"_timeout_s:={CLOUD_TIMEOUT_S}", "_retries:=0",
+             "_heartbeat_period_s:=0.2", "_heartbeat_timeout_s:=0.5"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        cls.decisions, cls.outcomes, cls.stats = [], [], []
+        cls.lock = threading.Lock()
+        rospy.Subscriber("/offload_learner/decision", OffloadDecision, cls.keep(cls.decisions))
+        rospy.Subscriber("/offload_learner/outcome", OffloadOutcome, cls.keep(cls.outcomes))
+        rospy.Subscriber("/offload_learner/stats", TrainingStats, cls.keep(cls.stats))
+        cls.processes["record"] = subprocess.Popen(["roslaunch", launch_file("record.launch"), f"bag:={cls.bag}"],
+                                                   stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        cls.start_learner()
+
+    @classmethod
+    def keep(cls, into):
+        def callback(msg):
+            with cls.lock:
+                into.append(msg)
+        return callback
+
+    @classmethod
+    def start_server(cls):
+        server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
+                                   "tcp://127.0.0.1:0", "--insecure", "--workers", "1", "--log-level", "WARNING"],
+                                  stdout=subprocess.PIPE, text=True)
+        line = server.stdout.readline()
+        assert line.startswith("listening on "), line
+        cls.endpoint = line.split()[-1]
+        cls.processes["server"] = server
+
+    @classmethod
+    def start_learner(cls):
+        cls.processes["learner"] = subprocess.Popen(
+            [sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
+             f"_checkpoint:={cls.checkpoint}", "_checkpoint_every:=5", f"_cloud_timeout_s:={CLOUD_TIMEOUT_S}",
+             "_probe_rate:=1.0", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        rospy.wait_for_service("/offload_learner/plan", timeout=90)
+
+    @classmethod
+    def stop_all(cls):
+        for name in ("learner", "record", "bridge", "server"):
+            stop(cls.processes.get(name))
+        cls.tmp.cleanup()
+
+    def wait_for(self, predicate, timeout_s=90, what="condition"):
+        deadline = time.monotonic() + timeout_s
+        while time.monotonic() < deadline:
+            with self.lock:
+                if predicate():
+                    return
+            time.sleep(0.05)
+        self.fail(f"timed out waiting for {what}")
+
+    def call(self, goal_xy):
+        plan = rospy.ServiceProxy("/offload_learner/plan", PlanPath)
+        request = PlanPathRequest()
+        for pose, xy in ((request.start, (-1.0, 0.5)), (request.goal, goal_xy)):
+            pose.header.frame_id = "map"
+            pose.pose.position.x, pose.pose.position.y = xy
+            pose.pose.orientation.w = 1.0
+        request.tolerance = 0.3
+        return plan(request)
+
+    GOALS = [(1.0, 0.5), (-0.5, -1.5), (0.5, 1.7), (1.8, -0.2), (-1.8, 0.1), (-0.5, -1.5)]
+
+    def test_1_requests_answered_and_recorded(self):
+        generator = subprocess.Popen(
+            [sys.executable, "-m", "offload_learner_py.nodes.goal_generator", "__name:=goal_generator",
+             f"_count:={FIRST_RUN}", "_period_s:=0.05", "_seed:=3", "_start_x:=-1.0", "_start_y:=0.5"],
+            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+        self.assertEqual(generator.wait(120), 0)
+        self.wait_for(lambda: len(self.outcomes) >= FIRST_RUN, what=f"{FIRST_RUN} outcomes")
+        with self.lock:
+            decisions, outcomes = list(self.decisions), list(self.outcomes)
+        self.assertEqual(len(decisions), FIRST_RUN)
+        self.assertTrue(all(o.delivered != NO_PATH_DELIVERED for o in outcomes), "a reachable goal got no path")
+        self.assertTrue(all(o.local_measured and o.cloud_measured and o.reward_valid for o in outcomes))
+        for o in outcomes:
+            self.assertEqual(o.local_status, PlanPathResponse.OK)
+            self.assertEqual(o.cloud_status, PlanPathResponse.OK)
+            self.assertGreater(o.local_s, 0.0)
+            self.assertGreater(o.cloud_s, 0.0)
+        # the caller got the first good path: never slower than the slower side
+        self.assertTrue(all(o.delivered_s <= max(o.local_s, o.cloud_s) + 0.05 for o in outcomes))
+        stop(self.processes.pop("record"))
+        with rosbag.Bag(self.bag) as bag:
+            counts = {topic: info.message_count for topic, info in bag.get_type_and_topic_info().topics.items()}
+            bag_decisions = [m for _, m, _ in bag.read_messages(topics=["/offload_learner/decision"])]
+            bag_outcomes = [m for _, m, _ in bag.read_messages(topics=["/offload_learner/outcome"])]
+        for topic in RECORDED_TOPICS:
+            self.assertGreater(counts.get(topic, 0), 0, f"{topic} missing from the bag: {sorted(counts)}")
+        log = pair_records(bag_decisions, bag_outcomes)   # raises unless they pair by id and agree
+        self.assertEqual(len(log), FIRST_RUN)
+        table = transition_table(log)
+        self.assertEqual(len(table), FIRST_RUN)
+        by_id = {o.request_id: o for o in bag_outcomes}
+        for row in range(len(table)):
+            self.assertAlmostEqual(table.reward[row], by_id[int(table.t[row])].reward)
+
+    def test_2_learner_restarts_from_its_checkpoint(self):
+        self.wait_for(lambda: os.path.exists(self.checkpoint), what="a checkpoint")
+        with self.lock:
+            steps_before = self.stats[-1].steps
+        os.kill(self.processes["learner"].pid, signal.SIGKILL)   # no shutdown hook: the periodic checkpoint
+        self.processes["learner"].wait(10)
+        saved_steps = load_checkpoint(self.checkpoint).steps
+        self.assertGreater(saved_steps, 0)
+        self.assertLessEqual(saved_steps, steps_before)
+        self.start_learner()
+        with self.lock:
+            seen = len(self.stats)
+        for goal in self.GOALS:
+            self.assertEqual(self.call(goal).status, PlanPathResponse.OK)
+        self.wait_for(lambda: len(self.stats) >= seen + len(self.GOALS), what="stats after the restart")
+        with self.lock:
+            resumed = [s.steps for s in self.stats[seen:]]
+        # The pending transition is stored when the next one arrives, so steps trail requests by one.
+        self.assertEqual(resumed[0], saved_steps)
+        self.assertEqual(resumed[-1], saved_steps + len(self.GOALS) - 1)
+
+    def test_3_cloud_killed_mid_run(self):
+        with self.lock:
+            seen_outcomes, steps_before = len(self.outcomes), self.stats[-1].steps
+        self.assertEqual(self.call(self.GOALS[0]).status, PlanPathResponse.OK)
+        self.processes["server"].kill()
+        self.processes["server"].wait(10)
+        for goal in self.GOALS:
+            self.assertEqual(self.call(goal).status, PlanPathResponse.OK, "no path with the cloud down")
+        self.wait_for(lambda: len(self.outcomes) >= seen_outcomes + 1 + len(self.GOALS), what="outcomes")
+        with self.lock:
+            after = self.outcomes[seen_outcomes + 1:]
+            steps_after = self.stats[-1].steps
+        self.assertTrue(all(o.delivered == OffloadOutcome.LOCAL for o in after))
+        timeouts = [o for o in after if o.cloud_timeout or o.cloud_status == PlanPathResponse.CLOUD_ERROR]
+        self.assertTrue(timeouts, "no cloud failure recorded")
+        for o in timeouts:
+            self.assertEqual(o.cloud_s, CLOUD_TIMEOUT_S)
+            self.assertTrue(o.reward_valid)
+        self.assertTrue(any(o.cloud_timeout for o in after), "the bridge never reported CLOUD_TIMEOUT")
+        self.assertGreater(steps_after, steps_before, "learning stopped when the cloud went away")
+
+
+if __name__ == "__main__":
+    rostest.rosrun("offload_learner_py", "online_stack", OnlineStackTest)
