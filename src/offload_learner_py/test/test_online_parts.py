@@ -10,7 +10,8 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.cpu import CgroupBudgetReader, CpuAvailability, LatestCpuAvailability, parse_cpu_list, \
     read_proc_stat_cores
 from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.goals import GoalSampler, GridFrame, default_start_cell, free_cells
+from offload_planner_cpp import free_cells
+from offload_learner_py.goals import GoalSampler, default_start_cell
 from offload_learner_py.records import RecordMismatchError, pair_records, transition_table
 from offload_learner_py.reward import reward
 from offload_learner_py.summary import format_summary, learned_offload_input_size, oracle_share_by_tercile, \
@@ -47,14 +48,6 @@ def test_goal_sampler_rejects_a_blocked_or_off_map_start():
     with pytest.raises(ValueError, match="off the"):
         GoalSampler(free, (5, 0))
     assert default_start_cell(free) == (1, 1)
-
-
-def test_grid_frame_round_trips_cells_with_offset_origin_and_yaw():
-    frame = GridFrame(0.05, origin_x_m=-3.0, origin_y_m=2.0, yaw=0.3)
-    for cell in [(0, 0), (17, 4), (3, 250)]:
-        assert frame.cell_of(*frame.cell_centre_m(*cell)) == cell
-    x, y = GridFrame(0.1, 1.0, -2.0).cell_centre_m(0, 0)
-    assert (x, y) == pytest.approx((1.05, -1.95))
 
 
 # --- records -----------------------------------------------------------------------------------

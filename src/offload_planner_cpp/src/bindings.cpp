@@ -206,6 +206,23 @@ PYBIND11_MODULE(_core, m) {
       py::arg("goal_frame"), py::arg("goal_x"), py::arg("goal_y"), py::arg("tolerance_m"),
       "Checks a PlanPath request against the map and converts it to cells (tolerance is float32 as in the "
       "service).");
+  m.def(
+      "free_cells",
+      [](const py::array& grid, int lethal_threshold, bool unknown_is_obstacle) {
+        const GridView view = viewOf(grid);
+        if (lethal_threshold < 1 || lethal_threshold > 101) {
+          throw py::value_error("lethal_threshold must be in 1..101, got " + std::to_string(lethal_threshold));
+        }
+        PlannerOptions options;
+        options.lethal_threshold = lethal_threshold;
+        options.unknown_is_obstacle = unknown_is_obstacle;
+        py::array_t<bool> free({static_cast<py::ssize_t>(view.height), static_cast<py::ssize_t>(view.width)});
+        bool* out = free.mutable_data();
+        for (std::size_t k = 0; k < view.size; ++k) out[k] = offload_planner::isPassable(view.data[k], options);
+        return free;
+      },
+      py::arg("grid"), py::arg("lethal_threshold") = 50, py::arg("unknown_is_obstacle") = true,
+      "Boolean [y, x] mask of the cells the planner may enter, by its own rule.");
   m.def("path_poses", &pathPoses, py::arg("geometry"), py::arg("path"), py::arg("start_pose"), py::arg("goal_pose"),
         py::arg("reached_requested_goal"),
         "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them.");

@@ -197,7 +197,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   width_ = width;
   height_ = height;
   for (int v = -128; v < 128; ++v) {
-    passable_[static_cast<std::uint8_t>(v)] = v < 0 ? !options.unknown_is_obstacle : v < options.lethal_threshold;
+    passable_[static_cast<std::uint8_t>(v)] = isPassable(static_cast<std::int8_t>(v), options);
   }
 
   auto on_map = [&](Cell c) { return c.x >= 0 && c.y >= 0 && c.x < width && c.y < height; };

@@ -165,3 +165,20 @@ def test_stop_at_goal_reaches_the_core():
     whole = offload_planner_cpp.plan_raw(grid, (0, 0), (2, 2), stop_at_goal=False)
     assert near["cost"] == whole["cost"] == pytest.approx(2 * np.sqrt(2))
     assert near["expansions"] < 100 and whole["expansions"] == grid.size
+
+
+@pytest.mark.parametrize("lethal_threshold, unknown_is_obstacle", [(50, True), (1, False), (101, False), (61, True)])
+def test_free_cells_is_the_planners_rule(lethal_threshold, unknown_is_obstacle):
+    grid = np.arange(-128, 128, dtype=np.int16).astype(np.int8).reshape(16, 16)
+    free = offload_planner_cpp.free_cells(grid, lethal_threshold, unknown_is_obstacle)
+    expected = grid_graph_free(grid, lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
+    np.testing.assert_array_equal(free, expected)
+    # And the planner itself agrees: a one-step plan into each cell works exactly where it is free.
+    for y, x in [(8, 0), (8, 5), (8, 10), (8, 12), (0, 0), (15, 15)]:
+        row = np.zeros((1, 2), np.int8)
+        row[0, 1] = grid[y, x]
+        ok = offload_planner_cpp.plan_raw(row, (0, 0), (1, 0), lethal_threshold=lethal_threshold,
+                                          unknown_is_obstacle=unknown_is_obstacle)["status"] == PlanStatus.OK
+        assert ok == free[y, x], (grid[y, x], lethal_threshold, unknown_is_obstacle)
+    with pytest.raises(ValueError, match="lethal_threshold"):
+        offload_planner_cpp.free_cells(grid, 0)

@@ -1,51 +1,13 @@
 """Random reachable goals, as the paper drew them: uniform over the free cells the start can reach.
+The free cells come from the planner's own rule (offload_planner_cpp.free_cells); world <-> cell
+conversion is the planner's request contract (offload_planner_cpp._core.check_map), not redone here.
 
 Reachability uses 4-connected free cells. A 4-connected path is also a valid path for the planner
 (8-connected without corner cutting), so every goal drawn here is reachable by it."""
-import math
-from dataclasses import dataclass
 from typing import Optional, Tuple
 
 import numpy as np
 from scipy import ndimage
-
-
-@dataclass(frozen=True)
-class GridFrame:
-    """Where a grid sits in the map frame: cell (x, y) has its centre at origin + R(yaw) (x+.5, y+.5) res."""
-    resolution_m: float
-    origin_x_m: float = 0.0
-    origin_y_m: float = 0.0
-    yaw: float = 0.0
-
-    def __post_init__(self):
-        if not (self.resolution_m > 0 and math.isfinite(self.resolution_m)):
-            raise ValueError(f"resolution_m must be positive, got {self.resolution_m}")
-
-    def cell_centre_m(self, x: int, y: int) -> Tuple[float, float]:
-        local_x, local_y = (x + 0.5) * self.resolution_m, (y + 0.5) * self.resolution_m
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return self.origin_x_m + c * local_x - s * local_y, self.origin_y_m + s * local_x + c * local_y
-
-    def cell_of(self, x_m: float, y_m: float) -> Tuple[int, int]:
-        dx, dy = x_m - self.origin_x_m, y_m - self.origin_y_m
-        c, s = math.cos(self.yaw), math.sin(self.yaw)
-        return (int(math.floor((c * dx + s * dy) / self.resolution_m)),
-                int(math.floor((-s * dx + c * dy) / self.resolution_m)))
-
-
-def free_cells(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
-    """Boolean [y, x] mask of cells the planner may enter (its rules: occupancy < threshold, unknown -1
-    free unless unknown_is_obstacle)."""
-    grid = np.asarray(grid)
-    if grid.ndim != 2 or grid.size == 0:
-        raise ValueError(f"grid must be a non-empty 2-D array, got shape {grid.shape}")
-    if not 1 <= lethal_threshold <= 101:
-        raise ValueError(f"lethal_threshold must be in 1..101, got {lethal_threshold}")
-    values = grid.astype(np.int16)
-    unknown = values < 0
-    free = (values < lethal_threshold) & ~unknown
-    return free | (unknown & (not unknown_is_obstacle))
 
 
 def nearest_free_cell(free: np.ndarray, x: int, y: int) -> Tuple[int, int]:

@@ -35,6 +35,11 @@ struct PlannerOptions {
   bool stop_at_goal = true;
 };
 
+// The planner's one rule of which cells it may enter.
+inline bool isPassable(std::int8_t occupancy, const PlannerOptions& options) {
+  return occupancy < 0 ? !options.unknown_is_obstacle : occupancy < options.lethal_threshold;
+}
+
 struct PlanResult {
   PlanStatus status = PlanStatus::kOk;
   std::string message;       // human-readable reason when status != kOk

@@ -11,9 +11,9 @@ from typing import Tuple
 
 import numpy as np
 
-from offload_planner_cpp._core import PlanStatus, plan_raw
+from offload_planner_cpp._core import PlanStatus, free_cells, plan_raw
 
-__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "plan_raw"]
+__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "free_cells", "plan_raw"]
 
 
 class PlanError(ValueError):

@@ -7,6 +7,7 @@ local planner node, so whatever it decides the chosen planner is the one the dir
 alternate direct / through the learner on the same goals; the overhead of each pair is the routed time
 minus the direct time. Both are persistent service connections, as a robot's caller would hold."""
 import argparse
+import math
 import os
 import socket
 import subprocess
@@ -15,7 +16,9 @@ import time
 
 import numpy as np
 
-from offload_learner_py.goals import GoalSampler, GridFrame, default_start_cell, free_cells
+from offload_planner_cpp import free_cells
+from offload_planner_cpp._core import check_map
+from offload_learner_py.goals import GoalSampler, default_start_cell
 
 
 def free_port() -> int:
@@ -63,7 +66,10 @@ def main(argv=None) -> int:
         for service in ("/planner/plan", "/offload_learner/plan"):
             rospy.wait_for_service(service, timeout=120)
         occupancy = load_map(map_yaml)
-        frame = GridFrame(occupancy.resolution, occupancy.origin_x, occupancy.origin_y, occupancy.origin_yaw)
+        height, width = occupancy.grid.shape
+        yaw = occupancy.origin_yaw
+        _, frame = check_map(width, height, occupancy.grid.size, occupancy.resolution, occupancy.origin_x,
+                             occupancy.origin_y, (0.0, 0.0, math.sin(yaw / 2), math.cos(yaw / 2)))
         free = free_cells(occupancy.grid)
         start = default_start_cell(free)
         sampler = GoalSampler(free, start, seed=args.seed)
@@ -78,7 +84,7 @@ def main(argv=None) -> int:
             req = PlanPathRequest()
             for pose, cell in ((req.start, start), (req.goal, goal_cell)):
                 pose.header.frame_id = "map"
-                pose.pose.position.x, pose.pose.position.y = frame.cell_centre_m(*cell)
+                pose.pose.position.x, pose.pose.position.y = frame.cell_to_world(*cell)
                 pose.pose.orientation.w = 1.0
             return req
 

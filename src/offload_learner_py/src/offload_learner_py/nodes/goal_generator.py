@@ -3,17 +3,16 @@ learner's ~plan by default) at a rate or for a count. Exits after the count, so 
 it required and end the run."""
 import math
 
+import numpy as np
 import rospy
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 from rospy.numpy_msg import numpy_msg
 
-from offload_learner_py.goals import GoalSampler, GridFrame, default_start_cell, free_cells
-
-
-def yaw_of(q) -> float:
-    return math.atan2(2.0 * (q.w * q.z + q.x * q.y), 1.0 - 2.0 * (q.y * q.y + q.z * q.z))
+from offload_planner_cpp import free_cells
+from offload_planner_cpp._core import check_map
+from offload_learner_py.goals import GoalSampler, default_start_cell
 
 
 def pose(frame_id: str, xy) -> PoseStamped:
@@ -49,12 +48,19 @@ def main():
     try:
         grid_msg = rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=float(p("map_wait_s", 60.0)))
         info = grid_msg.info
-        frame = GridFrame(info.resolution, info.origin.position.x, info.origin.position.y,
-                          yaw_of(info.origin.orientation))
-        grid = grid_msg.data.reshape(info.height, info.width)
+        q = info.origin.orientation
+        checked, frame = check_map(info.width, info.height, len(grid_msg.data), info.resolution,
+                                   info.origin.position.x, info.origin.position.y, (q.x, q.y, q.z, q.w))
+        if not checked.ok:
+            raise ValueError(f"the map is unusable: {checked.message}")
+        grid = np.ascontiguousarray(grid_msg.data, dtype=np.int8).reshape(info.height, info.width)
         free = free_cells(grid, int(p("lethal_threshold", 50)), bool(p("unknown_is_obstacle", True)))
         start_x, start_y = float(p("start_x", float("nan"))), float(p("start_y", float("nan")))
-        start_cell = frame.cell_of(start_x, start_y) if math.isfinite(start_x) and math.isfinite(start_y) else None
+        start_cell = None
+        if math.isfinite(start_x) and math.isfinite(start_y):
+            start_cell = frame.world_to_cell(start_x, start_y)
+            if start_cell is None:
+                raise ValueError(f"~start_x, ~start_y ({start_x}, {start_y}) m is off the map")
         start_cell = default_start_cell(free, start_cell)
         sampler = GoalSampler(free, start_cell, int(p("seed", 1)),
                               float(p("min_distance_m", 0.0)) / info.resolution)
@@ -63,7 +69,7 @@ def main():
         rospy.logfatal("%s", error)
         raise SystemExit(1) from None
     frame_id = grid_msg.header.frame_id or "map"
-    start_xy = frame.cell_centre_m(*start_cell)
+    start_xy = frame.cell_to_world(*start_cell)
     rospy.loginfo("goal generator: %s requests from (%.2f, %.2f) to random goals among %d reachable cells -> %s",
                   count or "unbounded", start_xy[0], start_xy[1], sampler.reachable_cells, service)
     goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
@@ -72,7 +78,7 @@ def main():
     sent = delivered = 0
     rate = rospy.Rate(rate_hz) if rate_hz > 0 else None
     while not rospy.is_shutdown() and (count <= 0 or sent < count):
-        goal = pose(frame_id, frame.cell_centre_m(*sampler.draw()))
+        goal = pose(frame_id, frame.cell_to_world(*sampler.draw()))
         goal_pub.publish(goal)
         try:
             response = plan(PlanPathRequest(start=pose(frame_id, start_xy), goal=goal, tolerance=tolerance))
