@@ -133,6 +133,7 @@ class ServerConfig:
     max_queued: int = 64                  # plan requests waiting for a worker; more get BUSY
     max_queued_bytes: int = 256 << 20     # and their bytes: a request that would exceed it gets BUSY
     max_frames: int = 8                   # more frames than any valid message: dropped unread
+    max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
 
 
 @dataclass
@@ -140,7 +141,11 @@ class _Request:
     frames: list                          # route + payload
     nbytes: int                           # payload bytes, counted in queued_bytes while waiting
     fd: Optional[int]                     # the connection it came on (dropped when that closes)
+    request_id: int
+    route_frames: int
+    arrived: float                        # time.monotonic() when the broker admitted it
     uploads: Optional[bytes] = None       # hash of the map it carries and is the one to store
+    carries_map: bool = False             # a plan with its map attached
 
 
 @dataclass
@@ -160,6 +165,8 @@ class CloudServer:
             raise ValueError("at least one worker is needed")
         if config.max_message_bytes < 1 or config.cache_bytes < 0:
             raise ValueError("the max message size must be >= 1 byte and the cache cap >= 0")
+        if not 0 < config.max_wait_s <= 3600:
+            raise ValueError(f"the max wait must be in (0, 3600] s, got {config.max_wait_s}")
         if config.max_queued < 1 or config.max_queued_bytes < config.max_message_bytes:
             raise ValueError("max queued must be >= 1 and the queued bytes budget at least the max message size")
         self.config = config
@@ -179,6 +186,7 @@ class CloudServer:
         self.queued_bytes = 0   # bytes of the requests waiting for a worker or parked (broker thread only)
         self.connections_cut = 0        # by the connection guard (for tests)
         self.abandoned_dropped = 0      # queued requests dropped because their client went away
+        self.service_s = 0.0            # moving average of a worker's time per request (broker thread only)
         self.endpoint = None
         self._thread = None
         self._frontend = self._bind_frontend()
@@ -323,9 +331,11 @@ class CloudServer:
                 worker, rest = frames[0].bytes, frames[1:]
                 if len(rest) > 1:        # a reply: route frames, then the reply itself
                     self._send(frontend, rest)
-                done = in_flight.pop(worker, None)
-                if done is not None and done.uploads is not None:
-                    self._release(done.uploads, state)
+                done, dispatched_at = in_flight.pop(worker, (None, 0.0))
+                if done is not None:
+                    self.service_s = 0.7 * self.service_s + 0.3 * (time.monotonic() - dispatched_at)
+                    if done.uploads is not None:
+                        self._release(done.uploads, state)
                 idle.append(worker)
             if frontend in events:
                 frames = frontend.recv_multipart(copy=False)
@@ -336,8 +346,18 @@ class CloudServer:
             while idle and queued:
                 request = queued.popleft()
                 self.queued_bytes -= request.nbytes
+                now = time.monotonic()
+                if now - request.arrived > self.config.max_wait_s:
+                    # Its client has (nearly) given up: a quick BUSY lets it plan locally now, and the
+                    # worker goes to a request that can still be answered in time.
+                    self._refuse(frontend, request.frames[:request.route_frames], request.request_id,
+                                 ProtocolError(Status.BUSY, f"waited {now - request.arrived:.2f} s for a worker, "
+                                                            f"over --max-wait-s {self.config.max_wait_s:g}"))
+                    if request.uploads is not None:
+                        self._release(request.uploads, state)
+                    continue
                 worker = idle.popleft()
-                in_flight[worker] = request
+                in_flight[worker] = (request, now)
                 backend.send_multipart([worker, *request.frames], copy=False)
             now = time.monotonic()
             if guard and now - checked_at >= _BACKEND_POLL_MS / 1e3:
@@ -409,13 +429,16 @@ class CloudServer:
             return
         if map_hash in self.cache:
             for request in waiting:
-                self._strip_map(request)
+                if request.carries_map:
+                    self._strip_map(request)
         else:
-            waiting[0].uploads = map_hash
-            parked[map_hash] = []
-            for request in waiting[1:]:
-                parked[map_hash].append(request)
-            waiting = waiting[:1]
+            # The next request that carries the map uploads it; plans that carry only the hash go ahead
+            # and get MAP_UNKNOWN (their client uploads); the rest keep waiting for the new carrier.
+            carrier = next((request for request in waiting if request.carries_map), None)
+            if carrier is not None:
+                carrier.uploads = map_hash
+                parked[map_hash] = [request for request in waiting if request.carries_map and request is not carrier]
+            waiting = [request for request in waiting if request is carrier or not request.carries_map]
         queued.extendleft(reversed(waiting))
 
     def _strip_map(self, request: _Request) -> None:
@@ -424,7 +447,7 @@ class CloudServer:
         kept = request.frames[:route_frames + 2]
         nbytes = sum(len(frame) for frame in kept[route_frames:])
         self.queued_bytes -= request.nbytes - nbytes
-        request.frames, request.nbytes, request.uploads = kept, nbytes, None
+        request.frames, request.nbytes, request.uploads, request.carries_map = kept, nbytes, None, False
 
     def _on_frontend(self, frontend: zmq.Socket, frames, state) -> None:
         queued, parked, connections = state
@@ -467,24 +490,33 @@ class CloudServer:
             if waiting >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
                 raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {waiting} "
                                                  f"requests ({self.queued_bytes} bytes) queued")
+            expected_wait_s = waiting * self.service_s / self.config.workers
+            if expected_wait_s > self.config.max_wait_s:
+                raise ProtocolError(Status.BUSY, f"{waiting} requests queued, about {expected_wait_s:.2f} s of "
+                                                 f"work: over --max-wait-s {self.config.max_wait_s:g}")
         except ProtocolError as error:
-            self._log_limited.log(logging.WARNING, ("refused", error.status),
-                                  "request %d refused: %s: %s", request_id, error.status.name, error)
-            self._send(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))))
+            self._refuse(frontend, route, request_id, error)
             return
-        request = _Request(route + payload, total, fd)
+        request = _Request(route + payload, total, fd, request_id, len(route), time.monotonic())
         self.queued_bytes += total
-        carried = _carried_hash(kind, payload)
-        if carried is not None:
-            if carried in self.cache:        # cached already: plan on the cached map, skip the upload
-                self._strip_map(request)
-            elif carried in parked:          # being uploaded by another request: wait for that one
-                parked[carried].append(request)
+        wanted = _plan_hash(kind, payload)
+        if wanted is not None:
+            request.carries_map = len(payload) == 4
+            if wanted in self.cache:         # cached already: plan on the cached map, skip any upload
+                if request.carries_map:
+                    self._strip_map(request)
+            elif wanted in parked:           # being uploaded by another request: wait for that one
+                parked[wanted].append(request)
                 return
-            else:
-                request.uploads = carried
-                parked[carried] = []
+            elif request.carries_map:        # the one upload of this map
+                request.uploads = wanted
+                parked[wanted] = []
         queued.append(request)
+
+    def _refuse(self, frontend: zmq.Socket, route, request_id: int, error: ProtocolError) -> None:
+        self._log_limited.log(logging.WARNING, ("refused", error.status),
+                              "request %d refused: %s: %s", request_id, error.status.name, error)
+        self._send(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))))
 
     @staticmethod
     def _send(socket: zmq.Socket, frames) -> None:
@@ -595,9 +627,9 @@ def _user_of(frame) -> Optional[bytes]:
     return user.encode() if isinstance(user, str) else user
 
 
-def _carried_hash(kind: Kind, payload) -> Optional[bytes]:
-    """The claimed map hash of a plan that carries its map (the worker checks the claim), else None."""
-    if kind != Kind.PLAN or len(payload) != 4 or len(payload[1]) != protocol.PLAN_BODY.size:
+def _plan_hash(kind: Kind, payload) -> Optional[bytes]:
+    """The map hash a plan names (for one that carries its map, the worker checks the claim), else None."""
+    if kind != Kind.PLAN or len(payload) not in (2, 4) or len(payload[1]) != protocol.PLAN_BODY.size:
         return None
     return bytes(payload[1].buffer[:protocol.HASH_SIZE])
 
@@ -612,6 +644,16 @@ def _bounded_int(name: str, low: int, high: int):
             raise argparse.ArgumentTypeError(f"{name} must be in {low}..{high}, got {value}")
         return value
     return parse
+
+
+def _bounded_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 < value <= 3600:   # also refuses NaN
+        raise argparse.ArgumentTypeError(f"--max-wait-s must be in (0, 3600], got {text!r}")
+    return value
 
 
 def _endpoint(text: str) -> str:
@@ -637,6 +679,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max-queued", type=_bounded_int("--max-queued", 1, 1 << 20), default=64, help="requests waiting for a worker before BUSY (64)")
     parser.add_argument("--max-queued-mib", type=_bounded_int("--max-queued-mib", 1, 1 << 20), default=256,
                         help="bytes of the requests waiting for a worker, in MiB, before BUSY (default 256)")
+    parser.add_argument("--max-wait-s", type=_bounded_seconds, default=1.0,
+                        help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
+                             "keep it under the robots' per-attempt timeout")
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     args = parser.parse_args(argv)
@@ -653,7 +698,8 @@ def main(argv=None) -> int:
         return 2
     config = ServerConfig(bind=args.bind, workers=args.workers, keys_dir=args.keys_dir, insecure=args.insecure,
                           cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
-                          max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20)
+                          max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
+                          max_wait_s=args.max_wait_s)
     try:
         server = CloudServer(config)
     except (OSError, ValueError, zmq.ZMQError) as error:
