@@ -203,16 +203,26 @@ class CloudClient:
         map_hash = protocol.grid_hash(grid) if map_hash is None else map_hash
         deadline = time.monotonic() + self.timeout_s
         started = time.perf_counter()
-        upload = map_hash not in self.known_maps
+        attach = [map_hash not in self.known_maps]
+        sent_map = False
+        uploads_left = 2   # after MAP_UNKNOWN; the deadline bounds it too
         while True:
-            attached = grid if upload else None
-            reply = self.request(
-                lambda request_id: protocol.encode_plan(request_id, map_hash, start, goal, options, attached),
-                deadline)
-            if reply.status == Status.MAP_UNKNOWN and not upload:
+            def build(request_id):
+                nonlocal sent_map
+                with_map = attach[0]
+                # A resend after an unanswered attempt carries only the hash: the server most likely has
+                # the map by then (a fleet retrying with 4 MB each was what kept it from answering); if
+                # not, its MAP_UNKNOWN brings the map once more.
+                attach[0] = False
+                sent_map = sent_map or with_map
+                return protocol.encode_plan(request_id, map_hash, start, goal, options, grid if with_map else None)
+            reply = self.request(build, deadline)
+            if reply.status == Status.MAP_UNKNOWN and uploads_left > 0:
                 self.known_maps.discard(map_hash)
-                upload = True
+                attach[0] = True
+                uploads_left -= 1
                 continue
+            upload = sent_map
             round_trip_s = time.perf_counter() - started
             why = reply_problem(reply, grid, start, goal, options, round_trip_s)
             if why:   # a confused or hostile server: never hand its answer on as a plan
