@@ -139,7 +139,6 @@ def test_sighup_reloads_the_allowlist_revoking_and_admitting(key_root, tmp_path)
     try:
         revoked = CloudClient(endpoint, keys_dir=str(key_root / "robot2"), timeout_s=1.0, retries=0)
         assert revoked.ping() > 0          # connected and served before the revocation
-        assert not _answers(key_root / "robot3", endpoint, 0.5) if (key_root / "robot3").exists() else True
         (server_keys / "clients" / "robot2.key").unlink()
         keys.generate(key_root, ["robot3"], add_to=server_keys)
         process.send_signal(signal.SIGHUP)

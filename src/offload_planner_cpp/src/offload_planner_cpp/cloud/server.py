@@ -88,17 +88,13 @@ class _Authenticator(zmq.auth.thread.ThreadAuthenticator):
         await super().handle_zap_message(msg)
 
     async def _authenticate_curve(self, domain, client_key):
-        key = protocol_z85(client_key)
+        key = z85.encode(client_key)
         if key in self.allowlist:
             return True, b"OK"
         self._refusals.log(logging.WARNING, ("refused", self._address),
                            "refused a CURVE handshake from %s: client key %s is not on the allowlist",
                            self._address, key.decode())
         return False, b"Unknown key"
-
-
-def protocol_z85(key: bytes) -> bytes:
-    return z85.encode(key)
 
 
 def tcp_bytes_received(fd: int) -> Optional[int]:
