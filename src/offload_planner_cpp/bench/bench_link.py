@@ -53,8 +53,10 @@ def spawn(args) -> subprocess.Popen:
 
 
 def spawn_cloud(port: int, server_keys, workers: int) -> subprocess.Popen:
+    # The benchmark's clients wait up to 60 s, so the server may let requests wait as long: throughput is
+    # measured at saturation, where the default --max-wait-s would answer part of the queue BUSY.
     args = ["-m", "offload_planner_cpp.cloud.server", "--bind", f"tcp://{LOOPBACK}:{port}", "--workers",
-            str(workers), "--log-level", "WARNING"]
+            str(workers), "--log-level", "WARNING", "--max-wait-s", "60"]
     return spawn(args + (["--keys-dir", str(server_keys)] if server_keys else ["--insecure"]))
 
 
