@@ -35,13 +35,19 @@ def free_port() -> int:
         return probe.getsockname()[1]
 
 
-def spawn_server(port: int, server_keys, workers: int = 2, timeout_s: float = 20.0) -> subprocess.Popen:
-    """The server as its own process (so a test can SIGKILL it); returns once it listens."""
+def spawn_server(port: int, server_keys, workers: int = 2, timeout_s: float = 20.0, extra_args=(),
+                 log_path=None) -> subprocess.Popen:
+    """The server as its own process (so a test can SIGKILL it or measure its memory); returns once it
+    listens. server_keys None: --insecure. Its log goes to `log_path` when given."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
+    keys_args = ["--keys-dir", str(server_keys)] if server_keys is not None else ["--insecure"]
+    log = open(log_path, "w") if log_path else subprocess.DEVNULL
     process = subprocess.Popen(
         [sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind", f"{LOOPBACK}:{port}",
-         "--workers", str(workers), "--keys-dir", str(server_keys), "--log-level", "WARNING"],
-        stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, env=env, text=True)
+         "--workers", str(workers), *keys_args, "--log-level", "WARNING", *extra_args],
+        stdout=subprocess.PIPE, stderr=log, env=env, text=True)
+    if log_path:
+        log.close()
     deadline = time.monotonic() + timeout_s
     while time.monotonic() < deadline:
         ready, _, _ = select.select([process.stdout], [], [], 0.2)
@@ -50,7 +56,25 @@ def spawn_server(port: int, server_keys, workers: int = 2, timeout_s: float = 20
         if process.poll() is not None:
             break
     process.kill()
+    process.wait()
     raise RuntimeError("cloud server subprocess did not start")
+
+
+def stop_process(process: subprocess.Popen) -> None:
+    if process.poll() is None:
+        process.kill()
+    process.wait(10)
+    if process.stdout:
+        process.stdout.close()
+
+
+def rss_bytes(pid: int) -> int:
+    """Resident set size of a process, from /proc."""
+    with open(f"/proc/{pid}/status") as status:
+        for line in status:
+            if line.startswith("VmRSS:"):
+                return int(line.split()[1]) * 1024
+    raise RuntimeError(f"no VmRSS for process {pid}")
 
 
 def random_map(width: int, height: int, obstacle_share: float, seed: int) -> np.ndarray:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 
 from offload_planner_cpp.cloud import protocol
-from offload_planner_cpp.cloud.map_cache import MapCache
+from offload_planner_cpp.cloud.map_cache import ENTRY_OVERHEAD_BYTES, MapCache
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
 
 MAX_CELLS = 1 << 24
@@ -116,12 +116,27 @@ def test_malformed_plans_are_rejected():
 
 
 def test_map_cache_is_lru_and_bounded():
-    cache = MapCache(capacity_bytes=250)
+    charge = 100 + ENTRY_OVERHEAD_BYTES
+    cache = MapCache(capacity_bytes=2 * charge + 50)
     maps = {key: np.zeros(100, np.int8) for key in (b"a", b"b", b"c")}
     assert cache.put(b"a", maps[b"a"]) and cache.put(b"b", maps[b"b"])
-    assert cache.get(b"a") is maps[b"a"]          # a is now the most recent
+    np.testing.assert_array_equal(cache.get(b"a"), maps[b"a"])   # a is now the most recent
     assert cache.put(b"c", maps[b"c"])            # evicts b
     assert b"b" not in cache and b"a" in cache and b"c" in cache
-    assert cache.size_bytes == 200 and cache.evictions == 1
-    assert not cache.put(b"big", np.zeros(251, np.int8))
+    assert cache.size_bytes == 2 * charge and cache.evictions == 1
+    assert not cache.put(b"big", np.zeros(2 * charge + 51 - ENTRY_OVERHEAD_BYTES, np.int8))
     assert cache.get(b"b") is None and cache.misses == 1
+
+
+def test_map_cache_counts_per_map_overhead_so_tiny_maps_cannot_grow_it_without_bound():
+    """Issue 10, finding 1: 200,000 maps of 8 cells each fit a cap that counted cells only."""
+    cap = 1 << 20
+    cache = MapCache(cap)
+    source = bytearray(64)   # every map a view of one big received buffer, as the server gets them
+    for k in range(5000):
+        grid = np.frombuffer(bytes(source[:8]) + k.to_bytes(8, "little"), np.int8).reshape(2, 8)
+        assert cache.put(k.to_bytes(16, "little"), grid)
+    assert len(cache) <= cap // (16 + ENTRY_OVERHEAD_BYTES)
+    assert cache.size_bytes <= cap and cache.evictions == 5000 - len(cache)
+    kept = cache.get((4999).to_bytes(16, "little"))
+    assert kept.base is None or kept.base.nbytes == kept.nbytes   # a compact copy, not a view of the message

@@ -3,6 +3,7 @@ cache misses, concurrency, and the health-check command."""
 import collections
 import os
 import random
+import signal
 import subprocess
 import sys
 import threading
@@ -19,7 +20,7 @@ from offload_planner_cpp.cloud.server import CloudServer, ServerConfig, parse_ar
 from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Status
 
-from cloud_test_helpers import LOOPBACK, make_keys, random_map, start_server
+from cloud_test_helpers import LOOPBACK, free_port, make_keys, random_map, spawn_server, start_server, stop_process
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -262,42 +263,101 @@ def test_oversized_message_is_refused_and_server_survives(server, key_dirs, clie
     assert client.ping() > 0
 
 
-class _CapturingSocket:
-    def __init__(self):
-        self.sent = []
-
-    def send_multipart(self, frames, **_):
-        self.sent.append(frames)
-
-
-def test_queued_bytes_budget_gives_busy():
-    """The broker's admission: beyond the queued bytes budget (or count) a request gets BUSY at once."""
-    server = CloudServer(ServerConfig(bind=f"{LOOPBACK}:0", insecure=True, max_message_bytes=1 << 20,
-                                      max_queued=10, max_queued_bytes=2 << 20))
+def _flood(endpoint, messages, wait_s=60.0):
+    """Sends every message at once on one DEALER, then collects the replies: {request id: [statuses]}."""
+    context = zmq.Context()
+    socket = context.socket(zmq.DEALER)
+    socket.linger = 0
+    socket.connect(endpoint)
+    replies = collections.defaultdict(list)
     try:
-        assert server.receive_hwm(server.config) == 2   # at most 2 maximum-size messages unread per connection
-        frontend, queued = _CapturingSocket(), collections.deque()
-        upload = [zmq.Frame(b"client"), zmq.Frame(protocol.envelope(Kind.UPLOAD, 1)), zmq.Frame(b"{}"),
-                  zmq.Frame(bytes(700_000))]
-        for request_id in range(3):
-            upload[1] = zmq.Frame(protocol.envelope(Kind.UPLOAD, request_id))
-            server._on_frontend(frontend, list(upload), queued)
-        assert len(queued) == 2 and server.queued_bytes == 2 * (700_000 + 2 + protocol.ENVELOPE.size)
-        assert len(frontend.sent) == 1
-        reply = protocol.decode_reply([bytes(f) for f in frontend.sent[0][1:]])
-        assert reply.status == Status.BUSY and reply.request_id == 2 and "bytes) queued" in reply.message
-        ping = [zmq.Frame(b"client"), zmq.Frame(protocol.encode_ping(9)[0])]
-        server._on_frontend(frontend, ping, queued)   # pings never queue
-        assert protocol.decode_reply([bytes(f) for f in frontend.sent[1][1:]]).status == Status.OK
-        small = [zmq.Frame(b"client"), zmq.Frame(protocol.envelope(Kind.PLAN, 10)), zmq.Frame(bytes(43))]
-        server._on_frontend(frontend, small, queued)   # still fits the budget
-        assert len(queued) == 3 and len(frontend.sent) == 2
+        for message in messages:
+            socket.send_multipart(message)
+        deadline = time.monotonic() + wait_s
+        while sum(map(len, replies.values())) < len(messages) and time.monotonic() < deadline:
+            if socket.poll(200):
+                reply = protocol.decode_reply(socket.recv_multipart())
+                replies[reply.request_id].append(reply)
+        while socket.poll(300):   # nothing more may come
+            reply = protocol.decode_reply(socket.recv_multipart())
+            replies[reply.request_id].append(reply)
     finally:
-        server._frontend.close(0)
-        server._close_context()
+        socket.close(0)
+        context.term()
+    return replies
+
+
+def test_busy_under_real_load_every_request_answered_once():
+    """A real server, one worker, a queue of 2: a burst of 60 long plans gets BUSY for all but the few the
+    worker and the queue hold, at once, and each of the others a correct plan."""
+    server = start_server(None, workers=1, max_queued=2, max_message_bytes=4 << 20, max_queued_bytes=4 << 20)
+    grid = np.zeros((1200, 1200), np.int8)
+    grid[600, 1:] = 100
+    digest = protocol.grid_hash(grid)
+    try:
+        with CloudClient(server.endpoint, insecure=True, timeout_s=10.0) as client:
+            assert client.upload(grid).status == Status.OK
+        options = PlanOptions(stop_at_goal=False)
+        plans = [protocol.encode_plan(k, digest, (0, 0), (1199, 1199), options) for k in range(60)]
+        replies = _flood(server.endpoint, plans)
+    finally:
+        server.stop()
+    assert sorted(replies) == list(range(60)) and all(len(r) == 1 for r in replies.values())
+    statuses = collections.Counter(r[0].status for r in replies.values())
+    assert set(statuses) == {Status.OK, Status.BUSY} and 3 <= statuses[Status.OK] <= 30, statuses
+    expected = offload_planner_cpp.plan_raw(grid, (0, 0), (1199, 1199), stop_at_goal=False)
+    for (reply,) in replies.values():
+        if reply.status == Status.BUSY:
+            assert "queued" in reply.message and len(reply.path) == 0
+        else:
+            assert reply.cost_cells == pytest.approx(1199 * np.sqrt(2.0) + 2 * 1.0, abs=1e-6) or \
+                reply.cost_cells == expected["cost"]
+            np.testing.assert_array_equal(reply.path, expected["path"])
+
+
+def test_queued_bytes_budget_gives_busy_under_real_load():
+    """Beyond the queued bytes budget an upload gets BUSY while the worker plans; pings never queue."""
+    server = start_server(None, workers=1, max_queued=64, max_message_bytes=2 << 20, max_queued_bytes=4 << 20)
+    assert server.receive_hwm(server.config) == 2
+    grid = np.zeros((1400, 1400), np.int8)
+    digest = protocol.grid_hash(grid)
+    try:
+        with CloudClient(server.endpoint, insecure=True, timeout_s=10.0) as client:
+            assert client.upload(grid).status == Status.OK
+        long_plans = [protocol.encode_plan(k, digest, (0, 0), (1399, 1399), PlanOptions(stop_at_goal=False))
+                      for k in range(4)]
+        uploads = [protocol.encode_upload(100 + k, random_map(1200, 1200, 0.1, seed=k)) for k in range(5)]
+        replies = _flood(server.endpoint, long_plans + uploads + [protocol.encode_ping(200)])
+    finally:
+        server.stop()
+    assert all(len(replies[k]) == 1 for k in [0, 1, 2, 3, 100, 101, 102, 103, 104, 200])
+    assert all(replies[k][0].status == Status.OK for k in range(4)) and replies[200][0].message == "pong"
+    upload_statuses = [replies[100 + k][0].status for k in range(5)]
+    # 1.44 MB each: two fit the 4 MiB budget beside the queued plans, the rest are refused at once.
+    assert upload_statuses.count(Status.OK) == 2 and upload_statuses.count(Status.BUSY) == 3, upload_statuses
+    assert "bytes) queued" in next(r[0].message for k, r in replies.items() if r[0].status == Status.BUSY)
     with pytest.raises(ValueError):
         CloudServer(ServerConfig(insecure=True, max_message_bytes=64 << 20, max_queued_bytes=32 << 20))
-    assert parse_args(["--max-queued-mib", "32"]).max_queued_mib == 32 and parse_args([]).max_queued_mib == 256
+    assert parse_args(["--max-queued-mib", "32", "--max-message-mib", "16"]).max_queued_mib == 32
+    assert parse_args([]).max_queued_mib == 256
+
+
+def test_sigterm_stops_the_server_cleanly(tmp_path):
+    """SIGTERM mid-service: exit status 0 and the orderly stop line (the handler, not the default action)."""
+    port = free_port()
+    log_path = tmp_path / "server.log"
+    process = spawn_server(port, None, log_path=log_path, extra_args=["--log-level", "INFO"])
+    try:
+        with CloudClient(f"{LOOPBACK}:{port}", insecure=True, timeout_s=5.0) as client:
+            assert client.plan(random_map(50, 50, 0.1, seed=9), (0, 0), (49, 49)).reply.status == Status.OK
+        started = time.monotonic()
+        process.send_signal(signal.SIGTERM)
+        returncode = process.wait(20)
+        print(f"exit {time.monotonic() - started:.2f} s after SIGTERM")
+    finally:
+        stop_process(process)
+    assert returncode == 0
+    assert "stopped; cache hits" in log_path.read_text()
 
 
 def test_cache_miss_makes_the_client_upload_again(key_dirs):

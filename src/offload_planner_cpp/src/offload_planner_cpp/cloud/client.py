@@ -12,6 +12,7 @@ exits 0 and prints the round trip when the server answers, 1 with the reason oth
 """
 import argparse
 import itertools
+import math
 import os
 import sys
 import threading
@@ -22,6 +23,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
+from offload_planner_cpp import free_cells
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import PlanOptions, ProtocolError, Reply, Status
@@ -29,6 +31,13 @@ from offload_planner_cpp.cloud.protocol import PlanOptions, ProtocolError, Reply
 
 class CloudTimeout(RuntimeError):
     """The cloud did not answer within the deadline."""
+
+
+# Largest reply accepted by default: a path of 8 million cells. libzmq drops a connection that sends a
+# larger frame (so a lying server cannot make the robot buffer gigabytes); the request then times out.
+DEFAULT_MAX_REPLY_BYTES = 64 << 20
+_CURVE_FRAME_OVERHEAD_BYTES = 4096   # MAXMSGSIZE counts the encrypted frame: room for the CURVE box
+_SQRT2 = float(np.sqrt(2.0))
 
 
 class KnownMaps:
@@ -70,11 +79,14 @@ class CloudClient:
 
     def __init__(self, endpoint: str, *, keys_dir: Optional[str] = None, insecure: bool = False,
                  timeout_s: float = 5.0, retries: int = 1, known_maps: Optional[KnownMaps] = None,
-                 context: Optional[zmq.Context] = None):
+                 context: Optional[zmq.Context] = None, max_reply_bytes: int = DEFAULT_MAX_REPLY_BYTES):
         if not insecure and not keys_dir:
             raise ValueError("a keys dir is required unless insecure is set")
-        if timeout_s <= 0 or retries < 0:
+        if not timeout_s > 0 or retries < 0:
             raise ValueError("timeout_s must be > 0 and retries >= 0")
+        if max_reply_bytes < 1024:
+            raise ValueError(f"max_reply_bytes must be >= 1024, got {max_reply_bytes}")
+        self.max_reply_bytes = int(max_reply_bytes)
         self.endpoint = endpoint
         self.timeout_s = timeout_s
         self.retries = retries
@@ -89,6 +101,8 @@ class CloudClient:
     def _open(self) -> zmq.Socket:
         socket = self._context.socket(zmq.DEALER)
         socket.linger = 0
+        socket.setsockopt(zmq.MAXMSGSIZE, self.max_reply_bytes + _CURVE_FRAME_OVERHEAD_BYTES)
+        socket.rcvhwm = 4   # replies are read as they come; a flooding server cannot queue more than these
         if self._keys is not None:
             public, secret, server_public = self._keys
             socket.curve_publickey = public
@@ -186,19 +200,76 @@ class CloudClient:
         map_hash = protocol.grid_hash(grid) if map_hash is None else map_hash
         deadline = time.monotonic() + self.timeout_s
         started = time.perf_counter()
-        upload = map_hash not in self.known_maps
+        attach = [map_hash not in self.known_maps]
+        sent_map = False
+        uploads_left = 2   # after MAP_UNKNOWN; the deadline bounds it too
         while True:
-            attached = grid if upload else None
-            reply = self.request(
-                lambda request_id: protocol.encode_plan(request_id, map_hash, start, goal, options, attached),
-                deadline)
-            if reply.status == Status.MAP_UNKNOWN and not upload:
+            def build(request_id):
+                nonlocal sent_map
+                with_map = attach[0]
+                # A resend after an unanswered attempt carries only the hash: the server most likely has
+                # the map by then (a fleet retrying with 4 MB each was what kept it from answering); if
+                # not, its MAP_UNKNOWN brings the map once more.
+                attach[0] = False
+                sent_map = sent_map or with_map
+                return protocol.encode_plan(request_id, map_hash, start, goal, options, grid if with_map else None)
+            reply = self.request(build, deadline)
+            if reply.status == Status.MAP_UNKNOWN and uploads_left > 0:
                 self.known_maps.discard(map_hash)
-                upload = True
+                attach[0] = True
+                uploads_left -= 1
                 continue
-            if protocol.is_planner_status(reply.status):   # it planned, so it holds the map
+            upload = sent_map
+            round_trip_s = time.perf_counter() - started
+            why = reply_problem(reply, grid, start, goal, options, round_trip_s)
+            if why:   # a confused or hostile server: never hand its answer on as a plan
+                reply = Reply(reply.request_id, Status.SERVER_ERROR, f"invalid reply from {self.endpoint}: {why}")
+            elif protocol.is_planner_status(reply.status):   # it planned, so it holds the map
                 self.known_maps.add(map_hash)
-            return PlanOutcome(reply, time.perf_counter() - started, upload)
+            return PlanOutcome(reply, round_trip_s, upload)
+
+
+def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Sequence[int], options: PlanOptions,
+                  round_trip_s: float) -> str:
+    """Why a plan reply cannot be true for the map and request this client sent, or "" when it can: the
+    path must run from the start to the reached goal (within the tolerance of the goal) through
+    traversable cells in 8-connected steps without cutting corners, and its cost must be its length."""
+    if not (math.isfinite(reply.planning_time_s) and 0.0 <= reply.planning_time_s <= round_trip_s):
+        return f"planning time {reply.planning_time_s!r} s is not within the measured round trip"
+    if reply.expansions > 8 * grid.size + 8:
+        return f"{reply.expansions} expansions on a map of {grid.size} cells"
+    path = reply.path
+    if reply.status != Status.OK:
+        return "" if len(path) == 0 else f"{reply.status.name} with a path of {len(path)} cells"
+    height, width = grid.shape
+    if not 1 <= len(path) <= grid.size:
+        return f"path of {len(path)} cells on a map of {grid.size} cells"
+    xs, ys = path[:, 0].astype(np.int64), path[:, 1].astype(np.int64)
+    if xs.min() < 0 or ys.min() < 0 or xs.max() >= width or ys.max() >= height:
+        return "path leaves the map"
+    if (int(xs[0]), int(ys[0])) != (int(start[0]), int(start[1])):
+        return f"path starts at ({xs[0]}, {ys[0]}), not at the start {tuple(start)}"
+    if (int(xs[-1]), int(ys[-1])) != tuple(int(v) for v in reply.goal):
+        return f"path ends at ({xs[-1]}, {ys[-1]}), not at the reached goal {reply.goal}"
+    if math.hypot(reply.goal[0] - goal[0], reply.goal[1] - goal[1]) > options.goal_tolerance_cells + 1e-9:
+        return f"reached goal {reply.goal} is farther than the tolerance from the goal {tuple(goal)}"
+    free = free_cells(grid, options.lethal_threshold, options.unknown_is_obstacle)   # the planner's own rule
+    if not free[ys, xs].all():
+        return "path crosses an obstacle"
+    dx, dy = np.abs(np.diff(xs)), np.abs(np.diff(ys))
+    if ((dx > 1) | (dy > 1) | ((dx == 0) & (dy == 0))).any():
+        return "path is not a chain of 8-connected steps"
+    diagonal = (dx == 1) & (dy == 1)
+    if diagonal.any():
+        corner_a = grid[ys[:-1][diagonal], xs[1:][diagonal]]
+        corner_b = grid[ys[1:][diagonal], xs[:-1][diagonal]]
+        corners = np.concatenate([corner_a, corner_b])
+        if not np.where(corners < 0, not options.unknown_is_obstacle, corners < options.lethal_threshold).all():
+            return "path cuts an obstacle's corner"
+    length = float(np.count_nonzero(~diagonal) + _SQRT2 * np.count_nonzero(diagonal))
+    if not math.isfinite(reply.cost_cells) or abs(reply.cost_cells - length) > 1e-6 * max(1.0, length):
+        return f"cost {reply.cost_cells!r} cells is not the path's length {length:.6g}"
+    return ""
 
 
 def main(argv=None) -> int:
@@ -218,7 +289,7 @@ def main(argv=None) -> int:
     try:
         client = CloudClient(args.endpoint, keys_dir=args.keys_dir, insecure=args.insecure,
                              timeout_s=args.timeout, retries=0)
-    except (OSError, ValueError, zmq.ZMQError) as error:
+    except (OSError, ValueError, zmq.ZMQError) as error:   # KeyFileError names the file
         print(f"error: {error}", file=sys.stderr)
         return 2
     with client:

@@ -6,31 +6,116 @@ A ROUTER frontend faces the robots. The broker thread answers pings itself and h
 N worker threads over an inproc ROUTER, one request per idle worker, with a bounded queue in between,
 so a slow plan never delays a ping and memory stays bounded. Workers share a bounded LRU map cache
 keyed by content hash. The planner releases the GIL, so workers plan in parallel.
+
+The broker also guards each connection (libzmq buffers a multipart message whole, however many frames,
+before the application sees any of it, and has no option to bound the frame count): it watches every
+TCP connection's received byte count and cuts a connection that has received more than the
+per-connection bound since its last delivered message. It drops queued requests of clients that
+disconnected (a Lazy Pirate client that gave up), uploads a map only once when many robots send it at
+the same time, and reloads the CURVE allowlist on SIGHUP.
 """
 import argparse
 import collections
 import logging
 import signal
+import socket as pysocket
+import struct
 import sys
 import threading
 import time
 from dataclasses import dataclass
-from typing import Optional
+from typing import Dict, List, Optional
 
 import numpy as np
 import zmq
 import zmq.auth
 import zmq.auth.thread
+from zmq.utils import z85
+from zmq.utils.monitor import parse_monitor_message
 
 from offload_planner_cpp import PlanStatus, plan_raw
 from offload_planner_cpp.cloud import protocol
-from offload_planner_cpp.cloud.keys import load_server_keys
+from offload_planner_cpp.cloud.keys import load_allowlist, load_server_keys
 from offload_planner_cpp.cloud.map_cache import MapCache
 from offload_planner_cpp.cloud.protocol import Kind, ProtocolError, Reply, Status
 
 LOG = logging.getLogger("offload_planner_cpp.cloud.server")
 _READY = b"READY"
-_BACKEND_POLL_MS = 100   # how often the broker and workers look at the stop flag
+_BACKEND_POLL_MS = 25    # how often the broker and workers look at the stop flag and the connection guard
+_GUARD_SLACK_BYTES = 1 << 20   # handshake, ZMTP and CURVE framing on top of the messages themselves
+_TCP_INFO_BYTES_RECEIVED = 128   # offset of tcpi_bytes_received (u64) in Linux's struct tcp_info (>= 4.1)
+_MONITORED = (zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
+              | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
+
+
+class RateLimitedLog:
+    """Logs a line at most once per `period_s` for each key, then says how many were suppressed: a flood
+    of BUSY replies or refused handshakes must not flood the log."""
+
+    def __init__(self, logger: logging.Logger, period_s: float = 5.0):
+        self.logger = logger
+        self.period_s = period_s
+        self._last = {}          # key -> (time logged, suppressed since)
+        self._lock = threading.Lock()
+
+    def log(self, level: int, key, message: str, *args) -> None:
+        now = time.monotonic()
+        with self._lock:
+            logged_at, suppressed = self._last.get(key, (None, 0))
+            if logged_at is not None and now - logged_at < self.period_s:
+                self._last[key] = (logged_at, suppressed + 1)
+                return
+            self._last[key] = (now, 0)
+            if len(self._last) > 1024:   # keys are few in practice; never let them grow without bound
+                self._last.clear()
+        if suppressed:
+            message += f" ({suppressed} similar lines suppressed in the last {self.period_s:g} s)"
+        self.logger.log(level, message, *args)
+
+
+class _Authenticator(zmq.auth.thread.ThreadAuthenticator):
+    """ZAP handler with an allowlist the server can replace at any time (SIGHUP), logging refused
+    handshakes at WARNING with the peer address, rate limited."""
+
+    def __init__(self, context: zmq.Context, allowlist, refusals: RateLimitedLog):
+        super().__init__(context, log=LOG)
+        self.allowlist = allowlist     # frozenset of Z85 public keys; replaced whole, never mutated
+        self._refusals = refusals
+        self._address = "?"
+
+    async def handle_zap_message(self, msg):
+        self._address = msg[3].decode("utf-8", "replace") if len(msg) > 3 else "?"
+        await super().handle_zap_message(msg)
+
+    async def _authenticate_curve(self, domain, client_key):
+        key = z85.encode(client_key)
+        if key in self.allowlist:
+            return True, b"OK"
+        self._refusals.log(logging.WARNING, ("refused", self._address),
+                           "refused a CURVE handshake from %s: client key %s is not on the allowlist",
+                           self._address, key.decode())
+        return False, b"Unknown key"
+
+
+def tcp_bytes_received(fd: int) -> Optional[int]:
+    """Bytes the kernel has received on a TCP socket (what libzmq may have buffered, and more), or None."""
+    try:
+        with pysocket.fromfd(fd, pysocket.AF_INET, pysocket.SOCK_STREAM) as sock:
+            info = sock.getsockopt(pysocket.IPPROTO_TCP, pysocket.TCP_INFO, 256)
+    except OSError:
+        return None
+    if len(info) < _TCP_INFO_BYTES_RECEIVED + 8:
+        return None
+    return struct.unpack_from("<Q", info, _TCP_INFO_BYTES_RECEIVED)[0]
+
+
+def cut_connection(fd: int) -> None:
+    """Shuts a TCP connection libzmq owns; libzmq sees the end, closes it and frees its half-received message."""
+    try:
+        with pysocket.fromfd(fd, pysocket.AF_INET, pysocket.SOCK_STREAM) as sock:
+            sock.shutdown(pysocket.SHUT_RDWR)
+    except OSError:
+        pass
 
 
 @dataclass
@@ -39,11 +124,31 @@ class ServerConfig:
     workers: int = 2
     keys_dir: Optional[str] = None        # CURVE keys and client allowlist; required unless insecure
     insecure: bool = False                # plaintext, no client authentication
-    cache_bytes: int = 1 << 30            # map cache memory cap
+    cache_bytes: int = 1 << 30            # map cache memory cap (cells + ENTRY_OVERHEAD_BYTES per map)
     max_message_bytes: int = 64 << 20     # larger messages (or frames) are refused
     max_queued: int = 64                  # plan requests waiting for a worker; more get BUSY
     max_queued_bytes: int = 256 << 20     # and their bytes: a request that would exceed it gets BUSY
     max_frames: int = 8                   # more frames than any valid message: dropped unread
+    max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
+
+
+@dataclass
+class _Request:
+    frames: list                          # route + payload
+    nbytes: int                           # payload bytes, counted in queued_bytes while waiting
+    fd: Optional[int]                     # the connection it came on (dropped when that closes)
+    request_id: int
+    route_frames: int
+    arrived: float                        # time.monotonic() when the broker admitted it
+    uploads: Optional[bytes] = None       # hash of the map it carries and is the one to store
+    carries_map: bool = False             # a plan with its map attached
+
+
+@dataclass
+class _Connection:
+    baseline: int                         # bytes received when its last message was delivered
+    address: str = "?"
+    user: Optional[bytes] = None          # CURVE client key (Z85) once a message came
 
 
 class CloudServer:
@@ -54,20 +159,34 @@ class CloudServer:
             raise ValueError("a keys dir is required unless --insecure is given")
         if config.workers < 1:
             raise ValueError("at least one worker is needed")
+        if config.max_message_bytes < 1 or config.cache_bytes < 0:
+            raise ValueError("the max message size must be >= 1 byte and the cache cap >= 0")
+        if not 0 < config.max_wait_s <= 3600:
+            raise ValueError(f"the max wait must be in (0, 3600] s, got {config.max_wait_s}")
         if config.max_queued < 1 or config.max_queued_bytes < config.max_message_bytes:
             raise ValueError("max queued must be >= 1 and the queued bytes budget at least the max message size")
         self.config = config
         self.cache = MapCache(config.cache_bytes)
         self.max_cells = config.max_message_bytes   # one byte per int8 cell
+        # Bytes a connection may receive beyond its last delivered message: the unread messages libzmq
+        # may hold for it (receive HWM), one more being received, and framing.
+        self.connection_limit_bytes = (self.receive_hwm(config) + 1) * config.max_message_bytes + _GUARD_SLACK_BYTES
         self._stop = threading.Event()
+        self._reload = threading.Event()
         self._ready = threading.Event()
         self._context = zmq.Context()
         self._auth = None
+        self._allowlist_dir = None
         self._backend_address = f"inproc://workers-{id(self)}"
-        self.queued_bytes = 0   # bytes of the requests waiting for a worker (broker thread only)
+        self._log_limited = RateLimitedLog(LOG)
+        self.queued_bytes = 0   # bytes of the requests waiting for a worker or parked (broker thread only)
+        self.connections_cut = 0        # by the connection guard (for tests)
+        self.abandoned_dropped = 0      # queued requests dropped because their client went away
+        self.service_s = 0.0            # moving average of a worker's time per request (broker thread only)
         self.endpoint = None
         self._thread = None
         self._frontend = self._bind_frontend()
+        self._monitor = self._frontend.get_monitor_socket(_MONITORED)
 
     def _bind_frontend(self) -> zmq.Socket:
         config = self.config
@@ -78,18 +197,19 @@ class CloudServer:
         # memory: at most the queued bytes budget's worth of maximum-size messages, and 2 x max_queued.
         frontend.rcvhwm = self.receive_hwm(config)
         frontend.router_mandatory = False
-        if config.insecure:
-            LOG.warning("running INSECURE: plaintext and no client authentication (--insecure)")
-        else:
-            public, secret, allowlist = load_server_keys(config.keys_dir)
-            self._auth = zmq.auth.thread.ThreadAuthenticator(self._context, log=LOG)
-            self._auth.start()
-            self._auth.configure_curve(domain="*", location=str(allowlist))
-            frontend.curve_secretkey = secret
-            frontend.curve_publickey = public
-            frontend.curve_server = True
-            LOG.info("CURVE on; client allowlist %s (%d keys)", allowlist, len(list(allowlist.glob("*.key"))))
         try:
+            if config.insecure:
+                LOG.warning("running INSECURE: plaintext and no client authentication (--insecure)")
+            else:
+                public, secret, allowlist_dir = load_server_keys(config.keys_dir)
+                allowlist = load_allowlist(allowlist_dir)
+                self._allowlist_dir = allowlist_dir
+                self._auth = _Authenticator(self._context, allowlist, self._log_limited)
+                self._auth.start()
+                frontend.curve_secretkey = secret
+                frontend.curve_publickey = public
+                frontend.curve_server = True
+                LOG.info("CURVE on; client allowlist %s (%d keys; SIGHUP reloads it)", allowlist_dir, len(allowlist))
             if config.bind.endswith(":0"):
                 host = config.bind.rsplit(":", 1)[0]
                 port = frontend.bind_to_random_port(host)
@@ -97,7 +217,7 @@ class CloudServer:
             else:
                 frontend.bind(config.bind)
                 self.endpoint = frontend.last_endpoint.decode()
-        except zmq.ZMQError:
+        except BaseException:
             frontend.close(0)
             self._close_context()
             raise
@@ -122,6 +242,10 @@ class CloudServer:
         if self._thread is not None and threading.current_thread() is not self._thread:
             self._thread.join(timeout_s)
 
+    def reload_allowlist(self) -> None:
+        """Asks the broker to re-read the allowlist directory (safe in a signal handler: SIGHUP)."""
+        self._reload.set()
+
     def run(self) -> None:
         backend = self._context.socket(zmq.ROUTER)
         backend.linger = 0
@@ -131,8 +255,9 @@ class CloudServer:
         for worker in workers:
             worker.start()
         LOG.info("serving on %s with %d workers, map cache %d MiB, max message %d MiB, queue %d requests / "
-                 "%d MiB", self.endpoint, self.config.workers, self.config.cache_bytes >> 20,
-                 self.config.max_message_bytes >> 20, self.config.max_queued, self.config.max_queued_bytes >> 20)
+                 "%d MiB, per-connection bound %d MiB", self.endpoint, self.config.workers,
+                 self.config.cache_bytes >> 20, self.config.max_message_bytes >> 20, self.config.max_queued,
+                 self.config.max_queued_bytes >> 20, self.connection_limit_bytes >> 20)
         try:
             self._broker(self._frontend, backend)
         finally:
@@ -140,6 +265,11 @@ class CloudServer:
             for worker in workers:
                 worker.join(5.0)
             backend.close(0)
+            try:
+                self._frontend.disable_monitor()
+            except zmq.ZMQError:
+                pass
+            self._monitor.close(0)
             self._frontend.close(0)
             self._close_context()
             LOG.info("stopped; cache hits %d, misses %d, evictions %d", self.cache.hits, self.cache.misses,
@@ -151,38 +281,190 @@ class CloudServer:
             self._auth = None
         self._context.term()
 
+    def _do_reload(self, connections: Dict[int, _Connection]) -> None:
+        if self._auth is None:
+            LOG.warning("SIGHUP: no allowlist to reload (--insecure)")
+            return
+        try:
+            allowlist = load_allowlist(self._allowlist_dir)
+        except (OSError, ValueError) as error:
+            LOG.error("allowlist NOT reloaded, keeping the previous %d keys: %s", len(self._auth.allowlist), error)
+            return
+        old, self._auth.allowlist = self._auth.allowlist, allowlist
+        LOG.warning("allowlist reloaded from %s: %d keys (%d admitted, %d revoked)", self._allowlist_dir,
+                    len(allowlist), len(allowlist - old), len(old - allowlist))
+        for fd, connection in list(connections.items()):   # revoked robots lose their open connections too
+            if connection.user is not None and connection.user not in allowlist:
+                LOG.warning("closing the connection of revoked client key %s from %s", connection.user.decode(),
+                            connection.address)
+                cut_connection(fd)
+
     # -- broker --------------------------------------------------------------------------------------
 
     def _broker(self, frontend: zmq.Socket, backend: zmq.Socket) -> None:
-        idle = collections.deque()     # worker identities waiting for a request
-        queued = collections.deque()   # (route + payload frames, payload bytes) waiting for a worker
+        idle = collections.deque()      # worker identities waiting for a request
+        queued = collections.deque()    # _Request waiting for a worker
+        parked = {}                     # map hash -> [_Request] waiting for the one upload of that map
+        in_flight = {}                  # worker identity -> _Request being planned
+        connections = {}                # fd -> _Connection
+        state = (queued, parked, connections)
         poller = zmq.Poller()
+        poller.register(self._monitor, zmq.POLLIN)
         poller.register(frontend, zmq.POLLIN)
         poller.register(backend, zmq.POLLIN)
+        guard = self.config.bind.startswith("tcp://")
+        checked_at = time.monotonic()
         self._ready.set()
         while not self._stop.is_set():
             events = dict(poller.poll(_BACKEND_POLL_MS))
+            if self._reload.is_set():
+                self._reload.clear()
+                self._do_reload(connections)
+            while self._monitor.poll(0):   # first: a request of a closed connection must not be queued
+                self._on_monitor(parse_monitor_message(self._monitor.recv_multipart()), state)
             if backend in events:
                 frames = backend.recv_multipart(copy=False)
                 worker, rest = frames[0].bytes, frames[1:]
                 if len(rest) > 1:        # a reply: route frames, then the reply itself
                     self._send(frontend, rest)
+                done, dispatched_at = in_flight.pop(worker, (None, 0.0))
+                if done is not None:
+                    self.service_s = 0.7 * self.service_s + 0.3 * (time.monotonic() - dispatched_at)
+                    if done.uploads is not None:
+                        self._release(done.uploads, state)
                 idle.append(worker)
             if frontend in events:
                 frames = frontend.recv_multipart(copy=False)
                 try:
-                    self._on_frontend(frontend, frames, queued)
+                    self._on_frontend(frontend, frames, state)
                 except Exception:   # a bug must cost one message, never the server
                     LOG.exception("message dropped")
             while idle and queued:
-                frames, nbytes = queued.popleft()
-                self.queued_bytes -= nbytes
-                backend.send_multipart([idle.popleft(), *frames], copy=False)
+                request = queued.popleft()
+                self.queued_bytes -= request.nbytes
+                now = time.monotonic()
+                if now - request.arrived > self.config.max_wait_s:
+                    # Its client has (nearly) given up: a quick BUSY lets it plan locally now, and the
+                    # worker goes to a request that can still be answered in time.
+                    self._refuse(frontend, request.frames[:request.route_frames], request.request_id,
+                                 ProtocolError(Status.BUSY, f"waited {now - request.arrived:.2f} s for a worker, "
+                                                            f"over --max-wait-s {self.config.max_wait_s:g}"))
+                    if request.uploads is not None:
+                        self._release(request.uploads, state)
+                    continue
+                worker = idle.popleft()
+                in_flight[worker] = (request, now)
+                backend.send_multipart([worker, *request.frames], copy=False)
+            now = time.monotonic()
+            if guard and now - checked_at >= _BACKEND_POLL_MS / 1e3:
+                checked_at = now
+                self._guard(connections)
 
-    def _on_frontend(self, frontend: zmq.Socket, frames, queued) -> None:
+    def _guard(self, connections: Dict[int, _Connection]) -> None:
+        """Cuts every connection that received more than connection_limit_bytes since its last delivered
+        message: a message of many frames that libzmq would otherwise buffer whole."""
+        for fd, connection in list(connections.items()):
+            received = tcp_bytes_received(fd)
+            if received is None or received - connection.baseline <= self.connection_limit_bytes:
+                continue
+            LOG.warning("cut the connection from %s: %d bytes received without a complete message (bound %d "
+                        "bytes: a message of too many frames)", connection.address, received - connection.baseline,
+                        self.connection_limit_bytes)
+            self.connections_cut += 1
+            del connections[fd]
+            cut_connection(fd)
+
+    def _on_monitor(self, event: dict, state) -> None:
+        queued, parked, connections = state
+        kind, fd = event["event"], event["value"]
+        if kind == zmq.EVENT_ACCEPTED:
+            address = "?"
+            try:
+                with pysocket.fromfd(fd, pysocket.AF_INET, pysocket.SOCK_STREAM) as sock:
+                    host, port = sock.getpeername()[:2]
+                    address = f"{host}:{port}"
+            except OSError:
+                pass
+            connections[fd] = _Connection(tcp_bytes_received(fd) or 0, address)
+        elif kind in (zmq.EVENT_DISCONNECTED, zmq.EVENT_CLOSED):
+            connections.pop(fd, None)
+            self._drop_requests_of(fd, state)
+        else:
+            self._log_limited.log(logging.WARNING, ("handshake", kind),
+                                  "refused a connection: handshake failed (%s, code %s): a plaintext client, wrong "
+                                  "server key or not a ZeroMQ peer", zmq.Event(kind).name, fd)
+
+    def _drop_requests_of(self, fd: int, state) -> None:
+        """Forgets the waiting requests of a connection that closed: its client gave up (Lazy Pirate closes
+        the socket after a timeout and resends on a new one), so planning them would be wasted work."""
+        queued, parked, _ = state
+        dropped = [request for request in queued if request.fd == fd]
+        if not dropped and not any(request.fd == fd for waiting in parked.values() for request in waiting):
+            return
+        queued_kept = [request for request in queued if request.fd != fd]
+        queued.clear()
+        queued.extend(queued_kept)
+        for map_hash in list(parked):
+            kept = [request for request in parked[map_hash] if request.fd != fd]
+            dropped += [request for request in parked[map_hash] if request.fd == fd]
+            parked[map_hash] = kept
+        for request in dropped:
+            self.queued_bytes -= request.nbytes
+        self.abandoned_dropped += len(dropped)
+        LOG.info("dropped %d waiting requests of a closed connection", len(dropped))
+        for request in dropped:
+            if request.uploads is not None:   # the carrier of a map is gone: the next waiting one carries it
+                self._release(request.uploads, state)
+
+    def _release(self, map_hash: bytes, state) -> None:
+        """The upload of `map_hash` finished or was dropped: requests parked behind it go to the front of
+        the queue, without their copy of the map when it is cached now, else the first one carries it."""
+        queued, parked, _ = state
+        waiting = parked.pop(map_hash, [])
+        if not waiting:
+            return
+        if map_hash in self.cache:
+            for request in waiting:
+                if request.carries_map:
+                    self._strip_map(request)
+        else:
+            # The next request that carries the map uploads it; plans that carry only the hash go ahead
+            # and get MAP_UNKNOWN (their client uploads); the rest keep waiting for the new carrier.
+            carrier = next((request for request in waiting if request.carries_map), None)
+            if carrier is not None:
+                carrier.uploads = map_hash
+                parked[map_hash] = [request for request in waiting if request.carries_map and request is not carrier]
+            waiting = [request for request in waiting if request is carrier or not request.carries_map]
+        queued.extendleft(reversed(waiting))
+
+    def _strip_map(self, request: _Request) -> None:
+        """Turns a plan that carries a map the cache holds into a plan on the cached map."""
+        route_frames = len(request.frames) - 4
+        kept = request.frames[:route_frames + 2]
+        nbytes = sum(len(frame) for frame in kept[route_frames:])
+        self.queued_bytes -= request.nbytes - nbytes
+        request.frames, request.nbytes, request.uploads, request.carries_map = kept, nbytes, None, False
+
+    def _on_frontend(self, frontend: zmq.Socket, frames, state) -> None:
+        queued, parked, connections = state
         # [identity, (empty delimiter if the client is a REQ socket), envelope, body...]
+        fd = _source_fd(frames[-1])
+        connection = connections.get(fd) if fd is not None else None
+        if connection is not None:
+            connection.baseline = tcp_bytes_received(fd) or connection.baseline
+        if self._auth is not None:
+            user = _user_of(frames[-1])
+            if connection is not None:
+                connection.user = user
+            if user is None or user not in self._auth.allowlist:   # revoked since its handshake
+                self._log_limited.log(logging.WARNING, ("revoked", user),
+                                      "dropped a message from revoked client key %s", (user or b"?").decode())
+                if fd is not None:
+                    connections.pop(fd, None)
+                    cut_connection(fd)
+                return
         if len(frames) > self.config.max_frames + 2:
-            LOG.warning("dropped a message of %d frames", len(frames))
+            self._log_limited.log(logging.WARNING, "frames", "dropped a message of %d frames", len(frames))
             return
         split = 2 if len(frames) > 2 and len(frames[1]) == 0 else 1
         route, payload = frames[:split], frames[split:]
@@ -200,15 +482,37 @@ class CloudServer:
             if total > self.config.max_message_bytes:
                 raise ProtocolError(Status.TOO_LARGE, f"message of {total} bytes exceeds "
                                                       f"{self.config.max_message_bytes}")
-            if len(queued) >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
-                raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {len(queued)} "
+            waiting = len(queued) + sum(len(requests) for requests in parked.values())
+            if waiting >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
+                raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {waiting} "
                                                  f"requests ({self.queued_bytes} bytes) queued")
+            expected_wait_s = waiting * self.service_s / self.config.workers
+            if expected_wait_s > self.config.max_wait_s:
+                raise ProtocolError(Status.BUSY, f"{waiting} requests queued, about {expected_wait_s:.2f} s of "
+                                                 f"work: over --max-wait-s {self.config.max_wait_s:g}")
         except ProtocolError as error:
-            LOG.warning("request %d refused: %s: %s", request_id, error.status.name, error)
-            self._send(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))))
+            self._refuse(frontend, route, request_id, error)
             return
-        queued.append((route + payload, total))
+        request = _Request(route + payload, total, fd, request_id, len(route), time.monotonic())
         self.queued_bytes += total
+        wanted = _plan_hash(kind, payload)
+        if wanted is not None:
+            request.carries_map = len(payload) == 4
+            if wanted in self.cache:         # cached already: plan on the cached map, skip any upload
+                if request.carries_map:
+                    self._strip_map(request)
+            elif wanted in parked:           # being uploaded by another request: wait for that one
+                parked[wanted].append(request)
+                return
+            elif request.carries_map:        # the one upload of this map
+                request.uploads = wanted
+                parked[wanted] = []
+        queued.append(request)
+
+    def _refuse(self, frontend: zmq.Socket, route, request_id: int, error: ProtocolError) -> None:
+        self._log_limited.log(logging.WARNING, ("refused", error.status),
+                              "request %d refused: %s: %s", request_id, error.status.name, error)
+        self._send(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))))
 
     @staticmethod
     def _send(socket: zmq.Socket, frames) -> None:
@@ -247,7 +551,8 @@ class CloudServer:
                 return protocol.encode_reply(self._upload(request_id, payload[1:]))
             return protocol.encode_reply(self._plan(request_id, payload[1:], started))
         except ProtocolError as error:
-            LOG.warning("request %d: %s: %s", request_id, error.status.name, error)
+            self._log_limited.log(logging.WARNING, ("request", error.status), "request %d: %s: %s", request_id,
+                                  error.status.name, error)
             return protocol.encode_reply(Reply(request_id, error.status, str(error)))
         except Exception as error:   # a bug must cost one reply, never the server
             LOG.exception("request %d failed", request_id)
@@ -302,20 +607,83 @@ def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: prot
                 "goal": request.goal, "expansions": 0, "seconds": 0.0, "cost": 0.0}
 
 
+def _source_fd(frame) -> Optional[int]:
+    try:
+        return frame.get(zmq.SRCFD)
+    except (zmq.ZMQError, AttributeError):
+        return None
+
+
+def _user_of(frame) -> Optional[bytes]:
+    """The CURVE client key (Z85) libzmq attached to a message after its handshake."""
+    try:
+        user = frame.get("User-Id")
+    except (zmq.ZMQError, AttributeError):
+        return None
+    return user.encode() if isinstance(user, str) else user
+
+
+def _plan_hash(kind: Kind, payload) -> Optional[bytes]:
+    """The map hash a plan names (for one that carries its map, the worker checks the claim), else None."""
+    if kind != Kind.PLAN or len(payload) not in (2, 4) or len(payload[1]) != protocol.PLAN_BODY.size:
+        return None
+    return bytes(payload[1].buffer[:protocol.HASH_SIZE])
+
+
+def _bounded_int(name: str, low: int, high: int):
+    def parse(text: str) -> int:
+        try:
+            value = int(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {text!r}") from None
+        if not low <= value <= high:
+            raise argparse.ArgumentTypeError(f"{name} must be in {low}..{high}, got {value}")
+        return value
+    return parse
+
+
+def _bounded_seconds(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
+    if not 0 < value <= 3600:   # also refuses NaN
+        raise argparse.ArgumentTypeError(f"--max-wait-s must be in (0, 3600], got {text!r}")
+    return value
+
+
+def _endpoint(text: str) -> str:
+    """tcp://HOST:PORT with PORT 0..65535 (0: a free one), or ipc:// / inproc://."""
+    if text.startswith(("ipc://", "inproc://")):
+        return text
+    host, _, port = text[len("tcp://"):].rpartition(":") if text.startswith("tcp://") else ("", "", "")
+    if not host or not port.isdigit() or not 0 <= int(port) <= 65535:
+        raise argparse.ArgumentTypeError(f"endpoint must be tcp://HOST:PORT with a port in 0..65535, got {text!r}")
+    return text
+
+
 def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description="Cloud path planner (ROS-free).")
-    parser.add_argument("--bind", default="tcp://0.0.0.0:5555",
+    parser.add_argument("--bind", type=_endpoint, default="tcp://0.0.0.0:5555",
                         help="ZeroMQ endpoint to listen on; port 0 picks a free one (default tcp://0.0.0.0:5555)")
-    parser.add_argument("--workers", type=int, default=2, help="planner threads (default 2)")
+    parser.add_argument("--workers", type=_bounded_int("--workers", 1, 256), default=2, help="planner threads (default 2)")
     parser.add_argument("--keys-dir", help="server keys dir from offload_planner_cpp.cloud.keys (server.key_secret, clients/)")
     parser.add_argument("--insecure", action="store_true", help="plaintext, no client allowlist (tests, trusted LAN)")
-    parser.add_argument("--cache-mib", type=int, default=1024, help="map cache memory cap in MiB (default 1024)")
-    parser.add_argument("--max-message-mib", type=int, default=64, help="largest accepted message in MiB (default 64)")
-    parser.add_argument("--max-queued", type=int, default=64, help="requests waiting for a worker before BUSY (64)")
-    parser.add_argument("--max-queued-mib", type=int, default=256,
+    parser.add_argument("--cache-mib", type=_bounded_int("--cache-mib", 0, 1 << 20), default=1024,
+                        help="map cache memory cap in MiB, cells plus 1 KiB per map (default 1024)")
+    parser.add_argument("--max-message-mib", type=_bounded_int("--max-message-mib", 1, 4096), default=64, help="largest accepted message in MiB (default 64)")
+    parser.add_argument("--max-queued", type=_bounded_int("--max-queued", 1, 1 << 20), default=64, help="requests waiting for a worker before BUSY (64)")
+    parser.add_argument("--max-queued-mib", type=_bounded_int("--max-queued-mib", 1, 1 << 20), default=256,
                         help="bytes of the requests waiting for a worker, in MiB, before BUSY (default 256)")
-    parser.add_argument("--log-level", default="INFO", help="DEBUG, INFO, WARNING or ERROR (default INFO)")
-    return parser.parse_args(argv)
+    parser.add_argument("--max-wait-s", type=_bounded_seconds, default=1.0,
+                        help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
+                             "keep it under the robots' per-attempt timeout")
+    parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
+                        help="DEBUG, INFO, WARNING or ERROR (default INFO)")
+    args = parser.parse_args(argv)
+    if args.max_queued_mib < args.max_message_mib:
+        parser.error(f"--max-queued-mib ({args.max_queued_mib}) must be >= --max-message-mib ({args.max_message_mib})")
+    return args
 
 
 def main(argv=None) -> int:
@@ -326,15 +694,20 @@ def main(argv=None) -> int:
         return 2
     config = ServerConfig(bind=args.bind, workers=args.workers, keys_dir=args.keys_dir, insecure=args.insecure,
                           cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
-                          max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20)
+                          max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
+                          max_wait_s=args.max_wait_s)
     try:
         server = CloudServer(config)
     except (OSError, ValueError, zmq.ZMQError) as error:
         LOG.error("cannot start: %s", error)
         return 2
+    except Exception as error:   # never a traceback for bad keys or settings: one line naming the cause
+        LOG.error("cannot start: %s: %s", type(error).__name__, error)
+        return 2
     # The handlers only set the stop flag; the broker notices within one poll period and exits cleanly.
     for signum in (signal.SIGINT, signal.SIGTERM):
         signal.signal(signum, lambda *_: server.stop())
+    signal.signal(signal.SIGHUP, lambda *_: server.reload_allowlist())   # as sshd and nginx: re-read keys
     print(f"listening on {server.endpoint}", flush=True)
     server.run()
     return 0

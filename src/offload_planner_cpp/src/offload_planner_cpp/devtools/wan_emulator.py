@@ -13,6 +13,7 @@ import argparse
 import asyncio
 import bisect
 import logging
+import math
 import random
 import signal
 import sys
@@ -40,6 +41,18 @@ class LinkModel:
     seed: Optional[int] = None
 
     def __post_init__(self):
+        for name in ("rtt_s", "jitter_s", "bandwidth_bps", "retransmission_s"):
+            value = getattr(self, name)
+            if not math.isfinite(value) or value < 0:
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not 0.0 <= self.loss <= 1.0:   # also refuses NaN
+            raise ValueError(f"loss must be a share in 0..1, got {self.loss!r}")
+        for start, duration in self.outages:
+            if not (math.isfinite(start) and math.isfinite(duration) and start >= 0 and duration > 0):
+                raise ValueError(f"an outage needs a finite start >= 0 s and duration > 0 s, got {start!r}:{duration!r}")
+        for time_s, rtt_s in self.trace:
+            if not (math.isfinite(time_s) and math.isfinite(rtt_s) and time_s >= 0 and rtt_s >= 0):
+                raise ValueError(f"a trace sample needs finite time and round trip >= 0, got {time_s!r} {rtt_s!r}")
         self.trace = sorted(self.trace)
         self._trace_times = [t for t, _ in self.trace]
         self._random = random.Random(self.seed)
@@ -87,8 +100,8 @@ class _Direction:
 
 def parse_endpoint(endpoint: str) -> Tuple[str, int]:
     host, _, port = endpoint.replace("tcp://", "").rpartition(":")
-    if not host or not port.isdigit():
-        raise ValueError(f"endpoint must be tcp://HOST:PORT, got {endpoint!r}")
+    if not host or not port.isdigit() or int(port) > 65535:
+        raise ValueError(f"endpoint must be tcp://HOST:PORT with a port in 0..65535, got {endpoint!r}")
     return host, int(port)
 
 
@@ -121,6 +134,7 @@ class WanEmulator:
         self._stopped = None
         self._thread = None
         self._ready = threading.Event()
+        self._failure: Optional[BaseException] = None   # why run() could not serve (e.g. port taken)
         self._writers = set()
         # TCP payload bytes forwarded client->server and server->client (the benchmark's bytes on the wire).
         self.bytes_up = 0
@@ -135,6 +149,8 @@ class WanEmulator:
         self._thread.start()
         if not self._ready.wait(10.0):
             raise RuntimeError("WAN emulator did not start")
+        if self._failure is not None:
+            raise self._failure
         return self.endpoint
 
     def stop(self) -> None:
@@ -144,7 +160,11 @@ class WanEmulator:
             self._thread.join(10.0)
 
     def run(self) -> None:
-        asyncio.run(self._serve())
+        try:
+            asyncio.run(self._serve())
+        except OSError as error:   # the listen port is taken or not ours: start() reports it at once
+            self._failure = OSError(error.errno, f"cannot listen on {self.endpoint}: {error.strerror}")
+            self._ready.set()
 
     async def _serve(self) -> None:
         self._loop = asyncio.get_running_loop()
@@ -240,19 +260,39 @@ class WanEmulator:
 def parse_outage(text: str) -> Tuple[float, float]:
     start, _, duration = text.partition(":")
     try:
-        return float(start), float(duration)
+        start_s, duration_s = float(start), float(duration)
     except ValueError:
         raise argparse.ArgumentTypeError(f"outage must be START_S:DURATION_S, got {text!r}") from None
+    if not (math.isfinite(start_s) and math.isfinite(duration_s) and start_s >= 0 and duration_s > 0):
+        raise argparse.ArgumentTypeError(f"outage needs a finite START_S >= 0 and DURATION_S > 0, got {text!r}")
+    return start_s, duration_s
+
+
+def _non_negative(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
+    if not math.isfinite(value) or value < 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
+    return value
+
+
+def _share(text: str) -> float:
+    value = _non_negative(text)
+    if value > 1:
+        raise argparse.ArgumentTypeError(f"expected a share in 0..1, got {text!r}")
+    return value
 
 
 def main(argv: Sequence[str] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--listen", default="tcp://127.0.0.1:6000", help="where the bridge connects")
     parser.add_argument("--upstream", required=True, help="the cloud server's endpoint")
-    parser.add_argument("--rtt-ms", type=float, default=0.0, help="base round trip added (ms)")
-    parser.add_argument("--jitter-ms", type=float, default=0.0, help="one-way delay spread, uniform (ms)")
-    parser.add_argument("--bandwidth-mbps", type=float, default=0.0, help="per direction, 0 unlimited (Mbit/s)")
-    parser.add_argument("--loss", type=float, default=0.0, help="share of chunks delayed by a 200 ms retransmission")
+    parser.add_argument("--rtt-ms", type=_non_negative, default=0.0, help="base round trip added (ms)")
+    parser.add_argument("--jitter-ms", type=_non_negative, default=0.0, help="one-way delay spread, uniform (ms)")
+    parser.add_argument("--bandwidth-mbps", type=_non_negative, default=0.0, help="per direction, 0 unlimited (Mbit/s)")
+    parser.add_argument("--loss", type=_share, default=0.0, help="share of chunks delayed by a 200 ms retransmission")
     parser.add_argument("--outage", type=parse_outage, action="append", default=[], metavar="START_S:DURATION_S",
                         help="stall the link for DURATION_S from START_S (repeatable)")
     parser.add_argument("--reset-on-outage", action="store_true", help="drop connections during outages instead")
@@ -267,10 +307,10 @@ def main(argv: Sequence[str] = None) -> int:
                          trace=read_trace(args.trace) if args.trace else [], loop_trace=args.loop_trace,
                          reset_on_outage=args.reset_on_outage, seed=args.seed)
         emulator = WanEmulator(args.listen, args.upstream, link)
+        emulator.start()
     except (OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
-    emulator.start()
     print(f"listening on {emulator.endpoint}", flush=True)
     stop = threading.Event()
     for signum in (signal.SIGINT, signal.SIGTERM):

@@ -3,6 +3,7 @@ offload_msgs/PlanPath service as the local planner node, so a caller can use eit
 import threading
 
 import rospy
+import zmq
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
@@ -164,7 +165,9 @@ def main():
         # None: the heartbeat thread waits for shutdown only.
         node = CloudBridgeNode(config, heartbeat_period_s if heartbeat_period_s > 0 else None,
                                rospy.get_param("~planner_name", "cloud"))
-    except (ValueError, OSError) as error:
+    except (ValueError, OSError, zmq.ZMQError) as error:
+        # One line naming the cause (a key file: KeyFileError names it), then exit: never a node that
+        # runs without a working link.
         rospy.logfatal("%s", error)
         raise SystemExit(1) from None
     rospy.spin()
