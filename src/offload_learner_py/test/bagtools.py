@@ -20,7 +20,7 @@ def make_requests(n, seed=0, probe_every=1, first_id=1000):
         local_s = 0.005 + 0.04 * d / u
         cloud_s = b + 0.01 * d + float(rng.uniform(0, 0.01))
         action = int(rng.integers(0, 2))
-        propensity = float(rng.choice([0.5, 0.95]))
+        propensity = 0.5   # actions are drawn uniformly
         probe = i % probe_every == 0
         requests.append(probe_request(first_id + i, d, u, b, local_s, cloud_s, action, propensity,
                                       reward(action, local_s, cloud_s), probe=probe,
