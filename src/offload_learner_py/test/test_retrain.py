@@ -107,3 +107,11 @@ def test_chronological_split_keeps_both_sides_non_empty():
     with pytest.raises(ValueError):
         retrain.chronological_split(10, 0.0)
     assert LOCAL != CLOUD
+
+
+def test_a_reward_logged_with_another_alpha_is_caught(run_bag):
+    from offload_learner_py.reward import CostWeights
+
+    table = bags.read_bags([run_bag]).transition_table()
+    assert retrain.logged_reward_mismatch(table, CostWeights()) < 1e-12
+    assert retrain.logged_reward_mismatch(table, CostWeights(0.7, 0.3)) > 0.01

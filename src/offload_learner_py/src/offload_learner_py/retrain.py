@@ -115,6 +115,14 @@ def _back_to_plain(fused, plain):
     return plain
 
 
+def logged_reward_mismatch(table: TransitionTable, weights: CostWeights) -> float:
+    """Largest difference between the rewards the robot logged and eq. 10 with `weights`: the bags
+    do not record alpha, so this is how a retraining with another alpha is caught."""
+    if len(table) == 0:
+        return 0.0
+    return float(np.max(np.abs(rewards(table.action, table.local_s, table.cloud_s, weights) - table.reward)))
+
+
 def greedy_actions(agent: DQNAgent, states: np.ndarray) -> np.ndarray:
     if len(states) == 0:
         return np.zeros(0, dtype=np.int64)
@@ -155,6 +163,10 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: int 
         raise ValueError(f"only {len(table)} requests with both latencies in the bags; retraining needs at least "
                          f"{MIN_ROWS} (record with a probe rate above 0)")
     os.makedirs(out_dir, exist_ok=True)
+    mismatch = logged_reward_mismatch(table, weights)
+    if mismatch > 1e-6:
+        print(f"warning: the logged rewards differ from eq. 10 with alpha {weights.alpha} by up to {mismatch:.3g}: "
+              f"the robot ran with another alpha (pass --alpha)", file=sys.stderr)
     cut = chronological_split(len(table), test_fraction)
     train, test = table.slice(0, cut), table.slice(cut, len(table))
     result = train_offline(train, config, gradient_steps, weights, taken_only, progress)
