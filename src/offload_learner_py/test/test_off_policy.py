@@ -41,6 +41,8 @@ def test_ips_and_dr_intervals_contain_the_true_mean_latency_where_the_naive_mean
         result = off_policy.evaluate_policy(steps, actions)
         assert result["latency_ips_s"].contains(truth), name
         assert result["latency_dr_s"].contains(truth), name
+        assert result["latency_snips_s"].contains(truth), name
+        assert 0 < result["effective_sample_size"] <= len(d)
         assert result["latency_dr_s"].std_error < result["latency_ips_s"].std_error, name
         # the naive estimate (mean of the logged latencies where the policy agrees) misses the truth
         agree = steps.action == actions
@@ -107,3 +109,11 @@ def test_cli_prints_estimates_and_fails_cleanly_on_nothing(tmp_path, capsys):
     empty.write_bytes(b"")
     assert off_policy.main([str(empty)]) == 2
     assert math.isnan(off_policy.wilson_interval(0, 0).value)
+
+
+def test_snips_and_effective_sample_size_by_hand():
+    pi = off_policy.target_probabilities(np.array([1, 1, 1]))
+    action, propensity, latency = np.array([1, 0, 1]), np.array([0.5, 0.5, 0.5]), np.array([1.0, 9.0, 3.0])
+    assert off_policy.snips(pi, action, propensity, latency).value == pytest.approx(2.0)   # (2*1 + 2*3) / 4
+    assert off_policy.ips(pi, action, propensity, latency).value == pytest.approx(8.0 / 3)
+    assert off_policy.effective_sample_size(pi, action, propensity) == pytest.approx(2.0)

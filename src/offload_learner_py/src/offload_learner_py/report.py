@@ -54,7 +54,7 @@ def _pct(value: float) -> str:
     return "n/a" if value is None or not math.isfinite(value) else f"{100 * value:.1f}"
 
 
-def _fit_pair(rows: TransitionTable, seed: int, gradient_steps: int, lstm_epochs: int) -> Dict[str, float]:
+def _fit_pair(rows: TransitionTable, seed: int, gradient_steps: Optional[int], lstm_epochs: int) -> Dict[str, float]:
     """DQN and LSTM fitted on the first 80 % of rows, accuracy on the last 20 %."""
     cut = chronological_split(len(rows), 0.2)
     train, test = rows.slice(0, cut), rows.slice(cut, len(rows))
@@ -65,7 +65,7 @@ def _fit_pair(rows: TransitionTable, seed: int, gradient_steps: int, lstm_epochs
 
 
 def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[str] = None, seed: int = 1,
-           gradient_steps: int = 2000, lstm_epochs: int = 60, workers: Optional[int] = None,
+           gradient_steps: Optional[int] = None, lstm_epochs: int = 60, workers: Optional[int] = None,
            data: Optional[BagData] = None, progress: bool = False) -> str:
     """Write the report for the bags (or already read `data`) into out_dir; returns report.md's path."""
     torch.set_num_threads(1)
@@ -89,8 +89,9 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
         agent = load_checkpoint(model)
         q_source = f"the checkpoint {model}"
     else:
-        agent = train_offline(table, DQNConfig(seed=seed), gradient_steps, progress=progress).agent
-        q_source = f"a DQN trained offline on all {len(table)} probe steps ({gradient_steps} gradient steps)"
+        fitted = train_offline(table, DQNConfig(seed=seed), gradient_steps, progress=progress)
+        agent = fitted.agent
+        q_source = f"a DQN trained offline on all {len(table)} probe steps ({len(fitted.losses)} gradient steps)"
     states = table.states
     offload_point = learned_offload_input_size(agent.q_values, states)
     threshold = learned_cpu_threshold(agent.q_values, states)
@@ -260,7 +261,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--model", help="checkpoint whose Q-function gives the offload point and threshold")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--steps", type=int, default=2000, help="gradient steps of each offline DQN fit")
+    parser.add_argument("--steps", type=int, default=None,
+                        help="gradient steps of each offline DQN fit (default: 50 passes over its transitions)")
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)

@@ -15,6 +15,7 @@ evaluation.md and read_report.json. The same bags, --seed and --steps give the s
 """
 import argparse
 import json
+import math
 import os
 import sys
 from dataclasses import dataclass
@@ -36,7 +37,7 @@ from offload_learner_py.off_policy import LoggedSteps, evaluate_policy, fit_late
 from offload_learner_py.replay import ReplayMemory
 from offload_learner_py.reward import CostWeights, rewards
 
-DEFAULT_GRADIENT_STEPS = 3000
+DEFAULT_EPOCHS = 50
 MIN_ROWS = 10
 
 
@@ -46,7 +47,15 @@ class OfflineResult:
     losses: np.ndarray       # one per gradient step
 
 
-def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: int = DEFAULT_GRADIENT_STEPS,
+def gradient_steps_for(rows: int, config: DQNConfig, epochs: float = DEFAULT_EPOCHS, taken_only: bool = False) -> int:
+    """Minibatch steps for `epochs` passes over the replay (two transitions per row unless taken_only).
+    A fixed count over-fits small bags: on a 400-request demo bag, 300 epochs lost 3-5 points of
+    held-out accuracy against 30-100."""
+    transitions = rows * (1 if taken_only else 2)
+    return max(1, int(math.ceil(epochs * transitions / config.batch_size)))
+
+
+def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: Optional[int] = None,
                   weights: CostWeights = CostWeights(), taken_only: bool = False,
                   progress: bool = False) -> OfflineResult:
     """The Q-network trained on a fixed table: the normalisation fitted on the training states and
@@ -55,6 +64,8 @@ def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: int
     warm-up, so a node that loads the checkpoint acts on it at once."""
     if len(train) == 0:
         raise ValueError("no training rows")
+    if gradient_steps is None:
+        gradient_steps = gradient_steps_for(len(train), config, taken_only=taken_only)
     agent = DQNAgent(config, StateNormalisation.fit(train.states, config.log_input_size))
     states = train.states
     next_states = np.concatenate([states[1:], states[-1:]])
@@ -154,7 +165,7 @@ def online_greedy(data: BagData) -> np.ndarray:
     return np.where(known, np.where(q_cloud > q_local, CLOUD, LOCAL), -1)
 
 
-def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: int = DEFAULT_GRADIENT_STEPS,
+def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Optional[int] = None,
             test_fraction: float = 0.2, baselines: bool = False, weights: CostWeights = CostWeights(),
             taken_only: bool = False, progress: bool = False) -> Dict:
     """Train, evaluate and write DIR; returns the evaluation."""
@@ -169,6 +180,8 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: int 
               f"the robot ran with another alpha (pass --alpha)", file=sys.stderr)
     cut = chronological_split(len(table), test_fraction)
     train, test = table.slice(0, cut), table.slice(cut, len(table))
+    if gradient_steps is None:
+        gradient_steps = gradient_steps_for(len(train), config, taken_only=taken_only)
     result = train_offline(train, config, gradient_steps, weights, taken_only, progress)
     agent = result.agent
     checkpoint = os.path.join(out_dir, "checkpoint.pt")
@@ -245,7 +258,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("bags", nargs="+", help="bag files, globs or directories (.bag, .bag.active)")
     parser.add_argument("--out", required=True, help="output directory")
     parser.add_argument("--seed", type=int, default=1)
-    parser.add_argument("--steps", type=int, default=DEFAULT_GRADIENT_STEPS, help="gradient steps")
+    parser.add_argument("--steps", type=int, default=None,
+                        help=f"gradient steps (default: {DEFAULT_EPOCHS} passes over the training transitions)")
     parser.add_argument("--test-fraction", type=float, default=0.2)
     parser.add_argument("--baselines", action="store_true", help="also fit and score every baseline policy")
     parser.add_argument("--taken-only", action="store_true", help="learn from the logged action only")
@@ -261,7 +275,7 @@ def main(argv: Optional[List[str]] = None) -> int:
             overrides["gamma"] = args.gamma
         config = DQNConfig.from_dict({"seed": args.seed, **overrides})
         weights = CostWeights(args.alpha, 1.0 - args.alpha)
-        if args.steps < 1:
+        if args.steps is not None and args.steps < 1:
             raise ValueError(f"--steps must be at least 1, got {args.steps}")
         chronological_split(2, args.test_fraction)
     except (ValueError, TypeError) as error:
