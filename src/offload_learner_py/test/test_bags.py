@@ -208,10 +208,10 @@ def test_damaged_files_get_an_error_naming_them_and_the_other_bags_still_read(tm
     empty = tmp_path / "empty.bag"
     empty.write_bytes(b"")
     missing = str(tmp_path / "missing.bag")
-    data = bags.read_bags([str(tmp_path / "*.bag"), missing], workers=2)
+    data = bags.read_bags([str(tmp_path / "*.bag"), missing, str(tmp_path / "nothing*.bag")], workers=2)
     reports = {os.path.basename(bag.path): bag for bag in data.report.bags}
     assert reports["good.bag"].ok and reports["good.bag"].requests == 40
-    for name in ("garbage.bag", "empty.bag", "missing.bag"):
+    for name in ("garbage.bag", "empty.bag", "missing.bag", "nothing*.bag"):
         assert not reports[name].ok and name in reports[name].error
     damaged = reports["flipped.bag"]
     # either refused with its name, or read with the damaged messages counted and dropped

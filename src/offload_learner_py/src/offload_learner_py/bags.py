@@ -160,7 +160,8 @@ def expand_bag_paths(arguments: Sequence[str]) -> List[str]:
             for root, _, names in os.walk(argument):
                 found += [os.path.join(root, name) for name in names if name.endswith(BAG_SUFFIXES)]
         elif glob.has_magic(argument):
-            found += [path for path in glob.glob(argument, recursive=True) if os.path.isfile(path)]
+            matches = [path for path in glob.glob(argument, recursive=True) if os.path.isfile(path)]
+            found += matches or [argument]   # a pattern that matches nothing is reported, not ignored
         else:
             found.append(argument)
     seen, result = set(), []
