@@ -54,6 +54,19 @@ def test_the_model_option_reads_the_offload_point_from_that_checkpoint(tmp_path)
     assert checkpoint in numbers["q_source"]
 
 
+def test_report_run_uses_the_run_directorys_bag_and_checkpoint(tmp_path):
+    run = tmp_path / "20260101-000000"
+    run.mkdir()
+    path = write(run / "offload.bag", make_requests(100, seed=5))
+    retrain.retrain(bags.read_bags([path]), str(tmp_path / "m"), DQNConfig(seed=1), gradient_steps=20)
+    os.replace(tmp_path / "m" / "checkpoint.pt", run / "checkpoint.pt")
+    os.replace(path, str(run / "offload.bag.active"))   # the recorder was stopped before closing it
+    md = report.report_run(str(run), gradient_steps=20, lstm_epochs=1)
+    assert md == str(run / "report" / "report.md")
+    numbers = json.load(open(run / "report" / "report.json"))
+    assert numbers["requests"] == 100 and str(run / "checkpoint.pt") in numbers["q_source"]
+
+
 def test_too_little_data_gives_a_report_that_says_so_and_status_2(tmp_path, capsys):
     path = write(tmp_path / "few.bag", make_requests(5))
     assert report.main([path, "--out", str(tmp_path / "r"), "--quiet"]) == 2

@@ -10,7 +10,8 @@ threshold (Fig. 11), the confusion matrix (Fig. 12), DQN against LSTM accuracy t
 published numbers. The learned offload point and threshold are read from --model (the run's own
 checkpoint) or, without it, from a DQN trained offline on every probe step of the bags.
 
-`report(bags, out_dir)` does the same from Python (the demo calls it on its run directory).
+`report(bags, out_dir)` does the same from Python; `report_run(run_dir)` writes RUN_DIR/report from a
+`make demo` run directory (its bag and checkpoint).
 """
 import argparse
 import base64
@@ -68,7 +69,6 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
            gradient_steps: Optional[int] = None, lstm_epochs: int = 60, workers: Optional[int] = None,
            data: Optional[BagData] = None, progress: bool = False) -> str:
     """Write the report for the bags (or already read `data`) into out_dir; returns report.md's path."""
-    torch.set_num_threads(1)
     if data is None:
         data = read_bags(list(bags), workers=workers)
     figures = os.path.join(out_dir, "figures")
@@ -197,6 +197,18 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
     return _write(out_dir, sections, numbers, data.report.format())
 
 
+def report_run(run_dir: str, **options) -> str:
+    """The report of a `make demo` run directory, into RUN_DIR/report: its offload.bag (or the
+    .bag.active a stopped recorder left) and, when present, its checkpoint.pt for the learned offload
+    point and threshold."""
+    bag = os.path.join(run_dir, "offload.bag")
+    if not os.path.exists(bag) and os.path.exists(bag + ".active"):
+        bag += ".active"
+    checkpoint = os.path.join(run_dir, "checkpoint.pt")
+    options.setdefault("model", checkpoint if os.path.exists(checkpoint) else None)
+    return report([bag], os.path.join(run_dir, "report"), **options)
+
+
 def _write(out_dir: str, sections: List[Dict], numbers: Dict, read_report: str) -> str:
     md = ["# Offloading report: the paper's section V from these bags", "",
           f"{numbers['requests']} requests read, {numbers['probe_rows']} with both latencies.", ""]
@@ -266,6 +278,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--quiet", action="store_true")
     args = parser.parse_args(argv)
+    torch.set_num_threads(1)   # tiny networks: one thread is fastest
     data = read_bags(args.bags, workers=args.workers)
     print(data.report.format(), file=sys.stderr)
     try:
