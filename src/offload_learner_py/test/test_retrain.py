@@ -61,6 +61,14 @@ def test_the_node_loads_it_through_model(run_bag, tmp_path):
     retrain.retrain(data, str(tmp_path), DQNConfig(seed=1), gradient_steps=100)
     policy, agent = learner.make_policy("dqn", "", str(tmp_path / "checkpoint.pt"), False, 1, {}, 1.1)
     assert agent.steps >= 200 and policy.epsilon() == 0.0
+    # and decides with it: the greedy action of the retrained network, propensity 1 (frozen, ~learn false)
+    from offload_learner_py.state import State
+
+    table = data.transition_table()
+    greedy = retrain.greedy_actions(agent, table.states[:20])
+    for state, expected in zip(table.states[:20], greedy):
+        decision = policy.decide(State(*state))
+        assert (decision.action, decision.propensity) == (expected, 1.0)
 
 
 def test_same_seed_same_checkpoint_other_seed_other_weights(run_bag, tmp_path):
