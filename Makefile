@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-fleet fuzz clean
+.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -33,6 +33,7 @@ help:
 	@echo "make fuzz           coverage-guided fuzzing of the protocol and map loaders (FUZZ_SECONDS each)"
 	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
+	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -91,6 +92,9 @@ demo: build
 
 bench-online: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online
+
+bench-offline: build
+	@$(ROSENV) $(PY) -m offload_learner_py.bench_offline
 
 clean:
 	rm -rf build devel .ros

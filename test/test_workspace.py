@@ -107,7 +107,8 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-
                "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp",
                "offload_learner_py": "offload_learner_py", "rosgraph_msgs": "rosgraph_msgs",
                "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph",
-               "atheris": "python3-atheris-pip", "rospkg": "python3-rospkg", "rosunit": "rosunit"}
+               "atheris": "python3-atheris-pip", "rospkg": "python3-rospkg", "rosunit": "rosunit",
+               "lz4": "python3-lz4"}
 
 
 def imported_modules(source: Path):

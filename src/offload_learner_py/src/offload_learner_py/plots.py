@@ -39,13 +39,17 @@ def plot_training(loss: np.ndarray, reward: np.ndarray, path: str, title: str = 
     return path
 
 
-def plot_action_vs_input_size(input_size: np.ndarray, actions: np.ndarray, path: str, title: str = "") -> str:
-    """Fig. 7: the chosen action of each step against its input size d_t."""
+def plot_action_vs_input_size(input_size: np.ndarray, actions: np.ndarray, path: str, title: str = "",
+                              offload_point: Optional[float] = None) -> str:
+    """Fig. 7: the chosen action of each step against its input size d_t, with the learned offload
+    point (the d_t above which the greedy policy offloads) when given."""
     figure, axis = plt.subplots(figsize=(7, 4))
     steps = np.arange(len(actions))
     for action, colour in ((0, "tab:blue"), (1, "tab:orange")):
         chosen = np.asarray(actions) == action
         axis.scatter(input_size[chosen], steps[chosen], s=6, color=colour, label=ACTION_NAMES[action])
+    if offload_point is not None and np.isfinite(offload_point):
+        axis.axvline(offload_point, color="black", label=f"learned offload point {offload_point:.3g}")
     axis.set_xscale("log")
     axis.set(xlabel="input size d_t (normalised)", ylabel="time step t", title=title or "action vs input size")
     axis.legend()

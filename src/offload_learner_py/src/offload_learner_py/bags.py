@@ -1,0 +1,751 @@
+"""ROS 1 bags to the learner's records and the one transition table, without ROS.
+
+Reads OffloadDecision and OffloadOutcome messages with the `rosbags` library, decoding each bag with
+the message definitions stored in that bag (so a bag written with an older version of the messages
+still reads), and pairs them by request id into a `records.RequestLog`; `records.transition_table`
+turns that into TransitionTable rows. What real bags hold is tolerated and counted: other topics
+(ignored, never decoded), decisions without an outcome (dropped), outcomes without a decision,
+duplicate request ids, invalid values, and steps with one latency only (kept in the log for
+off-policy evaluation, not in the table, since eq. 10 needs both). An unindexed bag (a `.bag.active`
+left by a crashed `rosbag record`, or a bag whose index was cut off) is read record by record, as
+`rosbag reindex` would, up to its last complete record. A file that cannot be read at all gets an
+error naming it; the other bags are still read. Many bags are read in parallel processes.
+"""
+import bz2
+import glob
+import math
+import os
+import struct
+from concurrent.futures import ProcessPoolExecutor
+from concurrent.futures.process import BrokenProcessPool
+from dataclasses import asdict, dataclass, field
+from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+
+import numpy as np
+
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.dataset import TransitionTable
+from offload_learner_py.records import DECISION_FIELDS, NO_PATH_DELIVERED, OUTCOME_FIELDS, RequestLog, \
+    transition_table
+from offload_learner_py.reward import CostWeights, reward
+
+DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
+OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
+BAG_SUFFIXES = (".bag", ".bag.active")
+# A chunk rosbag writes is 768 KiB by default; anything this large is damage or hostility, not data.
+MAX_CHUNK_BYTES = 256 * 1024 * 1024
+NO_VALUE = object()
+
+# Per field: the default when a bag's message definition lacks it (None: the field is required).
+DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
+                     "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
+                     "policy": "", "model_steps": 0, "probe": NO_VALUE}
+OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH_DELIVERED,
+                    "local_measured": NO_VALUE, "local_s": None, "local_status": 0, "cloud_measured": NO_VALUE,
+                    "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
+                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan}
+assert tuple(DECISION_DEFAULTS) == DECISION_FIELDS and tuple(OUTCOME_DEFAULTS) == OUTCOME_FIELDS
+
+
+class BagReadError(ValueError):
+    """A bag that cannot be read; the message names the file."""
+
+
+@dataclass
+class BagReport:
+    """What one bag held and what became of it."""
+    path: str
+    ok: bool = True
+    error: str = ""
+    indexed: bool = True
+    recovered_note: str = ""          # how an unindexed or cut-off bag was read
+    topics: Dict[str, int] = field(default_factory=dict)   # messages per topic that was read
+    ignored_topics: Dict[str, int] = field(default_factory=dict)
+    decisions: int = 0
+    outcomes: int = 0
+    requests: int = 0                 # decision + outcome pairs kept
+    probe_steps: int = 0
+    rewarded_steps: int = 0           # both latencies: rows of the transition table
+    one_latency_steps: int = 0        # kept for off-policy evaluation only
+    dropped_no_outcome: int = 0
+    orphan_outcomes: int = 0
+    duplicate_decisions: int = 0
+    duplicate_outcomes: int = 0
+    invalid: int = 0                  # pairs dropped for a value the table forbids
+    undecodable: int = 0              # messages that do not decode with their own definition
+    damaged_chunks: int = 0           # chunks that do not decompress (their messages are lost)
+    invalid_examples: List[str] = field(default_factory=list)
+    definitions: Dict[str, str] = field(default_factory=dict)   # message type -> md5 of the bag's definition
+
+    def skip(self, why: str) -> None:
+        self.invalid += 1
+        self.note(why)
+
+    def note(self, example: str) -> None:
+        if len(self.invalid_examples) < 5:
+            self.invalid_examples.append(example)
+
+
+@dataclass
+class ReadReport:
+    bags: List[BagReport]
+    duplicates_across_bags: int = 0   # identical requests found in two bags (kept once)
+    id_collisions: int = 0            # same request id, different content, in two bags (both kept)
+
+    @property
+    def failed(self) -> List[BagReport]:
+        return [bag for bag in self.bags if not bag.ok]
+
+    def total(self, name: str) -> int:
+        return sum(getattr(bag, name) for bag in self.bags)
+
+    def to_dict(self) -> dict:
+        return {"bags": [asdict(bag) for bag in self.bags], "duplicates_across_bags": self.duplicates_across_bags,
+                "id_collisions": self.id_collisions}
+
+    def format(self) -> str:
+        lines = []
+        for bag in self.bags:
+            if not bag.ok:
+                lines.append(f"FAILED {bag.error}")
+                continue
+            lines.append(f"{bag.path}: {bag.decisions} decisions, {bag.outcomes} outcomes -> {bag.requests} "
+                         f"requests ({bag.rewarded_steps} with both latencies, {bag.one_latency_steps} with one)")
+            if not bag.indexed:
+                lines.append(f"  {bag.recovered_note}")
+            skipped = [f"{count} {what}" for count, what in (
+                (bag.dropped_no_outcome, "decisions without outcome dropped"),
+                (bag.orphan_outcomes, "outcomes without decision dropped"),
+                (bag.duplicate_decisions, "duplicate decisions dropped"),
+                (bag.duplicate_outcomes, "duplicate outcomes dropped"),
+                (bag.invalid, "invalid requests dropped"),
+                (bag.undecodable, "undecodable messages dropped"),
+                (bag.damaged_chunks, "damaged chunks skipped")) if count]
+            if skipped:
+                lines.append("  skipped: " + ", ".join(skipped))
+            for example in bag.invalid_examples:
+                lines.append(f"    e.g. {example}")
+            if bag.ignored_topics:
+                lines.append("  ignored topics: " + ", ".join(f"{topic} ({count})" for topic, count in
+                                                           sorted(bag.ignored_topics.items())))
+        read = [bag for bag in self.bags if bag.ok]
+        lines.append(f"read {len(read)}/{len(self.bags)} bags: {self.total('requests')} requests, "
+                     f"{self.total('rewarded_steps')} transitions with both latencies, "
+                     f"{self.total('one_latency_steps')} with one latency")
+        if self.duplicates_across_bags or self.id_collisions:
+            lines.append(f"across bags: {self.duplicates_across_bags} duplicate requests kept once, "
+                         f"{self.id_collisions} request ids reused with different content (both kept)")
+        return "\n".join(lines)
+
+
+@dataclass
+class BagData:
+    """Every request read, in time order, and what the reading skipped."""
+    log: RequestLog
+    report: ReadReport
+
+    def transition_table(self, metadata: Optional[dict] = None) -> TransitionTable:
+        """Rows with both latencies (the eq. 10 reward), in time order."""
+        return transition_table(self.log, {"sources": [bag.path for bag in self.report.bags if bag.ok],
+                                           **(metadata or {})})
+
+
+# --- finding bags ------------------------------------------------------------------------------
+def expand_bag_paths(arguments: Sequence[str]) -> List[str]:
+    """Files, globs and directories (searched recursively for .bag and .bag.active) to a sorted,
+    duplicate-free list. An argument that names nothing is kept so the reader reports it."""
+    found = []
+    for argument in arguments:
+        if os.path.isdir(argument):
+            for root, _, names in os.walk(argument):
+                found += [os.path.join(root, name) for name in names if name.endswith(BAG_SUFFIXES)]
+        elif glob.has_magic(argument):
+            matches = [path for path in glob.glob(argument, recursive=True) if os.path.isfile(path)]
+            found += matches or [argument]   # a pattern that matches nothing is reported, not ignored
+        else:
+            found.append(argument)
+    seen, result = set(), []
+    for path in sorted(found):
+        key = os.path.realpath(path)
+        if key not in seen:
+            seen.add(key)
+            result.append(path)
+    return result
+
+
+# --- raw records -------------------------------------------------------------------------------
+class Connection(NamedTuple):
+    id: int
+    topic: str
+    msgtype: str          # normalised: pkg/msg/Name
+    msgdef: str
+    md5sum: str
+
+
+def _normalise_type(name: str) -> str:
+    package, _, message = name.partition("/")
+    return name if "/msg/" in name else f"{package}/msg/{message}"
+
+
+def _header_fields(data: bytes) -> Dict[str, bytes]:
+    """The name=value fields of a bag record header."""
+    fields, position = {}, 0
+    while position < len(data):
+        if position + 4 > len(data):
+            raise ValueError("header field length cut off")
+        (size,) = struct.unpack_from("<I", data, position)
+        position += 4
+        if position + size > len(data):
+            raise ValueError("header field longer than its header")
+        name, separator, value = data[position:position + size].partition(b"=")
+        if not separator:
+            raise ValueError("header field without '='")
+        fields[name.decode("ascii", "replace")] = value
+        position += size
+    return fields
+
+
+def _op(fields: Dict[str, bytes]) -> int:
+    value = fields.get("op", b"")
+    if len(value) != 1:
+        raise ValueError("record without an op code")
+    return value[0]
+
+
+def _decompress_partial(compression: str, data: bytes) -> bytes:
+    """As much of a (possibly cut-off) chunk as can be decompressed."""
+    if compression == "none":
+        return data
+    if compression == "bz2":
+        decompressor = bz2.BZ2Decompressor()
+    elif compression == "lz4":
+        import lz4.frame
+        decompressor = lz4.frame.LZ4FrameDecompressor()
+    else:
+        raise ValueError(f"chunk compression {compression!r} is not supported")
+    try:
+        return decompressor.decompress(data, max_length=MAX_CHUNK_BYTES)
+    except (OSError, RuntimeError, EOFError, ValueError):
+        return b""
+
+
+def _connection_from(fields: Dict[str, bytes], data) -> Connection:
+    details = _header_fields(bytes(data))
+    return Connection(struct.unpack("<I", fields["conn"])[0], fields["topic"].decode("utf-8", "replace"),
+                      _normalise_type(details["type"].decode("utf-8", "replace")),
+                      details.get("message_definition", b"").decode("utf-8", "replace"),
+                      details.get("md5sum", b"").decode("ascii", "replace"))
+
+
+def _scan_unindexed(path: str, report: BagReport, why: str = "") -> Iterator[Tuple[Connection, int, memoryview]]:
+    """Every complete message of a bag read front to back, ignoring its index: what `rosbag reindex`
+    does, without ROS. A chunk cut off by a crash yields the records it completed."""
+    with open(path, "rb") as source:
+        if source.readline() != b"#ROSBAG V2.0\n":
+            raise ValueError("not a ROS 1 bag (version 2.0)")
+        offset = source.tell()
+        connections: Dict[int, Connection] = {}
+        complete_chunks, partial = 0, False
+        while True:
+            source.seek(offset)
+            prefix = source.read(4)
+            if len(prefix) < 4:
+                break
+            (header_size,) = struct.unpack("<I", prefix)
+            if header_size > 1 << 20:
+                partial = True   # garbage or a cut: nothing after can be trusted
+                break
+            header = source.read(header_size)
+            size_bytes = source.read(4)
+            if len(header) < header_size or len(size_bytes) < 4:
+                partial = True
+                break
+            try:
+                fields = _header_fields(header)
+                op = _op(fields)
+            except ValueError as error:
+                report.note(f"unreadable record at offset {offset} ({error}): the rest of the file is skipped")
+                partial = True
+                break
+            (data_size,) = struct.unpack("<I", size_bytes)
+            data_start = offset + 8 + header_size
+            remaining = os.fstat(source.fileno()).st_size - data_start
+            if op == 5:   # chunk
+                # The chunk rosbag was writing when it died still has 0 (or more than the file) as size.
+                cut = data_size == 0 or data_size > remaining
+                to_read = min(remaining, MAX_CHUNK_BYTES) if cut else data_size
+                if to_read > MAX_CHUNK_BYTES:
+                    raise ValueError(f"a chunk of {data_size} bytes at offset {offset} is larger than "
+                                     f"{MAX_CHUNK_BYTES}")
+                compression = fields.get("compression", b"none").decode("ascii", "replace")
+                raw = source.read(to_read)
+                if cut:
+                    inner = _decompress_partial(compression, raw)
+                    partial = True
+                else:
+                    try:
+                        inner = _decompress_chunk(compression, raw, fields)
+                        complete_chunks += 1
+                    except Exception as error:   # lz4, bz2 raise their own types on damaged data
+                        report.damaged_chunks += 1
+                        report.note(f"chunk at offset {offset} does not decompress: {type(error).__name__}: {error}")
+                        inner = b""
+                yield from _chunk_messages(inner, connections, connections)
+                if cut:
+                    break
+                offset = data_start + data_size
+                continue
+            if data_size > remaining:
+                partial = True
+                break
+            if op == 7:
+                try:
+                    connection = _connection_from(fields, source.read(data_size))
+                    connections.setdefault(connection.id, connection)
+                except (KeyError, ValueError, struct.error):
+                    report.note(f"damaged connection record at offset {offset}")
+            offset = data_start + data_size
+    report.indexed = False
+    report.recovered_note = (f"not indexed (a .bag.active left by a stopped recorder, or a cut-off or damaged "
+                             f"index{why}): read record by record, {complete_chunks} complete chunks"
+                             + (", and the records completed in a cut-off last chunk" if partial else "")
+                             + f"; `rosbag reindex {path}` makes it an ordinary bag")
+
+
+def _decompress_chunk(compression: str, data: bytes, fields: Dict[str, bytes]) -> bytes:
+    size = struct.unpack("<I", fields["size"])[0] if len(fields.get("size", b"")) == 4 else None
+    if size is not None and size > MAX_CHUNK_BYTES:
+        raise ValueError(f"chunk declares {size} bytes uncompressed, more than {MAX_CHUNK_BYTES}")
+    if compression == "none":
+        return data
+    if compression == "bz2":
+        decompressor = bz2.BZ2Decompressor()
+        return decompressor.decompress(data, max_length=MAX_CHUNK_BYTES)
+    if compression == "lz4":
+        import lz4.frame
+        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=MAX_CHUNK_BYTES)
+    raise ValueError(f"chunk compression {compression!r} is not supported")
+
+
+def _indexed_messages(reader, wanted: List, report: BagReport) -> Iterator[Tuple[Connection, int, memoryview]]:
+    """Messages of the wanted connections, chunk by chunk in file order; chunks that hold none of
+    them (maps, paths) are never read. One decompressed chunk in memory at a time."""
+    converted = {c.id: Connection(c.id, c.topic, c.msgtype, c.msgdef.data, c.digest) for c in wanted}
+    for info in sorted(reader.chunk_infos, key=lambda info: info.pos):
+        if not any(connection_id in converted for connection_id in info.connection_counts):
+            continue
+        chunk = reader.chunks[info.pos]
+        if chunk.datasize > MAX_CHUNK_BYTES:
+            raise ValueError(f"a chunk of {chunk.datasize} bytes at offset {info.pos} is larger than "
+                             f"{MAX_CHUNK_BYTES}")
+        reader.bio.seek(chunk.datapos)
+        data = reader.bio.read(chunk.datasize)
+        if len(data) != chunk.datasize:
+            raise ValueError(f"the chunk at offset {info.pos} is cut off")
+        try:
+            inner = chunk.decompressor(data)
+        except Exception as error:   # lz4, bz2 raise their own types on damaged data
+            report.damaged_chunks += 1
+            report.note(f"chunk at offset {info.pos} does not decompress: {type(error).__name__}: {error}")
+            continue
+        yield from _chunk_messages(inner, converted, None)
+
+
+def _chunk_messages(buffer: bytes, connections: Dict[int, Connection], found: Optional[Dict[int, Connection]]):
+    """(connection, time ns, data) of each message record in a decompressed chunk. With `found`,
+    connection records in the chunk are added to it (and looked up there)."""
+    unpack, view, position, end = struct.unpack_from, memoryview(buffer), 0, len(buffer)
+    table = found if found is not None else connections
+    while position + 4 <= end:
+        (header_size,) = unpack("<I", buffer, position)
+        start = position + 4
+        data_start = start + header_size + 4
+        if data_start > end:
+            return
+        (data_size,) = unpack("<I", buffer, data_start - 4)
+        if data_start + data_size > end:
+            return
+        position = data_start + data_size
+        op = conn = time_ns = None
+        field_at = start
+        while field_at + 4 <= start + header_size:
+            (size,) = unpack("<I", buffer, field_at)
+            name_at = field_at + 4
+            field_at = name_at + size
+            if buffer[name_at:name_at + 3] == b"op=":
+                op = buffer[name_at + 3]
+            elif buffer[name_at:name_at + 5] == b"conn=" and name_at + 9 <= end:
+                (conn,) = unpack("<I", buffer, name_at + 5)
+            elif buffer[name_at:name_at + 5] == b"time=":
+                if name_at + 13 > end:
+                    return
+                sec, nsec = unpack("<II", buffer, name_at + 5)
+                time_ns = sec * 1_000_000_000 + nsec
+        if op == 2:
+            connection = table.get(conn)
+            if connection is not None:
+                yield connection, time_ns, view[data_start:position]
+        elif op == 7 and found is not None:
+            try:
+                connection = _connection_from(_header_fields(buffer[start:start + header_size]),
+                                              view[data_start:position])
+            except (KeyError, ValueError, struct.error):
+                continue   # a damaged connection record: its messages cannot be decoded, the rest can
+            found[connection.id] = connection
+
+
+# --- decoding ----------------------------------------------------------------------------------
+_PRIMITIVES = {"bool": "?", "int8": "b", "uint8": "B", "byte": "B", "char": "B", "int16": "h", "uint16": "H",
+               "int32": "i", "uint32": "I", "int64": "q", "uint64": "Q", "float32": "f", "float64": "d"}
+
+
+def _layout(store, msgtype: str, prefix: str = ""):
+    """The message flattened to primitive fields in wire order, [(name, struct code or "string")], or
+    None when it holds arrays or anything else the fast path does not decode."""
+    layout = []
+    for name, (kind, spec) in store.fielddefs[msgtype][1]:
+        if kind.name == "BASE" and spec[0] == "string":
+            layout.append((prefix + name, "string"))
+        elif kind.name == "BASE" and spec[0] in _PRIMITIVES:
+            layout.append((prefix + name, _PRIMITIVES[spec[0]]))
+        elif kind.name == "NAME":
+            inner = _layout(store, spec, prefix + name + ".")
+            if inner is None:
+                return None
+            layout += inner
+        else:
+            return None
+    return layout
+
+
+def _compile(layout):
+    """Decoding steps for a flat layout: runs of fixed-size fields become one struct each."""
+    steps, run, names = [], "", []
+    for name, code in layout + [(None, "string")]:
+        if code == "string":
+            if run:
+                steps.append((struct.Struct("<" + run), tuple(names)))
+                run, names = "", []
+            if name is not None:
+                steps.append((None, name))
+        else:
+            run += code
+            names.append(name)
+    return steps
+
+
+_LENGTH = struct.Struct("<I")
+
+
+class _Decoder:
+    """Decodes one connection's messages with that bag's own definition and pulls out the fields the
+    table needs, filling a default for a field an older definition lacks. Flat messages (ours) are
+    decoded with precompiled structs; anything else goes through rosbags' deserializer."""
+
+    def __init__(self, connection: Connection, defaults: Dict[str, object]):
+        from rosbags.typesys import Stores, get_typestore, get_types_from_msg
+
+        self.msgtype = connection.msgtype
+        self.store = get_typestore(Stores.EMPTY)
+        self.store.register(get_types_from_msg(connection.msgdef, connection.msgtype))
+        present = {name for name, _ in self.store.fielddefs[connection.msgtype][1]}
+        missing = [name for name, default in defaults.items() if default is None and name not in present]
+        if missing:
+            raise ValueError(f"{connection.msgtype} on {connection.topic} lacks the fields {', '.join(missing)} "
+                             f"(its definition in the bag: md5 {connection.md5sum})")
+        self.names = [name for name in defaults if name in present]
+        self.fills = {name: default for name, default in defaults.items() if name not in present}
+        self.has_stamp = "header" in present
+        layout = _layout(self.store, connection.msgtype)
+        self.steps = _compile(layout) if layout is not None else None
+        self.deserialize = self.store.deserialize_ros1
+
+    def __call__(self, raw) -> Tuple[Dict[str, object], int]:
+        if self.steps is None:
+            return self._slow(raw)
+        values, position = {}, 0
+        for packer, names in self.steps:
+            if packer is None:
+                (size,) = _LENGTH.unpack_from(raw, position)
+                position += 4
+                if position + size > len(raw):
+                    raise ValueError(f"string {names} runs past the end of the message")
+                values[names] = bytes(raw[position:position + size]).decode("utf-8", "replace")
+                position += size
+            else:
+                values.update(zip(names, packer.unpack_from(raw, position)))
+                position += packer.size
+        if position != len(raw):
+            raise ValueError(f"{len(raw) - position} bytes left after the message")
+        result = {name: values[name] for name in self.names}
+        result.update(self.fills)
+        stamp = values["header.stamp.sec"] * 1_000_000_000 + values["header.stamp.nanosec"] \
+            if self.has_stamp and "header.stamp.sec" in values else 0
+        return result, stamp
+
+    def _slow(self, raw):
+        message = self.deserialize(raw, self.msgtype)
+        values = {name: getattr(message, name) for name in self.names}
+        values.update(self.fills)
+        stamp = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec if self.has_stamp else 0
+        return values, stamp
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
+
+
+def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[str]:
+    """Fill what an older outcome definition lacked and check the pair against the table's rules.
+    Returns why the pair is invalid, or None."""
+    if outcome["action"] is NO_VALUE:
+        outcome["action"] = decision["action"]
+    if int(outcome["action"]) != int(decision["action"]):
+        return f"decision action {decision['action']}, outcome action {outcome['action']}"
+    if decision["action"] not in (LOCAL, CLOUD):
+        return f"action {decision['action']} is neither local nor cloud"
+    for name, low, high in (("input_size", 0.0, math.inf), ("cpu_availability", 0.0, 1.0),
+                            ("round_trip_s", 0.0, math.inf)):
+        value = decision[name]
+        if not (_finite(value) and low <= value <= high):
+            return f"{name} {value}"
+    propensity = decision["action_propensity"]
+    if not (_finite(propensity) and 0.0 < propensity <= 1.0):
+        return f"action_propensity {propensity}"
+    for side in ("local", "cloud"):
+        if outcome[f"{side}_measured"] is NO_VALUE:
+            value = outcome[f"{side}_s"]
+            outcome[f"{side}_measured"] = bool(_finite(value) and value > 0)
+    if decision["probe"] is NO_VALUE:
+        decision["probe"] = bool(outcome["local_measured"] and outcome["cloud_measured"])
+    taken = "cloud" if decision["action"] == CLOUD else "local"
+    if not outcome[f"{taken}_measured"]:
+        return f"the taken side ({taken}) has no measured latency"
+    for side in ("local", "cloud"):
+        value = outcome[f"{side}_s"]
+        if outcome[f"{side}_measured"] and not (_finite(value) and value > 0):
+            return f"{side}_s {value}"
+    for side in ("local", "cloud"):
+        if not outcome[f"{side}_measured"]:
+            outcome[f"{side}_s"] = math.nan    # not measured: no number stands in for it
+    both = outcome["local_measured"] and outcome["cloud_measured"]
+    if outcome["reward"] is NO_VALUE:     # a definition without the reward: eq. 10 from both latencies
+        outcome["reward"] = reward(int(decision["action"]), outcome["local_s"], outcome["cloud_s"], weights) \
+            if both else math.nan
+    if outcome["reward_valid"] is NO_VALUE:
+        outcome["reward_valid"] = bool(both and _finite(outcome["reward"]))
+    if outcome["reward_valid"]:
+        if not both:
+            return "reward marked valid without both latencies"
+        if not (_finite(outcome["reward"]) and -1.0 <= outcome["reward"] <= 1.0):
+            return f"reward {outcome['reward']}"
+    return None
+
+
+def _columns(rows: List[Tuple[Dict, Dict, int]]) -> Dict[str, np.ndarray]:
+    columns = {name: [decision[name] for decision, _, _ in rows] for name in DECISION_FIELDS}
+    for name in OUTCOME_FIELDS:
+        if name not in ("request_id", "action"):
+            columns[f"outcome_{name}"] = [outcome[name] for _, outcome, _ in rows]
+    arrays = {}
+    for name, values in columns.items():
+        if name == "policy":
+            arrays[name] = np.array([str(v) for v in values], dtype=object)
+        elif name in ("request_id", "model_steps"):
+            arrays[name] = np.array(values, dtype=np.uint64).astype(np.int64) if values else np.zeros(0, np.int64)
+        else:
+            arrays[name] = np.array(values, dtype=np.float64 if name.endswith("_s") or name in (
+                "input_size", "cpu_availability", "round_trip_s", "action_propensity", "q_local", "q_cloud",
+                "outcome_reward", "outcome_loss") else np.int64)
+    arrays["has_outcome"] = np.ones(len(rows), dtype=bool)
+    arrays["stamp_ns"] = np.array([stamp for _, _, stamp in rows], dtype=np.int64)
+    return arrays
+
+
+def read_bag(path: str, weights: CostWeights = CostWeights()) -> Tuple[Dict[str, np.ndarray], BagReport]:
+    """One bag's requests as RequestLog columns (plus stamp_ns), and its report. Raises BagReadError
+    naming the file when it cannot be read at all."""
+    report = BagReport(path=path)
+    try:
+        return _read_bag(path, report, weights), report
+    except BagReadError:
+        raise
+    except MemoryError as error:
+        raise BagReadError(f"{path}: cannot read bag: out of memory ({error})") from None
+    except Exception as error:   # rosbags, struct, zlib, lz4 and the type system raise many types on bad input
+        raise BagReadError(f"{path}: cannot read bag: {type(error).__name__}: {error}") from None
+
+
+def _read_bag(path: str, report: BagReport, weights: CostWeights) -> Dict[str, np.ndarray]:
+    from rosbags.rosbag1 import Reader, ReaderError
+
+    if not os.path.isfile(path):
+        raise BagReadError(f"{path}: no such bag file")
+    with open(path, "rb") as source:
+        if source.read(13) != b"#ROSBAG V2.0\n":
+            raise BagReadError(f"{path}: not a ROS 1 bag (version 2.0 magic line missing)")
+    reader = Reader(path)
+    try:
+        reader.open()
+    except Exception as error:  # rosbags raises ReaderError, AssertionError, struct.error on a bad index
+        # No index (index_pos 0), or one cut off or damaged: read the bag record by record instead.
+        if getattr(reader, "bio", None) is not None:   # rosbags closes only on its own ReaderError
+            reader.bio.close()
+        why = "" if isinstance(error, ReaderError) and "not indexed" in str(error) else \
+            f" ({type(error).__name__}: {error})"
+        return _pair(_filtered(_scan_unindexed(path, report, why), report), report, weights, path)
+    try:
+        wanted = _select(reader.connections, report)
+        return _pair(_indexed_messages(reader, wanted, report) if wanted else iter(()), report, weights, path)
+    finally:
+        reader.close()
+
+
+def _is_ours(msgtype: str) -> bool:
+    return msgtype in (DECISION_TYPE, OUTCOME_TYPE)
+
+
+def _select(connections, report: BagReport) -> List:
+    wanted = []
+    for connection in connections:
+        if _is_ours(connection.msgtype):
+            wanted.append(connection)
+        else:
+            report.ignored_topics[connection.topic] = report.ignored_topics.get(connection.topic, 0) + \
+                connection.msgcount
+    return wanted
+
+
+def _filtered(messages, report: BagReport):
+    for connection, time_ns, raw in messages:
+        if _is_ours(connection.msgtype):
+            yield connection, time_ns, raw
+        else:
+            report.ignored_topics[connection.topic] = report.ignored_topics.get(connection.topic, 0) + 1
+
+
+def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[str, np.ndarray]:
+    decoders: Dict[Tuple[str, str, str], _Decoder] = {}
+    decisions: Dict[int, Tuple[Dict, int]] = {}
+    outcomes: Dict[int, Dict] = {}
+    for connection, time_ns, raw in messages:
+        key = (connection.msgtype, connection.md5sum, connection.msgdef)
+        decoder = decoders.get(key)
+        if decoder is None:
+            is_decision = connection.msgtype == DECISION_TYPE
+            try:
+                decoder = _Decoder(connection, DECISION_DEFAULTS if is_decision else OUTCOME_DEFAULTS)
+            except ValueError as error:
+                raise BagReadError(f"{path}: {error}") from None
+            decoders[key] = decoder
+            report.definitions[connection.msgtype] = connection.md5sum
+        try:
+            values, stamp = decoder(raw)
+        except Exception as error:   # one damaged message costs that message only
+            report.undecodable += 1
+            report.note(f"undecodable {connection.msgtype}: {type(error).__name__}: {error}")
+            continue
+        report.topics[connection.topic] = report.topics.get(connection.topic, 0) + 1
+        request_id = int(values["request_id"])
+        if connection.msgtype == DECISION_TYPE:
+            report.decisions += 1
+            if request_id in decisions:
+                report.duplicate_decisions += 1
+                continue
+            decisions[request_id] = (values, stamp or time_ns)
+        else:
+            report.outcomes += 1
+            if request_id in outcomes:
+                report.duplicate_outcomes += 1
+                continue
+            outcomes[request_id] = values
+    rows = []
+    for request_id, (decision, stamp) in decisions.items():
+        outcome = outcomes.pop(request_id, None)
+        if outcome is None:
+            report.dropped_no_outcome += 1
+            continue
+        why = _complete(decision, outcome, weights)
+        if why is not None:
+            report.skip(f"request {request_id}: {why}")
+            continue
+        rows.append((decision, outcome, stamp))
+    report.orphan_outcomes = len(outcomes)
+    rows.sort(key=lambda row: (row[2], row[0]["request_id"]))
+    columns = _columns(rows)
+    report.requests = len(rows)
+    report.probe_steps = int(np.sum(columns["probe"].astype(bool))) if rows else 0
+    report.rewarded_steps = int(np.sum(columns["outcome_reward_valid"].astype(bool))) if rows else 0
+    report.one_latency_steps = report.requests - report.rewarded_steps
+    return columns
+
+
+# --- many bags ---------------------------------------------------------------------------------
+def _read_one(path: str):
+    try:
+        columns, report = read_bag(path)
+    except BagReadError as error:
+        return None, BagReport(path=path, ok=False, error=str(error))
+    return columns, report
+
+
+def read_bags(arguments: Sequence[str], workers: Optional[int] = None) -> BagData:
+    """Every request in the bags (files, globs, directories), merged in time order. A bag that cannot
+    be read is reported (ok false, error naming it) and the others are still read. Bags are read in
+    up to `workers` processes (default: the CPU count, one process for one bag)."""
+    paths = expand_bag_paths(arguments)
+    if workers is None:
+        workers = os.cpu_count() or 1
+    workers = max(1, min(workers, len(paths)))
+    results: List[Tuple[Optional[Dict], BagReport]] = []
+    if workers == 1:
+        results = [_read_one(path) for path in paths]
+    else:
+        with ProcessPoolExecutor(max_workers=workers) as pool:
+            futures = [pool.submit(_read_one, path) for path in paths]
+            for path, future in zip(paths, futures):
+                try:
+                    results.append(future.result())
+                except BrokenProcessPool as error:   # a reader process died (killed, out of memory)
+                    results.append((None, BagReport(path=path, ok=False,
+                                                    error=f"{path}: reader process died: {error}")))
+    return merge(results)
+
+
+def merge(results: Sequence[Tuple[Optional[Dict], BagReport]]) -> BagData:
+    """One log from per-bag columns: a request found in two bags with the same content (the same bag
+    given twice, overlapping splits) is kept once; the same id with other content (two robots) is
+    kept twice and counted."""
+    report = ReadReport([bag for _, bag in results])
+    parts = []
+    for index, (columns, _) in enumerate(results):
+        if columns is not None and len(columns["request_id"]):
+            parts.append({**columns, "bag": np.full(len(columns["request_id"]), index, dtype=np.int64)})
+    if not parts:
+        empty = _columns([])
+        empty["bag"] = np.zeros(0, dtype=np.int64)
+        return BagData(RequestLog(empty), report)
+    merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}
+    order = np.lexsort((merged["bag"], merged["request_id"], merged["stamp_ns"]))
+    merged = {name: values[order] for name, values in merged.items()}
+    keep = np.ones(len(order), dtype=bool)
+    ids = merged["request_id"]
+    by_id = np.argsort(ids, kind="stable")
+    same = np.flatnonzero(ids[by_id][1:] == ids[by_id][:-1])
+    compared = [name for name in merged if name not in ("bag", "policy")]
+    for position in same:
+        first, second = by_id[position], by_id[position + 1]
+        if merged["bag"][first] == merged["bag"][second]:
+            continue
+        if all(_same(merged[name][first], merged[name][second]) for name in compared):
+            keep[second] = False
+            report.duplicates_across_bags += 1
+        else:
+            report.id_collisions += 1
+    merged = {name: values[keep] for name, values in merged.items()}
+    return BagData(RequestLog(merged), report)
+
+
+def _same(a, b) -> bool:
+    return a == b or (isinstance(a, float) and isinstance(b, float) and math.isnan(a) and math.isnan(b)) or \
+        (np.isnan(a) and np.isnan(b) if np.issubdtype(type(a), np.floating) else False)

@@ -1,0 +1,274 @@
+"""The bag reader on bags the tests write: pairing, the table it rebuilds, old message definitions,
+unknown topics, unindexed and cut-off bags, damaged files, duplicates, parallel reading."""
+import math
+import os
+import shutil
+
+import numpy as np
+import pytest
+
+from bagtools import make_requests, write
+from offload_learner_py import bags
+from offload_learner_py.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
+                                           installed_definitions, typestore_for, unindex)
+from offload_learner_py.reward import reward
+
+
+def _by_id(requests):
+    return {decision["request_id"]: (decision, outcome) for decision, outcome in requests}
+
+
+def test_a_bag_rebuilds_every_request_and_the_table_holds_the_probe_steps(tmp_path):
+    requests = make_requests(60, probe_every=3)
+    data = bags.read_bags([write(tmp_path / "run.bag", requests)])
+    log, report = data.log, data.report
+    assert len(log) == 60 and report.bags[0].ok
+    written = _by_id(requests)
+    for i, request_id in enumerate(log["request_id"]):
+        decision, outcome = written[int(request_id)]
+        assert log["input_size"][i] == decision["input_size"]
+        assert log["cpu_availability"][i] == decision["cpu_availability"]
+        assert log["round_trip_s"][i] == decision["round_trip_s"]
+        assert log["action"][i] == decision["action"]
+        assert log["action_propensity"][i] == decision["action_propensity"]
+        assert bool(log["probe"][i]) == decision["probe"]
+        taken = "cloud" if decision["action"] == 1 else "local"
+        assert log[f"outcome_{taken}_s"][i] == outcome[f"{taken}_s"]
+        if not decision["probe"]:   # the other side was not measured: NaN, never a made-up number
+            other = "local" if taken == "cloud" else "cloud"
+            assert math.isnan(log[f"outcome_{other}_s"][i])
+    assert list(log["request_id"]) == sorted(written)   # time order
+    table = data.transition_table()
+    probes = [written[i] for i in sorted(written) if written[i][0]["probe"]]
+    assert len(table) == len(probes) == 20
+    assert list(table.t) == [d["request_id"] for d, _ in probes]
+    np.testing.assert_array_equal(table.local_s, [o["local_s"] for _, o in probes])
+    np.testing.assert_array_equal(table.cloud_s, [o["cloud_s"] for _, o in probes])
+    np.testing.assert_array_equal(table.reward, [o["reward"] for _, o in probes])
+    bag = report.bags[0]
+    assert (bag.decisions, bag.outcomes, bag.requests, bag.rewarded_steps, bag.one_latency_steps) == (60, 60, 60, 20, 40)
+    assert "60 requests" in report.format()
+
+
+def test_unknown_extra_topics_are_ignored_and_counted(tmp_path):
+    requests = make_requests(30)
+    decision_msg, outcome_msg = installed_definitions()
+    weird = "float64[] samples\nstring note\nuint8 level\n"
+    store = typestore_for(decision_msg, outcome_msg, {"robot_extras/msg/Weird": weird})
+
+    def extra(bag, index, time_ns):
+        bag.write("/robot/weird", "robot_extras/msg/Weird", {"samples": np.arange(index, dtype=np.float64),
+                                                            "note": "x" * index, "level": index % 7}, time_ns)
+        bag.write("/chatter", "std_msgs/msg/String", {"data": f"hello {index}"}, time_ns)
+
+    path = write(tmp_path / "extra.bag", requests, store=store, extra=extra)
+    data = bags.read_bags([path])
+    assert len(data.log) == 30 and len(data.transition_table()) == 30
+    assert data.report.bags[0].ignored_topics == {"/robot/weird": 30, "/chatter": 30}
+    assert "/robot/weird (30)" in data.report.format()
+
+
+OLD_DECISION = """# an older OffloadDecision: no Q-values, no model steps, no probe flag; a field since removed
+Header header
+uint64 request_id
+float32 battery
+float64 input_size
+float64 cpu_availability
+float64 round_trip_s
+uint8 action
+float64 action_propensity
+string policy
+"""
+OLD_OUTCOME = """# an older OffloadOutcome: no measured flags, no reward fields, no loss, fields in another order
+Header header
+uint64 request_id
+float64 cloud_s
+float64 local_s
+uint8 action
+string comment
+"""
+
+
+def test_a_bag_written_with_older_message_definitions_still_reads(tmp_path):
+    requests = make_requests(25, probe_every=1)
+    store = typestore_for(OLD_DECISION, OLD_OUTCOME)
+    old = [({**d, "battery": 0.5}, {k: v for k, v in o.items() if k in ("request_id", "cloud_s", "local_s", "action")})
+           for d, o in requests]
+    data = bags.read_bags([write(tmp_path / "old.bag", old, store=store)])
+    bag = data.report.bags[0]
+    assert bag.ok, bag.error
+    installed = typestore_for(*installed_definitions())
+    assert bag.definitions[DECISION_TYPE] != installed.generate_msgdef(DECISION_TYPE)[1]   # really another md5
+    table = data.transition_table()
+    assert len(table) == 25
+    written = _by_id(requests)
+    for row in range(25):
+        decision, outcome = written[int(table.t[row])]
+        assert table.input_size[row] == decision["input_size"]
+        assert table.local_s[row] == outcome["local_s"] and table.cloud_s[row] == outcome["cloud_s"]
+        # no reward in the old outcome: eq. 10 from the two latencies, with the one reward function
+        assert table.reward[row] == pytest.approx(reward(decision["action"], outcome["local_s"], outcome["cloud_s"]))
+    assert np.all(np.isnan(data.log["q_local"])) and np.all(data.log["probe"] == 1)
+
+
+def test_a_definition_without_a_required_field_is_an_error_naming_the_file_and_field(tmp_path):
+    no_propensity = OLD_DECISION.replace("float64 action_propensity\n", "")
+    path = write(tmp_path / "nopropensity.bag", make_requests(5), store=typestore_for(no_propensity, OLD_OUTCOME))
+    data = bags.read_bags([path])
+    bag = data.report.bags[0]
+    assert not bag.ok and str(path) in bag.error and "action_propensity" in bag.error
+    with pytest.raises(bags.BagReadError, match="action_propensity"):
+        bags.read_bag(str(path))
+
+
+@pytest.mark.parametrize("compression", ["none", "lz4", "bz2"])
+def test_an_unindexed_bag_cut_mid_chunk_reads_up_to_its_last_complete_record(tmp_path, compression):
+    requests = make_requests(400, probe_every=2)
+    full = write(tmp_path / "full.bag", requests, compression=compression, chunk_bytes=4096)
+    complete = bags.read_bags([full]).log
+    active = str(tmp_path / "run.bag.active")
+    shutil.copy(full, active)
+    size = os.path.getsize(full)
+    unindex(active, keep_bytes=int(size * 0.6))   # a crash: no index, the last chunk cut in the middle
+    data = bags.read_bags([str(tmp_path)])   # a directory: the .bag.active is found too
+    reports = {os.path.basename(bag.path): bag for bag in data.report.bags}
+    recovered = reports["run.bag.active"]
+    assert recovered.ok, recovered.error
+    assert not recovered.indexed and "rosbag reindex" in recovered.recovered_note
+    assert 100 < recovered.requests < 400
+    assert "rosbag reindex" in data.report.format()
+    # every recovered request is exactly the written one (the full bag's copies are kept once)
+    got = bags.read_bag(active)[0]
+    index = {int(i): k for k, i in enumerate(complete["request_id"])}
+    for k, request_id in enumerate(got["request_id"]):
+        for name in ("input_size", "action", "outcome_reward_valid"):
+            assert got[name][k] == complete[name][index[int(request_id)]]
+    assert data.report.duplicates_across_bags == recovered.requests
+    if compression == "none":   # records of the cut chunk that were written whole are kept
+        assert "cut-off last chunk" in recovered.recovered_note
+
+
+def test_the_records_a_crash_left_whole_in_an_uncompressed_chunk_are_kept(tmp_path):
+    from rosbags.rosbag1 import Reader
+
+    full = write(tmp_path / "full.bag", make_requests(200), chunk_bytes=4096)
+    with Reader(full) as reader:
+        outcome = next(c for c in reader.connections if c.topic == OUTCOME_TOPIC)
+        middle = sorted(reader.chunks)[len(reader.chunks) // 2]
+        cut = reader.chunks[middle].datapos + 3000
+        # outcome records (each under 400 bytes, after their decision) that end before the cut
+        expected = sum(1 for entry in reader.indexes[outcome.id]
+                       if reader.chunks[entry.chunk_pos].datapos + entry.offset + 400 <= cut)
+        in_complete_chunks = sum(1 for entry in reader.indexes[outcome.id] if entry.chunk_pos < middle)
+    assert expected > in_complete_chunks
+    unindex(full, keep_bytes=cut)
+    columns, report = bags.read_bag(full)
+    assert report.requests >= expected
+
+
+def test_an_unindexed_complete_bag_reads_everything(tmp_path):
+    path = write(tmp_path / "x.bag", make_requests(50), chunk_bytes=2048)
+    unindex(path)
+    data = bags.read_bags([path])
+    assert len(data.log) == 50 and not data.report.bags[0].indexed
+
+
+def test_decisions_without_outcomes_orphans_duplicates_and_invalid_values_are_dropped_and_counted(tmp_path):
+    requests = make_requests(20)
+    requests[3] = (requests[3][0], None)                   # the run stopped before the outcome
+    requests[4] = (None, requests[4][1])                   # the bag started after the decision
+    requests.append(requests[7])                           # published twice
+    bad_cpu = dict(requests[9][0], cpu_availability=1.5)
+    requests[9] = (bad_cpu, requests[9][1])
+    bad_propensity = dict(requests[10][0], action_propensity=0.0)
+    requests[10] = (bad_propensity, requests[10][1])
+    mismatch = dict(requests[11][1], action=1 - requests[11][1]["action"])
+    requests[11] = (requests[11][0], mismatch)
+    data = bags.read_bags([write(tmp_path / "messy.bag", requests)])
+    bag = data.report.bags[0]
+    assert (bag.dropped_no_outcome, bag.orphan_outcomes, bag.duplicate_decisions, bag.duplicate_outcomes,
+            bag.invalid) == (1, 1, 1, 1, 3)
+    assert bag.requests == len(data.log) == 20 - 5
+    dropped = {1003, 1004, 1009, 1010, 1011}
+    assert not dropped & set(int(i) for i in data.log["request_id"])
+    text = data.report.format()
+    assert "1 decisions without outcome dropped" in text and "3 invalid requests dropped" in text
+    assert "cpu_availability 1.5" in text
+
+
+def test_damaged_files_get_an_error_naming_them_and_the_other_bags_still_read(tmp_path):
+    good = write(tmp_path / "good.bag", make_requests(40), compression="lz4", chunk_bytes=2048)
+    garbage = tmp_path / "garbage.bag"
+    garbage.write_bytes(os.urandom(5000))
+    flipped = tmp_path / "flipped.bag"
+    raw = bytearray(open(good, "rb").read())
+    for offset in range(5000, 5400):   # inside the first chunks' compressed data
+        raw[offset] ^= 0xFF
+    flipped.write_bytes(bytes(raw))
+    empty = tmp_path / "empty.bag"
+    empty.write_bytes(b"")
+    missing = str(tmp_path / "missing.bag")
+    data = bags.read_bags([str(tmp_path / "*.bag"), missing, str(tmp_path / "nothing*.bag")], workers=2)
+    reports = {os.path.basename(bag.path): bag for bag in data.report.bags}
+    assert reports["good.bag"].ok and reports["good.bag"].requests == 40
+    for name in ("garbage.bag", "empty.bag", "missing.bag", "nothing*.bag"):
+        assert not reports[name].ok and name in reports[name].error
+    damaged = reports["flipped.bag"]
+    # either refused with its name, or read with the damaged messages counted and dropped
+    assert (not damaged.ok and "flipped.bag" in damaged.error) or damaged.requests < 40
+    assert len(data.log) >= 40
+    assert "FAILED" in data.report.format()
+
+
+def test_hostile_headers_do_not_exhaust_memory(tmp_path):
+    path = write(tmp_path / "h.bag", make_requests(10), chunk_bytes=1024)
+    unindex(path)
+    raw = bytearray(open(path, "rb").read())
+    at = raw.find(b"compression=")
+    # the first chunk record claims 4 GB of data: read what is there, never allocate the claim
+    header_end = raw.find(b"size=", at)
+    raw[header_end + 5:header_end + 9] = (0xFFFFFFF0).to_bytes(4, "little")
+    (tmp_path / "h.bag").write_bytes(bytes(raw))
+    data = bags.read_bags([path])
+    bag = data.report.bags[0]
+    assert (not bag.ok and "h.bag" in bag.error) or bag.requests <= 10
+
+
+def test_the_same_bag_twice_counts_each_request_once_and_parallel_equals_serial(tmp_path):
+    first = write(tmp_path / "a.bag", make_requests(30, seed=1, first_id=1))
+    second = write(tmp_path / "b.bag", make_requests(30, seed=2, first_id=100))
+    shutil.copy(first, tmp_path / "a_copy.bag")
+    serial = bags.read_bags([str(tmp_path)], workers=1)
+    parallel = bags.read_bags([str(tmp_path)], workers=3)
+    assert len(serial.log) == 60 and serial.report.duplicates_across_bags == 30
+    for name in serial.log.columns:
+        if name != "policy":
+            np.testing.assert_array_equal(serial.log[name], parallel.log[name])
+    assert second in [bag.path for bag in serial.report.bags]
+
+
+def test_one_robot_reusing_another_robots_ids_keeps_both(tmp_path):
+    write(tmp_path / "robot1.bag", make_requests(10, seed=1, first_id=1))
+    write(tmp_path / "robot2.bag", make_requests(10, seed=2, first_id=1))
+    data = bags.read_bags([str(tmp_path)])
+    assert len(data.log) == 20 and data.report.id_collisions == 10
+
+
+def test_an_outcome_without_measured_latency_for_the_taken_side_is_invalid(tmp_path):
+    decision, outcome = make_requests(1, probe_every=5)[0]
+    taken = "cloud" if decision["action"] == 1 else "local"
+    outcome = dict(outcome, **{f"{taken}_measured": False})
+    data = bags.read_bags([write(tmp_path / "x.bag", [(decision, outcome)])])
+    assert data.report.bags[0].invalid == 1 and len(data.log) == 0
+    assert len(data.transition_table()) == 0
+
+
+def test_writer_roundtrip_of_raw_messages_with_installed_types(tmp_path):
+    store = typestore_for(*installed_definitions())
+    path = str(tmp_path / "raw.bag")
+    decision, outcome = make_requests(1)[0]
+    with BagWriter(path, store) as bag:
+        bag.write(DECISION_TOPIC, DECISION_TYPE, decision, 10)
+        bag.write(OUTCOME_TOPIC, OUTCOME_TYPE, outcome, 20)
+    columns, report = bags.read_bag(path)
+    assert report.requests == 1 and columns["request_id"][0] == decision["request_id"]

@@ -1,0 +1,119 @@
+"""Off-policy estimates against the truth on logs whose logging policy is state dependent, so the
+naive average of the logged latencies is biased and only reweighting recovers the truth."""
+import math
+
+import numpy as np
+import pytest
+
+from bagtools import write
+from offload_learner_py import CLOUD, LOCAL, bags, off_policy
+from offload_learner_py.bag_writer import probe_request
+from offload_learner_py.reward import reward
+
+
+def logged_steps(n=4000, seed=3, probe_rate=1.0):
+    rng = np.random.default_rng(seed)
+    d = 10 ** rng.uniform(-2, 0.7, n)
+    u = rng.uniform(0.2, 1.0, n)
+    b = rng.uniform(0.02, 0.06, n)
+    local_s = (0.005 + 0.04 * d / u) * rng.lognormal(0, 0.2, n)
+    cloud_s = (b + 0.01 * d) * rng.lognormal(0, 0.2, n)
+    # the logging policy mostly offloads big inputs: taken latencies over-represent cheap choices
+    p_cloud = np.where(d > 1.0, 0.9, 0.15)
+    action = (rng.random(n) < p_cloud).astype(np.int64)
+    propensity = np.where(action == CLOUD, p_cloud, 1 - p_cloud)
+    probe = rng.random(n) < probe_rate
+    steps = off_policy.LoggedSteps(states=np.stack([d, u, b], 1), action=action, propensity=propensity,
+                                   latency_s=np.where(action == CLOUD, cloud_s, local_s), probe=probe,
+                                   local_s=np.where(probe | (action == LOCAL), local_s, np.nan),
+                                   cloud_s=np.where(probe | (action == CLOUD), cloud_s, np.nan))
+    return steps, local_s, cloud_s
+
+
+@pytest.mark.parametrize("seed", [3, 4])
+def test_ips_and_dr_intervals_contain_the_true_mean_latency_where_the_naive_mean_is_biased(seed):
+    steps, local_s, cloud_s = logged_steps(seed=seed)
+    d = steps.states[:, 0]
+    policies = {"local": np.full(len(d), LOCAL), "cloud": np.full(len(d), CLOUD),
+                "threshold": np.where(d > 0.3, CLOUD, LOCAL)}
+    for name, actions in policies.items():
+        truth = float(np.where(actions == CLOUD, cloud_s, local_s).mean())
+        result = off_policy.evaluate_policy(steps, actions)
+        assert result["latency_ips_s"].contains(truth), name
+        assert result["latency_dr_s"].contains(truth), name
+        assert result["latency_snips_s"].contains(truth), name
+        assert 0 < result["effective_sample_size"] <= len(d)
+        assert result["latency_dr_s"].std_error < result["latency_ips_s"].std_error, name
+        # the naive estimate (mean of the logged latencies where the policy agrees) misses the truth
+        agree = steps.action == actions
+        naive = steps.latency_s[agree].mean()
+        if name != "threshold":
+            assert abs(naive - truth) > 4 * result["latency_ips_s"].std_error, name
+        assert result["latency_probe_s"].value == pytest.approx(truth)
+
+
+def test_accuracy_on_probe_steps_and_its_ips_estimate_agree_with_the_truth():
+    steps, local_s, cloud_s = logged_steps(probe_rate=0.3)
+    actions = np.full(len(steps), CLOUD)
+    result = off_policy.evaluate_policy(steps, actions)
+    truth = float(np.mean(cloud_s <= local_s))
+    assert result["probe_steps"] == int(steps.probe.sum())
+    assert result["accuracy_probe"].contains(truth)
+    assert result["accuracy_ips"].contains(truth)
+
+
+def test_wilson_interval_known_values():
+    estimate = off_policy.wilson_interval(8, 10)
+    assert estimate.value == 0.8
+    assert estimate.low == pytest.approx(0.4902, abs=1e-4) and estimate.high == pytest.approx(0.9433, abs=1e-4)
+    assert off_policy.wilson_interval(0, 0).n == 0
+
+
+def test_ips_of_the_logging_policy_itself_is_the_plain_mean():
+    steps, _, _ = logged_steps(n=500)
+    pi = off_policy.target_probabilities(steps.action)
+    # a deterministic target equal to the logged actions: weight 1 / mu on every step
+    expected = np.mean(steps.latency_s / steps.propensity)
+    assert off_policy.ips(pi, steps.action, steps.propensity, steps.latency_s).value == pytest.approx(expected)
+
+
+def test_from_bags_with_a_small_probe_rate(tmp_path):
+    rng = np.random.default_rng(5)
+    requests = []
+    for i in range(600):
+        d, u = float(10 ** rng.uniform(-2, 0.7)), float(rng.uniform(0.2, 1))
+        local_s, cloud_s = 0.005 + 0.04 * d / u, 0.03 + 0.01 * d
+        p_cloud = 0.9 if d > 1 else 0.1
+        action = int(rng.random() < p_cloud)
+        propensity = p_cloud if action == CLOUD else 1 - p_cloud
+        requests.append(probe_request(i + 1, d, u, 0.03, local_s, cloud_s, action, propensity,
+                                      reward(action, local_s, cloud_s), probe=rng.random() < 0.2))
+    data = bags.read_bags([write(tmp_path / "deployed.bag", requests)])
+    steps = off_policy.LoggedSteps.from_log(data.log)
+    assert len(steps) == 600 and 60 < steps.probe.sum() < 180
+    assert np.all(np.isfinite(steps.latency_s))
+    results = {name: off_policy.evaluate_policy(steps, actions)
+               for name, actions in off_policy.candidate_actions(steps).items()}
+    truth_local = np.mean([0.005 + 0.04 * r[0]["input_size"] / r[0]["cpu_availability"] for r in requests])
+    assert results["always_local"]["latency_dr_s"].contains(truth_local)
+    text = off_policy.format_results(results)
+    assert "always_cloud" in text and "n/a" not in text.splitlines()[1]
+
+
+def test_cli_prints_estimates_and_fails_cleanly_on_nothing(tmp_path, capsys):
+    path = write(tmp_path / "x.bag", [probe_request(i + 1, 0.5, 0.5, 0.03, 0.02, 0.03, i % 2, 0.5,
+                                                    reward(i % 2, 0.02, 0.03)) for i in range(40)])
+    assert off_policy.main([path]) == 0
+    assert "always_local" in capsys.readouterr().out
+    empty = tmp_path / "empty.bag"
+    empty.write_bytes(b"")
+    assert off_policy.main([str(empty)]) == 2
+    assert math.isnan(off_policy.wilson_interval(0, 0).value)
+
+
+def test_snips_and_effective_sample_size_by_hand():
+    pi = off_policy.target_probabilities(np.array([1, 1, 1]))
+    action, propensity, latency = np.array([1, 0, 1]), np.array([0.5, 0.5, 0.5]), np.array([1.0, 9.0, 3.0])
+    assert off_policy.snips(pi, action, propensity, latency).value == pytest.approx(2.0)   # (2*1 + 2*3) / 4
+    assert off_policy.ips(pi, action, propensity, latency).value == pytest.approx(8.0 / 3)
+    assert off_policy.effective_sample_size(pi, action, propensity) == pytest.approx(2.0)
