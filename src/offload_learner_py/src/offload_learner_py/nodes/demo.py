@@ -21,7 +21,8 @@ import numpy as np
 from offload_learner_py import plots
 from offload_learner_py.nodes.demo_keys import ensure_demo_keys
 from offload_learner_py.evaluation import confusion_matrix
-from offload_learner_py.records import pair_records, transition_table
+from offload_learner_py.bags import read_bags
+from offload_learner_py.report import report_run
 from offload_learner_py.summary import format_summary, summarise
 
 CGROUP_ROOT = "/sys/fs/cgroup"
@@ -61,18 +62,6 @@ class RobotBudget:
                 pass
 
 
-def read_bag(path: str):
-    """Decision and outcome messages of a demo bag (Debian's rosbag reader)."""
-    import rosbag
-
-    decisions, outcomes, topics = [], [], {}
-    with rosbag.Bag(path) as bag:
-        topics = {topic: info.message_count for topic, info in bag.get_type_and_topic_info().topics.items()}
-        for topic, msg, _ in bag.read_messages(topics=["/offload_learner/decision", "/offload_learner/outcome"]):
-            (decisions if topic.endswith("decision") else outcomes).append(msg)
-    return decisions, outcomes, topics
-
-
 def analyse(out_dir: pathlib.Path, policy: str) -> dict:
     """Bag -> transition table -> summary.json, table.npz, figures; prints the summary table."""
     from offload_learner_py.checkpoint import load_checkpoint
@@ -85,9 +74,13 @@ def analyse(out_dir: pathlib.Path, policy: str) -> dict:
             active.rename(bag)
         else:
             raise FileNotFoundError(f"no bag in {out_dir}")
-    decisions, outcomes, topics = read_bag(str(bag))
-    log = pair_records(decisions, outcomes)
-    table = transition_table(log, {"source": str(bag), "policy": policy})
+    # The one bag reader (also behind retrain and report): each bag's own message definitions.
+    data = read_bags([str(bag)], workers=1)
+    if data.report.failed:
+        raise ValueError(data.report.failed[0].error)
+    log = data.log
+    table = data.transition_table({"policy": policy})
+    topics = {**data.report.bags[0].ignored_topics, **data.report.bags[0].topics}
     table.save_npz(str(out_dir / "transitions.npz"))
     q_values = None
     checkpoint = out_dir / "checkpoint.pt"
@@ -191,6 +184,11 @@ def main(argv=None) -> int:
     except (FileNotFoundError, ValueError) as error:
         print(f"error: cannot summarise the run: {error}", file=sys.stderr)
         return 1
+    try:
+        report = report_run(str(out_dir))
+        print(f"report (the paper's section V from this run's bag): {report}")
+    except (OSError, ValueError) as error:
+        print(f"warning: no report: {error}", file=sys.stderr)
     print(f"\nrun directory: {out_dir}")
     if interrupted:
         return 130
