@@ -151,7 +151,7 @@ class ServerConfig:
     stats_log_s: float = 60.0             # period of the stats log line; 0: none
 
 
-@dataclass
+@dataclass(eq=False)   # compared by identity: removed from the queue as itself
 class _Request:
     frames: list                          # route + payload
     nbytes: int                           # payload bytes, counted in queued_bytes while waiting
@@ -236,6 +236,7 @@ class CloudServer:
         self._key_names = {}                    # Z85 public key -> allowlist name (file stem)
         self._idle = ()                         # the broker's idle workers (for the rate limit)
         self._in_flight = {}                    # the broker's requests being planned
+        self._worker_client = threading.local()  # name of the client whose message a worker handles
         self._waiting = 0                       # requests queued or parked (broker thread only)
         self.endpoint = None
         self._thread = None
@@ -556,18 +557,31 @@ class CloudServer:
             if total > self.config.max_message_bytes:
                 raise ProtocolError(Status.TOO_LARGE, f"message of {total} bytes exceeds "
                                                       f"{self.config.max_message_bytes}")
-            waiting = self._waiting
-            if waiting >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
-                raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {waiting} "
-                                                 f"requests ({self.queued_bytes} bytes) queued")
-            # An equal share of the queue among the clients with requests waiting (this one included).
+            # An equal share of the queue among the clients with requests waiting, this one included. A
+            # client alone may fill the queue; a newcomer under its share then takes the place of the
+            # newest request of the client holding the most (which gets BUSY), so it is never starved.
             sharing = self._clients_waiting + (0 if client.waiting else 1)
             share = max(1, self.config.max_queued // sharing)
-            if client.waiting >= share:
+            if sharing > 1 and client.waiting >= share:
                 client.fair_share_refused += 1
                 raise ProtocolError(Status.BUSY, f"fair share: client {client.name} already has {client.waiting} "
                                                  f"requests queued, its share of the {self.config.max_queued} "
                                                  f"places with {sharing} clients waiting")
+            waiting = self._waiting
+            if waiting >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
+                victim = self._displaceable(queued, share, total) if client.waiting < share else None
+                if victim is None:
+                    raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {waiting} "
+                                                     f"requests ({self.queued_bytes} bytes) queued")
+                queued.remove(victim)
+                self.queued_bytes -= victim.nbytes
+                self._dequeued(victim)
+                victim.client.fair_share_refused += 1
+                self._refuse(frontend, victim.frames[:victim.route_frames], victim.request_id, ProtocolError(
+                    Status.BUSY, f"fair share: client {victim.client.name} had {victim.client.waiting + 1} of the "
+                                 f"{self.config.max_queued} queue places; this one went to client {client.name}"),
+                    victim.client)
+                waiting = self._waiting
             expected_wait_s = waiting * self.service_s / self.config.workers
             if expected_wait_s > self.config.max_wait_s:
                 raise ProtocolError(Status.BUSY, f"{waiting} requests queued, about {expected_wait_s:.2f} s of "
@@ -600,6 +614,19 @@ class CloudServer:
                 request.uploads = wanted
                 parked[wanted] = []
         queued.append(request)
+
+    def _displaceable(self, queued, share: int, total: int) -> Optional[_Request]:
+        """The newest queued request of the client holding the most places, when that is more than `share`
+        and removing it makes room for `total` bytes; map carriers others wait for are never displaced."""
+        heaviest = max((client for client in self._clients.values() if client.waiting), default=None,
+                       key=lambda client: client.waiting)
+        if heaviest is None or heaviest.waiting <= share:
+            return None
+        victim = next((request for request in reversed(queued)
+                       if request.client is heaviest and request.uploads is None), None)
+        if victim is None or self.queued_bytes - victim.nbytes + total > self.config.max_queued_bytes:
+            return None
+        return victim
 
     def _refuse(self, frontend: zmq.Socket, route, request_id: int, error: ProtocolError,
                 client: Optional[_Client]) -> None:
@@ -708,12 +735,16 @@ class CloudServer:
                 client, *frames = socket.recv_multipart(copy=False)
                 split = 2 if len(frames) > 2 and len(frames[1]) == 0 else 1
                 route, payload = frames[:split], frames[split:]
-                socket.send_multipart(route + self.handle(payload, client.bytes.decode()), copy=False)
+                self._worker_client.name = client.bytes.decode()
+                socket.send_multipart(route + self.handle(payload), copy=False)
         finally:
             socket.close(0)
 
-    def handle(self, payload, client: str = "") -> list:
-        """Reply frames for a PLAN or UPLOAD message (envelope first) of `client`; never raises."""
+    def handle(self, payload, client: Optional[str] = None) -> list:
+        """Reply frames for a PLAN or UPLOAD message (envelope first) of `client` (default: the one this
+        worker thread was handed the message for); never raises."""
+        if client is None:
+            client = getattr(self._worker_client, "name", "")
         request_id = protocol.request_id_of(payload[0].buffer)
         started = time.perf_counter()
         try:
