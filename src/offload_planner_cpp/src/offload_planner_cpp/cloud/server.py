@@ -710,7 +710,7 @@ class CloudServer:
                 f"replies {replies}; cache hits {cache['hits']}, misses {cache['misses']}, uploads "
                 f"{cache['uploads']}, evictions {cache['evictions']} ({cache['maps']} maps, "
                 f"{cache['bytes'] / 2**20:.1f} MiB); queue {queue['depth']}, in flight {queue['in_flight']}; "
-                f"{len(stats['clients'])} clients, {limited} fair-share BUSY")
+                f"{len(stats['clients'])} clients, {limited} BUSY for fair share (rate or queue share)")
 
     @staticmethod
     def _send(socket: zmq.Socket, frames) -> None:
