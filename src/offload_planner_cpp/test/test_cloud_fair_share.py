@@ -100,6 +100,8 @@ def test_stats_count_a_known_sequence_from_two_robots(key_root, caplog):
         assert clients["robot2"]["requests"] == 1
         assert clients["robot2"]["replies"] == {"MAP_UNKNOWN": 1, "BAD_REQUEST": 1}
         assert clients["robot2"]["cache_bytes"] == 0
+        assert [clients["robot1"][k] for k in ("cache_hits", "cache_misses", "uploads")] == [1, 0, 2]
+        assert [clients["robot2"][k] for k in ("cache_hits", "cache_misses", "uploads")] == [0, 1, 0]
         assert all(c["rate_limited"] == 0 and c["fair_share_refused"] == 0 for c in clients.values())
 
         # The health check prints the same counters (plus its own STATS request).

@@ -160,6 +160,7 @@ class _Request:
     route_frames: int
     arrived: float                        # time.monotonic() when the broker admitted it
     client: "_Client" = None              # who sent it (fair share, counts)
+    kind: Kind = Kind.PLAN
     uploads: Optional[bytes] = None       # hash of the map it carries and is the one to store
     carries_map: bool = False             # a plan with its map attached
 
@@ -172,6 +173,9 @@ class _Client:
     refilled: float                       # time.monotonic() of the last refill
     requests: int = 0                     # plans and uploads received
     rate_limited: int = 0                 # BUSY for being over the rate
+    cache_hits: int = 0                   # planned on a map the server held
+    cache_misses: int = 0                 # MAP_UNKNOWN
+    uploads: int = 0                      # maps it sent (uploads, plans carrying one) that were accepted
     fair_share_refused: int = 0           # BUSY for holding its share of the queue
     waiting: int = 0                      # requests queued or parked now
     replies: collections.Counter = field(default_factory=collections.Counter)   # status name -> count
@@ -386,7 +390,9 @@ class CloudServer:
                 worker, rest = frames[0].bytes, frames[1:]
                 done, dispatched_at = in_flight.pop(worker, (None, 0.0))
                 if len(rest) > 1:        # a reply: route frames, then the reply itself
-                    self._reply(frontend, rest, done.client if done is not None else None)
+                    status = self._reply(frontend, rest, done.client if done is not None else None)
+                    if done is not None:
+                        _count_cache_use(done, status)
                 if done is not None:
                     self.service_s = 0.7 * self.service_s + 0.3 * (time.monotonic() - dispatched_at)
                     if done.uploads is not None:
@@ -598,7 +604,8 @@ class CloudServer:
         except ProtocolError as error:
             self._refuse(frontend, route, request_id, error, client)
             return
-        request = _Request(route + payload, total, fd, request_id, len(route), time.monotonic(), client=client)
+        request = _Request(route + payload, total, fd, request_id, len(route), time.monotonic(), client=client,
+                           kind=kind)
         self._enqueued(request)
         self.queued_bytes += total
         wanted = _plan_hash(kind, payload)
@@ -634,8 +641,9 @@ class CloudServer:
                               "request %d refused: %s: %s", request_id, error.status.name, error)
         self._reply(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))), client)
 
-    def _reply(self, frontend: zmq.Socket, frames, client: Optional[_Client]) -> None:
-        """Sends a reply to a plan, an upload or a bad message, counted by status for the server and client."""
+    def _reply(self, frontend: zmq.Socket, frames, client: Optional[_Client]) -> str:
+        """Sends a reply to a plan, an upload or a bad message, counted by status for the server and client;
+        returns the status name."""
         try:
             status = Status(bytes(frames[-3])[0]).name   # frames: route, envelope, body, message, path
         except (ValueError, IndexError):
@@ -644,6 +652,7 @@ class CloudServer:
         if client is not None:
             client.replies[status] += 1
         self._send(frontend, frames)
+        return status
 
     # -- clients and stats (broker thread) -------------------------------------------------------------
 
@@ -695,7 +704,8 @@ class CloudServer:
                       "max": self.config.max_queued},
             "rate_per_client": self.config.rate_per_client, "burst_per_client": self.config.burst_per_client,
             "clients": {name: {"requests": client.requests, "replies": dict(client.replies),
-                               "rate_limited": client.rate_limited, "fair_share_refused": client.fair_share_refused,
+                               "cache_hits": client.cache_hits, "cache_misses": client.cache_misses,
+                               "uploads": client.uploads, "rate_limited": client.rate_limited, "fair_share_refused": client.fair_share_refused,
                                "waiting": client.waiting, "cache_bytes": cache_by_client.get(name, 0)}
                         for name, client in self._clients.items()},
         }
@@ -807,6 +817,17 @@ def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: prot
     except ValueError as error:
         return {"status": PlanStatus.INVALID_REQUEST, "message": str(error), "path": np.empty((0, 2), np.int32),
                 "goal": request.goal, "expansions": 0, "seconds": 0.0, "cost": 0.0}
+
+
+def _count_cache_use(request: _Request, status: str) -> None:
+    """Per-client cache counts from a worker's reply: the broker knows whether the request carried its map."""
+    planned = status in PlanStatus.__members__
+    if request.kind == Kind.UPLOAD or request.carries_map:
+        request.client.uploads += planned or status == "OK"
+    elif status == "MAP_UNKNOWN":
+        request.client.cache_misses += 1
+    elif planned:
+        request.client.cache_hits += 1
 
 
 def _source_fd(frame) -> Optional[int]:
