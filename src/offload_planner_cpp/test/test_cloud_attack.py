@@ -48,7 +48,9 @@ def key_root(tmp_path):
 def test_many_tiny_maps_keep_server_rss_within_twice_the_cache_cap(key_root):
     uploads = 200_000 if FULL else 6000
     port = free_port()
-    process = spawn_server(port, key_root / "server", extra_args=["--cache-mib", "1"])
+    # No rate limit: every upload must reach the cache (the flood would otherwise get BUSY, as it should:
+    # test_cloud_fair_share.py).
+    process = spawn_server(port, key_root / "server", extra_args=["--cache-mib", "1", "--rate-per-client", "0"])
     context = zmq.Context()
     socket = curve_dealer(context, key_root / "robot", f"{LOOPBACK}:{port}")
 

@@ -15,6 +15,13 @@ def test_server_killed_behind_haproxy_loses_no_request():
     assert result.answered == result.requests and result.planned == result.answered
     # The robots on the killed server met a cold cache on the other one and uploaded again.
     assert result.uploads > 12
+    # STATS of the surviving server: it served every robot (the killed one's re-routed), by key name.
+    assert len(result.server_stats) == 1
+    _, stats = result.server_stats[0]
+    assert set(stats["clients"]) == {f"robot{k:02d}" for k in range(12)}
+    assert stats["requests"] == sum(client["requests"] for client in stats["clients"].values()) > 0
+    assert stats["cache"]["uploads"] >= 12 and stats["queue"]["depth"] == 0
+    assert any(line.startswith("server 127.0.0.1:") for line in result.lines())
 
 
 def test_haproxy_config_balances_every_server_with_health_checks():

@@ -8,10 +8,12 @@ raised at once so the caller can plan locally.
 
 Health check:
     python -m offload_planner_cpp.cloud.client tcp://HOST:5555 --ping --keys-dir ROBOT_KEYS
-exits 0 and prints the round trip when the server answers, 1 with the reason otherwise.
+exits 0 and prints the round trip when the server answers, 1 with the reason otherwise; with --stats
+(instead of or besides --ping) it prints the server's counters (STATS) as JSON.
 """
 import argparse
 import itertools
+import json
 import math
 import os
 import sys
@@ -184,6 +186,12 @@ class CloudClient:
             raise RuntimeError(f"ping answered {reply.status.name}: {reply.message}")
         return round_trip_s
 
+    def stats(self, timeout_s: Optional[float] = None) -> dict:
+        """The server's counters (a STATS request); CloudTimeout when unanswered, ProtocolError when the
+        answer is an error or not a JSON object."""
+        deadline = time.monotonic() + (self.timeout_s if timeout_s is None else timeout_s)
+        return protocol.decode_stats(self.request(protocol.encode_stats, deadline))
+
     def upload(self, grid: np.ndarray, map_hash: Optional[bytes] = None, timeout_s: Optional[float] = None) -> Reply:
         """Puts `grid` in the server's cache without planning."""
         map_hash = protocol.grid_hash(grid) if map_hash is None else map_hash
@@ -276,13 +284,14 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description="Cloud planner client: health check.")
     parser.add_argument("endpoint", help="server endpoint, e.g. tcp://cloud.example.org:5555")
     parser.add_argument("--ping", action="store_true", help="ping the server and print the round trip")
+    parser.add_argument("--stats", action="store_true", help="print the server's counters (STATS) as JSON")
     parser.add_argument("--count", type=int, default=1, help="pings to send (default 1)")
     parser.add_argument("--keys-dir", help="this robot's keys dir (client.key_secret, server.key)")
     parser.add_argument("--insecure", action="store_true", help="plaintext, for a server run with --insecure")
     parser.add_argument("--timeout", type=float, default=5.0, help="seconds to wait for each answer (default 5)")
     args = parser.parse_args(argv)
-    if not args.ping:
-        parser.error("nothing to do: pass --ping")
+    if not args.ping and not args.stats:
+        parser.error("nothing to do: pass --ping or --stats")
     if not args.insecure and not args.keys_dir:
         print("error: pass --keys-dir (the server uses CURVE by default) or --insecure", file=sys.stderr)
         return 2
@@ -293,7 +302,7 @@ def main(argv=None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     with client:
-        for _ in range(max(1, args.count)):
+        for _ in range(max(1, args.count) if args.ping else 0):
             try:
                 round_trip_s = client.ping()
             except CloudTimeout:
@@ -305,6 +314,18 @@ def main(argv=None) -> int:
                 print(f"error: {error}", file=sys.stderr)
                 return 1
             print(f"pong from {args.endpoint}: round trip {round_trip_s * 1e3:.3f} ms")
+        if args.stats:
+            try:
+                stats = client.stats()
+            except CloudTimeout:
+                print(f"error: no answer from {args.endpoint} within {args.timeout:g} s: server down, wrong "
+                      f"endpoint, blocked port, or this client's key is not on the server's allowlist",
+                      file=sys.stderr)
+                return 1
+            except (ProtocolError, zmq.ZMQError) as error:
+                print(f"error: {error}", file=sys.stderr)
+                return 1
+            print(json.dumps(stats, indent=2, sort_keys=True))
     return 0
 
 

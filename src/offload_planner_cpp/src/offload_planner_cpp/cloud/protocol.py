@@ -13,6 +13,9 @@ Plan request (kind PLAN), after the envelope:
              the raw C-order int8 buffer, never pickle. The hash is map_hash() of exactly these two.
 Upload only (kind UPLOAD): frames 1, 2 are the metadata and buffer; the reply acknowledges the hash.
 Ping (kind PING): the envelope alone.
+Stats (kind STATS): the envelope alone; the reply is a REPLY with status OK whose message frame is the
+server's counters as one flat-ish JSON object (encode_stats_reply / decode_stats). Added within version 2:
+a server that predates it answers BAD_REQUEST "unknown message kind 5", which the client reports as is.
 
 Reply (kind REPLY): envelope with the request's id, then
     frame 1: struct REPLY_BODY: status u8, reached goal x, y (int32), expansions u64,
@@ -45,6 +48,8 @@ FLAG_STOP_AT_GOAL = 2
 # Largest side the planner accepts, as the ROS node's map validation.
 MAX_MAP_SIDE = 100000
 MAX_METADATA_BYTES = 1024
+# A stats reply is small (per-client counts are bounded by the server); a client refuses a larger one.
+MAX_STATS_BYTES = 1 << 20
 
 
 class Kind(enum.IntEnum):
@@ -52,6 +57,7 @@ class Kind(enum.IntEnum):
     PLAN = 2
     UPLOAD = 3
     REPLY = 4
+    STATS = 5     # server counters, answered by the broker (as PING) without waiting behind plans
 
 
 class LinkStatus(enum.IntEnum):
@@ -143,6 +149,31 @@ def envelope(kind: Kind, request_id: int) -> bytes:
 
 def encode_ping(request_id: int) -> List[bytes]:
     return [envelope(Kind.PING, request_id)]
+
+
+def encode_stats(request_id: int) -> List[bytes]:
+    return [envelope(Kind.STATS, request_id)]
+
+
+def encode_stats_reply(request_id: int, stats: dict) -> list:
+    """The reply to a STATS request: status OK, the counters as canonical JSON in the message frame."""
+    text = json.dumps(stats, sort_keys=True, separators=(",", ":"), allow_nan=False)
+    return encode_reply(Reply(request_id, Status.OK, text))
+
+
+def decode_stats(reply: Reply) -> dict:
+    """The counters of a STATS reply; ProtocolError when it is an error reply or not a JSON object."""
+    if reply.status != Status.OK:
+        raise ProtocolError(reply.status, f"stats refused: {reply.status.name}: {reply.message}")
+    if len(reply.message) > MAX_STATS_BYTES:
+        raise ProtocolError(Status.BAD_REQUEST, f"stats reply of {len(reply.message)} characters is too long")
+    try:
+        stats = json.loads(reply.message)
+    except (ValueError, RecursionError):
+        raise ProtocolError(Status.BAD_REQUEST, "stats reply is not JSON") from None
+    if not isinstance(stats, dict):
+        raise ProtocolError(Status.BAD_REQUEST, "stats reply is not a JSON object")
+    return stats
 
 
 def encode_upload(request_id: int, grid: np.ndarray) -> list:

@@ -13,17 +13,25 @@ TCP connection's received byte count and cuts a connection that has received mor
 per-connection bound since its last delivered message. It drops queued requests of clients that
 disconnected (a Lazy Pirate client that gave up), uploads a map only once when many robots send it at
 the same time, and reloads the CURVE allowlist on SIGHUP.
+
+Fair share: every request is charged to its client (the allowlist name of its CURVE key, e.g. robot1; in
+--insecure mode its connection). A client over its token bucket (--rate-per-client plans/s, burst
+--burst-per-client) gets BUSY naming the limit whenever its request would have to wait for a worker; a
+client's waiting requests are bounded to an equal share of the queue among the clients that have requests
+waiting; and the map cache evicts the heaviest client's least recently used map first. A STATS request is
+answered by the broker from its counters, as a ping is; a summary line is logged every --stats-log-s.
 """
 import argparse
 import collections
 import logging
+import pathlib
 import signal
 import socket as pysocket
 import struct
 import sys
 import threading
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from typing import Dict, List, Optional
 
 import numpy as np
@@ -35,7 +43,7 @@ from zmq.utils.monitor import parse_monitor_message
 
 from offload_planner_cpp import PlanStatus, plan_raw
 from offload_planner_cpp.cloud import protocol
-from offload_planner_cpp.cloud.keys import load_allowlist, load_server_keys
+from offload_planner_cpp.cloud.keys import load_allowlist, load_server_keys, read_key_file
 from offload_planner_cpp.cloud.map_cache import MapCache
 from offload_planner_cpp.cloud.protocol import Kind, ProtocolError, Reply, Status
 
@@ -44,6 +52,9 @@ _READY = b"READY"
 _BACKEND_POLL_MS = 25    # how often the broker and workers look at the stop flag and the connection guard
 _GUARD_SLACK_BYTES = 1 << 20   # handshake, ZMTP and CURVE framing on top of the messages themselves
 _TCP_INFO_BYTES_RECEIVED = 128   # offset of tcpi_bytes_received (u64) in Linux's struct tcp_info (>= 4.1)
+# Clients whose counts and token buckets are kept (least recently seen idle ones are forgotten beyond it):
+# allowlists are small, but in --insecure mode every connection is a client.
+_MAX_TRACKED_CLIENTS = 1024
 _MONITORED = (zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_CLOSED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
               | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
 
@@ -97,6 +108,11 @@ class _Authenticator(zmq.auth.thread.ThreadAuthenticator):
         return False, b"Unknown key"
 
 
+def key_names(clients_dir) -> Dict[bytes, str]:
+    """Z85 public key -> allowlist name (the key file's stem, e.g. robot1) of every `*.key` in `clients_dir`."""
+    return {read_key_file(path, need_secret=False)[0]: path.stem for path in sorted(pathlib.Path(clients_dir).glob("*.key"))}
+
+
 def tcp_bytes_received(fd: int) -> Optional[int]:
     """Bytes the kernel has received on a TCP socket (what libzmq may have buffered, and more), or None."""
     try:
@@ -130,9 +146,12 @@ class ServerConfig:
     max_queued_bytes: int = 256 << 20     # and their bytes: a request that would exceed it gets BUSY
     max_frames: int = 8                   # more frames than any valid message: dropped unread
     max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
+    rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
+    burst_per_client: int = 100           # wait; and its bucket's size. rate 0: no rate limit
+    stats_log_s: float = 60.0             # period of the stats log line; 0: none
 
 
-@dataclass
+@dataclass(eq=False)   # compared by identity: removed from the queue as itself
 class _Request:
     frames: list                          # route + payload
     nbytes: int                           # payload bytes, counted in queued_bytes while waiting
@@ -140,8 +159,34 @@ class _Request:
     request_id: int
     route_frames: int
     arrived: float                        # time.monotonic() when the broker admitted it
+    client: "_Client" = None              # who sent it (fair share, counts)
+    kind: Kind = Kind.PLAN
     uploads: Optional[bytes] = None       # hash of the map it carries and is the one to store
     carries_map: bool = False             # a plan with its map attached
+
+
+@dataclass
+class _Client:
+    """Counts and token bucket of one client (broker thread only)."""
+    name: str
+    tokens: float
+    refilled: float                       # time.monotonic() of the last refill
+    requests: int = 0                     # plans and uploads received
+    rate_limited: int = 0                 # BUSY for being over the rate
+    cache_hits: int = 0                   # planned on a map the server held
+    cache_misses: int = 0                 # MAP_UNKNOWN
+    uploads: int = 0                      # maps it sent (uploads, plans carrying one) that were accepted
+    fair_share_refused: int = 0           # BUSY for holding its share of the queue
+    waiting: int = 0                      # requests queued or parked now
+    replies: collections.Counter = field(default_factory=collections.Counter)   # status name -> count
+
+    def take_token(self, now: float, rate: float, burst: int) -> bool:
+        self.tokens = min(float(burst), self.tokens + (now - self.refilled) * rate)
+        self.refilled = now
+        if self.tokens >= 1.0:
+            self.tokens -= 1.0
+            return True
+        return False
 
 
 @dataclass
@@ -161,6 +206,10 @@ class CloudServer:
             raise ValueError("at least one worker is needed")
         if config.max_message_bytes < 1 or config.cache_bytes < 0:
             raise ValueError("the max message size must be >= 1 byte and the cache cap >= 0")
+        if not (0 <= config.rate_per_client <= 1e6 and 1 <= config.burst_per_client <= 1e6):
+            raise ValueError("the rate per client must be in 0..1e6 plans/s and the burst in 1..1e6")
+        if not 0 <= config.stats_log_s <= 86400:
+            raise ValueError(f"the stats log period must be in 0..86400 s, got {config.stats_log_s}")
         if not 0 < config.max_wait_s <= 3600:
             raise ValueError(f"the max wait must be in (0, 3600] s, got {config.max_wait_s}")
         if config.max_queued < 1 or config.max_queued_bytes < config.max_message_bytes:
@@ -183,6 +232,16 @@ class CloudServer:
         self.connections_cut = 0        # by the connection guard (for tests)
         self.abandoned_dropped = 0      # queued requests dropped because their client went away
         self.service_s = 0.0            # moving average of a worker's time per request (broker thread only)
+        self.started = time.monotonic()
+        self.counts = collections.Counter()     # requests, pings, stats (broker thread only)
+        self.replies = collections.Counter()    # status name -> replies to plans, uploads and bad messages
+        self._clients = collections.OrderedDict()   # name -> _Client, least recently seen first
+        self._clients_waiting = 0               # clients with requests queued or parked
+        self._key_names = {}                    # Z85 public key -> allowlist name (file stem)
+        self._idle = ()                         # the broker's idle workers (for the rate limit)
+        self._in_flight = {}                    # the broker's requests being planned
+        self._worker_client = threading.local()  # name of the client whose message a worker handles
+        self._waiting = 0                       # requests queued or parked (broker thread only)
         self.endpoint = None
         self._thread = None
         self._frontend = self._bind_frontend()
@@ -203,6 +262,7 @@ class CloudServer:
             else:
                 public, secret, allowlist_dir = load_server_keys(config.keys_dir)
                 allowlist = load_allowlist(allowlist_dir)
+                self._key_names = key_names(allowlist_dir)
                 self._allowlist_dir = allowlist_dir
                 self._auth = _Authenticator(self._context, allowlist, self._log_limited)
                 self._auth.start()
@@ -272,8 +332,8 @@ class CloudServer:
             self._monitor.close(0)
             self._frontend.close(0)
             self._close_context()
-            LOG.info("stopped; cache hits %d, misses %d, evictions %d", self.cache.hits, self.cache.misses,
-                     self.cache.evictions)
+            LOG.info("stopped; cache hits %d, misses %d, evictions %d; %s", self.cache.hits, self.cache.misses,
+                     self.cache.evictions, self.stats_line(self.stats()))
 
     def _close_context(self) -> None:
         if self._auth is not None:
@@ -287,10 +347,12 @@ class CloudServer:
             return
         try:
             allowlist = load_allowlist(self._allowlist_dir)
+            names = key_names(self._allowlist_dir)
         except (OSError, ValueError) as error:
             LOG.error("allowlist NOT reloaded, keeping the previous %d keys: %s", len(self._auth.allowlist), error)
             return
         old, self._auth.allowlist = self._auth.allowlist, allowlist
+        self._key_names = names
         LOG.warning("allowlist reloaded from %s: %d keys (%d admitted, %d revoked)", self._allowlist_dir,
                     len(allowlist), len(allowlist - old), len(old - allowlist))
         for fd, connection in list(connections.items()):   # revoked robots lose their open connections too
@@ -313,7 +375,8 @@ class CloudServer:
         poller.register(frontend, zmq.POLLIN)
         poller.register(backend, zmq.POLLIN)
         guard = self.config.bind.startswith("tcp://")
-        checked_at = time.monotonic()
+        checked_at = logged_at = time.monotonic()
+        self._idle, self._in_flight = idle, in_flight
         self._ready.set()
         while not self._stop.is_set():
             events = dict(poller.poll(_BACKEND_POLL_MS))
@@ -325,9 +388,11 @@ class CloudServer:
             if backend in events:
                 frames = backend.recv_multipart(copy=False)
                 worker, rest = frames[0].bytes, frames[1:]
-                if len(rest) > 1:        # a reply: route frames, then the reply itself
-                    self._send(frontend, rest)
                 done, dispatched_at = in_flight.pop(worker, (None, 0.0))
+                if len(rest) > 1:        # a reply: route frames, then the reply itself
+                    status = self._reply(frontend, rest, done.client if done is not None else None)
+                    if done is not None:
+                        _count_cache_use(done, status)
                 if done is not None:
                     self.service_s = 0.7 * self.service_s + 0.3 * (time.monotonic() - dispatched_at)
                     if done.uploads is not None:
@@ -342,20 +407,26 @@ class CloudServer:
             while idle and queued:
                 request = queued.popleft()
                 self.queued_bytes -= request.nbytes
+                self._dequeued(request)
                 now = time.monotonic()
                 if now - request.arrived > self.config.max_wait_s:
                     # Its client has (nearly) given up: a quick BUSY lets it plan locally now, and the
                     # worker goes to a request that can still be answered in time.
                     self._refuse(frontend, request.frames[:request.route_frames], request.request_id,
                                  ProtocolError(Status.BUSY, f"waited {now - request.arrived:.2f} s for a worker, "
-                                                            f"over --max-wait-s {self.config.max_wait_s:g}"))
+                                                            f"over --max-wait-s {self.config.max_wait_s:g}"),
+                                 request.client)
                     if request.uploads is not None:
                         self._release(request.uploads, state)
                     continue
                 worker = idle.popleft()
                 in_flight[worker] = (request, now)
-                backend.send_multipart([worker, *request.frames], copy=False)
+                # The client's name goes first: the worker stores an uploaded map as that client's.
+                backend.send_multipart([worker, request.client.name.encode(), *request.frames], copy=False)
             now = time.monotonic()
+            if self.config.stats_log_s and now - logged_at >= self.config.stats_log_s:
+                logged_at = now
+                LOG.info("%s", self.stats_line(self.stats()))
             if guard and now - checked_at >= _BACKEND_POLL_MS / 1e3:
                 checked_at = now
                 self._guard(connections)
@@ -410,6 +481,7 @@ class CloudServer:
             parked[map_hash] = kept
         for request in dropped:
             self.queued_bytes -= request.nbytes
+            self._dequeued(request)
         self.abandoned_dropped += len(dropped)
         LOG.info("dropped %d waiting requests of a closed connection", len(dropped))
         for request in dropped:
@@ -452,6 +524,7 @@ class CloudServer:
         connection = connections.get(fd) if fd is not None else None
         if connection is not None:
             connection.baseline = tcp_bytes_received(fd) or connection.baseline
+        user = None
         if self._auth is not None:
             user = _user_of(frames[-1])
             if connection is not None:
@@ -471,29 +544,69 @@ class CloudServer:
         if not payload:
             return
         request_id = protocol.request_id_of(payload[0].buffer)
+        client = self._client(self._client_name(user, fd, connection))
         try:
             kind, request_id = protocol.decode_envelope(payload[0].buffer)
             if kind == Kind.PING:
+                self.counts["pings"] += 1
                 self._send(frontend, route + protocol.encode_reply(Reply(request_id, Status.OK, "pong")))
+                return
+            if kind == Kind.STATS:
+                self.counts["stats"] += 1
+                self._send(frontend, route + protocol.encode_stats_reply(request_id, self.stats()))
                 return
             if kind not in (Kind.PLAN, Kind.UPLOAD):
                 raise ProtocolError(Status.BAD_REQUEST, f"a client cannot send a {kind.name} message")
+            self.counts["requests"] += 1
+            client.requests += 1
             total = sum(len(frame) for frame in payload)
             if total > self.config.max_message_bytes:
                 raise ProtocolError(Status.TOO_LARGE, f"message of {total} bytes exceeds "
                                                       f"{self.config.max_message_bytes}")
-            waiting = len(queued) + sum(len(requests) for requests in parked.values())
+            # An equal share of the queue among the clients with requests waiting, this one included. A
+            # client alone may fill the queue; a newcomer under its share then takes the place of the
+            # newest request of the client holding the most (which gets BUSY), so it is never starved.
+            sharing = self._clients_waiting + (0 if client.waiting else 1)
+            share = max(1, self.config.max_queued // sharing)
+            if sharing > 1 and client.waiting >= share:
+                client.fair_share_refused += 1
+                raise ProtocolError(Status.BUSY, f"fair share: client {client.name} already has {client.waiting} "
+                                                 f"requests queued, its share of the {self.config.max_queued} "
+                                                 f"places with {sharing} clients waiting")
+            waiting = self._waiting
             if waiting >= self.config.max_queued or self.queued_bytes + total > self.config.max_queued_bytes:
-                raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {waiting} "
-                                                 f"requests ({self.queued_bytes} bytes) queued")
+                victim = self._displaceable(queued, share, total) if client.waiting < share else None
+                if victim is None:
+                    raise ProtocolError(Status.BUSY, f"all {self.config.workers} workers busy and {waiting} "
+                                                     f"requests ({self.queued_bytes} bytes) queued")
+                queued.remove(victim)
+                self.queued_bytes -= victim.nbytes
+                self._dequeued(victim)
+                victim.client.fair_share_refused += 1
+                self._refuse(frontend, victim.frames[:victim.route_frames], victim.request_id, ProtocolError(
+                    Status.BUSY, f"fair share: client {victim.client.name} had {victim.client.waiting + 1} of the "
+                                 f"{self.config.max_queued} queue places; this one went to client {client.name}"),
+                    victim.client)
+                waiting = self._waiting
             expected_wait_s = waiting * self.service_s / self.config.workers
             if expected_wait_s > self.config.max_wait_s:
                 raise ProtocolError(Status.BUSY, f"{waiting} requests queued, about {expected_wait_s:.2f} s of "
                                                  f"work: over --max-wait-s {self.config.max_wait_s:g}")
+            # Over its rate, a client is still served when a worker is idle and nobody waits: the limit
+            # shares a busy server, it does not leave an idle one idle.
+            rate, burst = self.config.rate_per_client, self.config.burst_per_client
+            now = time.monotonic()
+            if rate and not client.take_token(now, rate, burst) and (waiting or not self._idle):
+                client.rate_limited += 1
+                raise ProtocolError(Status.BUSY, f"rate limit: client {client.name} is over --rate-per-client "
+                                                 f"{rate:g} plans/s (--burst-per-client {burst}) while the "
+                                                 f"server is busy")
         except ProtocolError as error:
-            self._refuse(frontend, route, request_id, error)
+            self._refuse(frontend, route, request_id, error, client)
             return
-        request = _Request(route + payload, total, fd, request_id, len(route), time.monotonic())
+        request = _Request(route + payload, total, fd, request_id, len(route), time.monotonic(), client=client,
+                           kind=kind)
+        self._enqueued(request)
         self.queued_bytes += total
         wanted = _plan_hash(kind, payload)
         if wanted is not None:
@@ -509,10 +622,105 @@ class CloudServer:
                 parked[wanted] = []
         queued.append(request)
 
-    def _refuse(self, frontend: zmq.Socket, route, request_id: int, error: ProtocolError) -> None:
+    def _displaceable(self, queued, share: int, total: int) -> Optional[_Request]:
+        """The newest queued request of the client holding the most places, when that is more than `share`
+        and removing it makes room for `total` bytes; map carriers others wait for are never displaced."""
+        heaviest = max((client for client in self._clients.values() if client.waiting), default=None,
+                       key=lambda client: client.waiting)
+        if heaviest is None or heaviest.waiting <= share:
+            return None
+        victim = next((request for request in reversed(queued)
+                       if request.client is heaviest and request.uploads is None), None)
+        if victim is None or self.queued_bytes - victim.nbytes + total > self.config.max_queued_bytes:
+            return None
+        return victim
+
+    def _refuse(self, frontend: zmq.Socket, route, request_id: int, error: ProtocolError,
+                client: Optional[_Client]) -> None:
         self._log_limited.log(logging.WARNING, ("refused", error.status),
                               "request %d refused: %s: %s", request_id, error.status.name, error)
-        self._send(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))))
+        self._reply(frontend, route + protocol.encode_reply(Reply(request_id, error.status, str(error))), client)
+
+    def _reply(self, frontend: zmq.Socket, frames, client: Optional[_Client]) -> str:
+        """Sends a reply to a plan, an upload or a bad message, counted by status for the server and client;
+        returns the status name."""
+        try:
+            status = Status(bytes(frames[-3])[0]).name   # frames: route, envelope, body, message, path
+        except (ValueError, IndexError):
+            status = "?"
+        self.replies[status] += 1
+        if client is not None:
+            client.replies[status] += 1
+        self._send(frontend, frames)
+        return status
+
+    # -- clients and stats (broker thread) -------------------------------------------------------------
+
+    def _client_name(self, user: Optional[bytes], fd: Optional[int], connection: Optional[_Connection]) -> str:
+        if user is not None:
+            return self._key_names.get(user) or f"key:{user.decode(errors='replace')[:8]}"
+        if connection is not None and connection.address != "?":
+            return connection.address
+        return f"connection:{fd}" if fd is not None else "local"
+
+    def _client(self, name: str) -> _Client:
+        client = self._clients.get(name)
+        if client is None:
+            if len(self._clients) >= _MAX_TRACKED_CLIENTS:   # forget the least recently seen idle one
+                stale = next((key for key, known in self._clients.items() if not known.waiting), None)
+                if stale is not None:
+                    del self._clients[stale]
+            client = _Client(name, float(self.config.burst_per_client), time.monotonic())
+            self._clients[name] = client
+        else:
+            self._clients.move_to_end(name)
+        return client
+
+    def _enqueued(self, request: _Request) -> None:
+        self._waiting += 1
+        request.client.waiting += 1
+        if request.client.waiting == 1:
+            self._clients_waiting += 1
+
+    def _dequeued(self, request: _Request) -> None:
+        self._waiting -= 1
+        request.client.waiting -= 1
+        if request.client.waiting == 0:
+            self._clients_waiting -= 1
+
+    def stats(self) -> dict:
+        """The counters STATS answers with (broker thread; cheap: no worker is asked)."""
+        cache = self.cache
+        cache_by_client = cache.bytes_by_owner()
+        return {
+            "uptime_s": round(time.monotonic() - self.started, 3),
+            "workers": self.config.workers,
+            "requests": self.counts["requests"], "pings": self.counts["pings"], "stats": self.counts["stats"],
+            "replies": dict(self.replies),
+            "cache": {"hits": cache.hits, "misses": cache.misses, "uploads": cache.inserted,
+                      "evictions": cache.evictions, "maps": len(cache), "bytes": cache.size_bytes,
+                      "capacity_bytes": cache.capacity_bytes},
+            "queue": {"depth": self._waiting, "bytes": self.queued_bytes, "in_flight": len(self._in_flight),
+                      "max": self.config.max_queued},
+            "rate_per_client": self.config.rate_per_client, "burst_per_client": self.config.burst_per_client,
+            "clients": {name: {"requests": client.requests, "replies": dict(client.replies),
+                               "cache_hits": client.cache_hits, "cache_misses": client.cache_misses,
+                               "uploads": client.uploads, "rate_limited": client.rate_limited, "fair_share_refused": client.fair_share_refused,
+                               "waiting": client.waiting, "cache_bytes": cache_by_client.get(name, 0)}
+                        for name, client in self._clients.items()},
+        }
+
+    @staticmethod
+    def stats_line(stats: dict) -> str:
+        """One log line of the counters."""
+        cache, queue = stats["cache"], stats["queue"]
+        replies = ", ".join(f"{name} {count}" for name, count in sorted(stats["replies"].items())) or "none"
+        limited = sum(client["rate_limited"] + client["fair_share_refused"] for client in stats["clients"].values())
+        return (f"stats: up {stats['uptime_s']:.0f} s, {stats['requests']} requests, {stats['pings']} pings; "
+                f"replies {replies}; cache hits {cache['hits']}, misses {cache['misses']}, uploads "
+                f"{cache['uploads']}, evictions {cache['evictions']} ({cache['maps']} maps, "
+                f"{cache['bytes'] / 2**20:.1f} MiB); queue {queue['depth']}, in flight {queue['in_flight']}; "
+                f"{len(stats['clients'])} clients, {limited} BUSY for fair share (rate or queue share)")
 
     @staticmethod
     def _send(socket: zmq.Socket, frames) -> None:
@@ -534,22 +742,26 @@ class CloudServer:
             while not self._stop.is_set():
                 if not socket.poll(_BACKEND_POLL_MS):
                     continue
-                frames = socket.recv_multipart(copy=False)
+                client, *frames = socket.recv_multipart(copy=False)
                 split = 2 if len(frames) > 2 and len(frames[1]) == 0 else 1
                 route, payload = frames[:split], frames[split:]
+                self._worker_client.name = client.bytes.decode()
                 socket.send_multipart(route + self.handle(payload), copy=False)
         finally:
             socket.close(0)
 
-    def handle(self, payload) -> list:
-        """Reply frames for a PLAN or UPLOAD message (envelope first); never raises."""
+    def handle(self, payload, client: Optional[str] = None) -> list:
+        """Reply frames for a PLAN or UPLOAD message (envelope first) of `client` (default: the one this
+        worker thread was handed the message for); never raises."""
+        if client is None:
+            client = getattr(self._worker_client, "name", "")
         request_id = protocol.request_id_of(payload[0].buffer)
         started = time.perf_counter()
         try:
             kind, request_id = protocol.decode_envelope(payload[0].buffer)
             if kind == Kind.UPLOAD:
-                return protocol.encode_reply(self._upload(request_id, payload[1:]))
-            return protocol.encode_reply(self._plan(request_id, payload[1:], started))
+                return protocol.encode_reply(self._upload(request_id, payload[1:], client))
+            return protocol.encode_reply(self._plan(request_id, payload[1:], started, client))
         except ProtocolError as error:
             self._log_limited.log(logging.WARNING, ("request", error.status), "request %d: %s: %s", request_id,
                                   error.status.name, error)
@@ -558,22 +770,22 @@ class CloudServer:
             LOG.exception("request %d failed", request_id)
             return protocol.encode_reply(Reply(request_id, Status.SERVER_ERROR, f"server error: {error}"))
 
-    def _store(self, map_hash: bytes, grid: np.ndarray) -> None:
-        if self.cache.put(map_hash, grid):
+    def _store(self, map_hash: bytes, grid: np.ndarray, client: str) -> None:
+        if self.cache.put(map_hash, grid, client):
             LOG.info("map %s (%d x %d) cached; %d maps, %.1f MiB", map_hash.hex()[:12], grid.shape[1],
                      grid.shape[0], len(self.cache), self.cache.size_bytes / 2**20)
         else:
             LOG.warning("map %s of %d bytes exceeds the whole cache; served uncached", map_hash.hex()[:12],
                         grid.nbytes)
 
-    def _upload(self, request_id: int, frames) -> Reply:
+    def _upload(self, request_id: int, frames, client: str) -> Reply:
         if len(frames) != 2:
             raise ProtocolError(Status.BAD_REQUEST, f"upload needs 2 frames after the envelope, got {len(frames)}")
         map_hash, grid = protocol.decode_map(frames[0].buffer, frames[1].buffer, self.max_cells)
-        self._store(map_hash, grid)
+        self._store(map_hash, grid, client)
         return Reply(request_id, Status.OK, map_hash.hex())
 
-    def _plan(self, request_id: int, frames, started: float) -> Reply:
+    def _plan(self, request_id: int, frames, started: float, client: str) -> Reply:
         request = protocol.decode_plan(request_id, [frame.buffer for frame in frames], self.max_cells)
         grid = request.grid
         short_hash = request.map_hash.hex()[:12]
@@ -584,7 +796,7 @@ class CloudServer:
                 return Reply(request_id, Status.MAP_UNKNOWN, f"map {request.map_hash.hex()} is not cached: upload it")
             source = "cache hit"
         else:
-            self._store(request.map_hash, grid)
+            self._store(request.map_hash, grid, client)
             source = "uploaded"
         options = request.options
         raw = protocol_plan(grid, request, options)
@@ -605,6 +817,17 @@ def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: prot
     except ValueError as error:
         return {"status": PlanStatus.INVALID_REQUEST, "message": str(error), "path": np.empty((0, 2), np.int32),
                 "goal": request.goal, "expansions": 0, "seconds": 0.0, "cost": 0.0}
+
+
+def _count_cache_use(request: _Request, status: str) -> None:
+    """Per-client cache counts from a worker's reply: the broker knows whether the request carried its map."""
+    planned = status in PlanStatus.__members__
+    if request.kind == Kind.UPLOAD or request.carries_map:
+        request.client.uploads += planned or status == "OK"
+    elif status == "MAP_UNKNOWN":
+        request.client.cache_misses += 1
+    elif planned:
+        request.client.cache_hits += 1
 
 
 def _source_fd(frame) -> Optional[int]:
@@ -652,6 +875,18 @@ def _bounded_seconds(text: str) -> float:
     return value
 
 
+def _bounded_float(name: str, low: float, high: float):
+    def parse(text: str) -> float:
+        try:
+            value = float(text)
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
+        if not low <= value <= high:   # also refuses NaN
+            raise argparse.ArgumentTypeError(f"{name} must be in {low:g}..{high:g}, got {text!r}")
+        return value
+    return parse
+
+
 def _endpoint(text: str) -> str:
     """tcp://HOST:PORT with PORT 0..65535 (0: a free one), or ipc:// / inproc://."""
     if text.startswith(("ipc://", "inproc://")):
@@ -678,6 +913,13 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max-wait-s", type=_bounded_seconds, default=1.0,
                         help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
                              "keep it under the robots' per-attempt timeout")
+    parser.add_argument("--rate-per-client", type=_bounded_float("--rate-per-client", 0, 1e6), default=50.0,
+                        help="plans (and uploads) per second one client (CURVE key; connection if --insecure) may "
+                             "have while the server is busy; over it BUSY (default 50; 0: no limit)")
+    parser.add_argument("--burst-per-client", type=_bounded_int("--burst-per-client", 1, 1000000), default=100,
+                        help="token bucket size of --rate-per-client (default 100)")
+    parser.add_argument("--stats-log-s", type=_bounded_float("--stats-log-s", 0, 86400), default=60.0,
+                        help="log a line of the STATS counters every this many seconds (default 60; 0: never)")
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     args = parser.parse_args(argv)
@@ -695,7 +937,8 @@ def main(argv=None) -> int:
     config = ServerConfig(bind=args.bind, workers=args.workers, keys_dir=args.keys_dir, insecure=args.insecure,
                           cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
                           max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
-                          max_wait_s=args.max_wait_s)
+                          max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client,
+                          burst_per_client=args.burst_per_client, stats_log_s=args.stats_log_s)
     try:
         server = CloudServer(config)
     except (OSError, ValueError, zmq.ZMQError) as error:

@@ -6,7 +6,8 @@ mid-run. Bounded in requests and time; loopback only. A demo and test tool, not 
 
 Every answer is checked against the robot's own planner on the same map, so a plan from a stale or wrong
 map counts as an error. A request is lost when the robot gave up on it (no reply within its deadline,
-retries included); the run fails (exit 1) on any lost request or wrong answer.
+retries included); the run fails (exit 1) on any lost request or wrong answer. At the end it prints the
+STATS of every server still alive (asked directly, not through HAProxy).
 """
 import argparse
 import contextlib
@@ -21,7 +22,7 @@ import threading
 import time
 from dataclasses import dataclass, field
 from pathlib import Path
-from typing import List, Optional
+from typing import List, Optional, Tuple
 
 import numpy as np
 import zmq
@@ -29,7 +30,8 @@ import zmq
 from offload_planner_cpp import PlanStatus, plan_raw
 from offload_planner_cpp.cloud import keys
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
-from offload_planner_cpp.cloud.protocol import Status, is_planner_status
+from offload_planner_cpp.cloud.protocol import ProtocolError, Status, is_planner_status
+from offload_planner_cpp.cloud.server import CloudServer
 
 LOOPBACK = "127.0.0.1"
 
@@ -102,6 +104,7 @@ class FleetResult:
     uploads: int
     seconds: float
     latencies_s: np.ndarray
+    server_stats: List[Tuple[int, dict]] = field(default_factory=list)   # (port, STATS) of live servers
 
     @property
     def plans_per_s(self) -> float:
@@ -112,7 +115,17 @@ class FleetResult:
         return [f"robots {self.robots}, servers {self.servers}: {self.requests} requests in {self.seconds:.1f} s",
                 f"answered {self.answered} ({self.plans_per_s:.0f}/s), planned {self.planned}, BUSY {self.busy}, "
                 f"errors {self.errors}, wrong answers {self.wrong}, lost {self.lost}",
-                f"latency p50 {p50:.2f} ms, p99 {p99:.2f} ms; map uploads {self.uploads}"]
+                f"latency p50 {p50:.2f} ms, p99 {p99:.2f} ms; map uploads {self.uploads}"] + \
+            [line for port, stats in self.server_stats for line in server_stats_lines(port, stats)]
+
+
+def server_stats_lines(port: int, stats: dict) -> List[str]:
+    """A server's STATS as the server logs them, plus its busiest clients."""
+    clients = sorted(stats["clients"].items(), key=lambda item: -item[1]["requests"])
+    busiest = ", ".join(f"{name} {counts['requests']}" for name, counts in clients[:5])
+    limited = sum(counts["rate_limited"] for _, counts in clients)
+    return [f"server {LOOPBACK}:{port} {CloudServer.stats_line(stats)}",
+            f"  requests by client (busiest 5 of {len(clients)}): {busiest or 'none'}; rate limited {limited}"]
 
 
 def robot_map(seed: int, size: int) -> np.ndarray:
@@ -185,6 +198,22 @@ class Cloud:
         else:
             self.endpoint = f"tcp://{LOOPBACK}:{self.server_ports[0]}"
 
+    def live_stats(self, keys_dir: Path, context: zmq.Context) -> List[Tuple[int, dict]]:
+        """STATS of every server process still running, asked directly with one robot's key."""
+        found = []
+        for port, process in zip(self.server_ports, self.processes):
+            if process.poll() is not None:
+                continue
+            client = CloudClient(f"tcp://{LOOPBACK}:{port}", keys_dir=str(keys_dir), timeout_s=5.0, retries=0,
+                                 context=context)
+            try:
+                found.append((port, client.stats()))
+            except (CloudTimeout, ProtocolError) as error:
+                print(f"no stats from server {LOOPBACK}:{port}: {error}", file=sys.stderr)
+            finally:
+                client.close()
+        return found
+
     def kill(self, index: int) -> None:
         self.processes[index].send_signal(signal.SIGKILL)
         self.processes[index].wait()
@@ -229,6 +258,7 @@ def run_fleet(robots: int = 50, servers: int = 3, workers: int = 1, use_haproxy:
             for thread in threads:
                 thread.join(duration_s + timeout_s + 30)
             seconds = time.monotonic() - began
+            server_stats = cloud.live_stats(work / "keys" / "robot00", context)
         finally:
             cloud.close()
             context.term()
@@ -240,7 +270,8 @@ def run_fleet(robots: int = 50, servers: int = 3, workers: int = 1, use_haproxy:
                        errors=int((~planner & (statuses != Status.BUSY)).sum()),
                        lost=sum(l.lost for l in logs), wrong=sum(l.wrong for l in logs),
                        uploads=sum(l.uploads for l in logs), seconds=seconds,
-                       latencies_s=np.array([x for log in logs for x in log.latencies_s]))
+                       latencies_s=np.array([x for log in logs for x in log.latencies_s]),
+                       server_stats=server_stats)
 
 
 def main(argv=None) -> int:
