@@ -1,5 +1,5 @@
 """Coverage-guided fuzzing (atheris, libFuzzer) of what reads hostile input: the wire protocol's decoders
-and the map loaders. A target passes when every input either decodes or raises the module's own error
+and the map loaders (a STATS reply included). A target passes when every input either decodes or raises the module's own error
 (ProtocolError, MapFormatError); anything else is a crash, and libFuzzer writes the input that caused it.
 
     python -m offload_planner_cpp.devtools.fuzz protocol -runs=50000
@@ -37,6 +37,7 @@ def protocol_target(data: bytes) -> None:
     if frames and len(data) % 2:
         frames[0] = protocol.envelope(protocol.Kind(1 + len(data) % 4), len(data))
     for decode in (lambda: protocol.decode_envelope(frames[0] if frames else b""),
+                   lambda: protocol.decode_stats(protocol.decode_reply(frames)),
                    lambda: protocol.decode_plan(7, frames[1:], MAX_CELLS),
                    lambda: protocol.decode_reply(frames),
                    lambda: protocol.decode_map(frames[0] if frames else b"", frames[-1] if frames else b"",
