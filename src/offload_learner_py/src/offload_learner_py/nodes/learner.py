@@ -106,7 +106,8 @@ class LearnerNode:
         alpha = float(p("alpha", 0.5))
         self.router_config = RouterConfig(probe_rate=float(p("probe_rate", 1.0)),
                                           cloud_timeout_s=float(p("cloud_timeout_s", 5.0)),
-                                          weights=CostWeights(alpha, 1.0 - alpha), seed=seed)
+                                          weights=CostWeights(alpha, 1.0 - alpha), seed=seed,
+                                          map_wait_s=float(p("map_wait_s", 2.0)))
         self.policy, self.agent = make_policy(self.policy_name, self.checkpoint_path, os.path.expanduser(
             str(p("model", ""))), self.learn, seed, dqn_overrides, float(p("threshold_input_size", 1.1)))
         self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
@@ -137,7 +138,7 @@ class LearnerNode:
             rospy.loginfo("waiting for %s", side.service)
             rospy.wait_for_service(side.service, timeout=wait_s)
         statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
-                            cloud_error=PlanPathResponse.CLOUD_ERROR)
+                            cloud_error=PlanPathResponse.CLOUD_ERROR, no_map=PlanPathResponse.NO_MAP)
         self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
         self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
         self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
@@ -146,7 +147,8 @@ class LearnerNode:
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
         self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)))
         self.router = OffloadRouter(self.policy, local, cloud, statuses, self.router_config,
-                                    on_decision=self.publish_decision, on_outcome=self.on_outcome)
+                                    on_decision=self.publish_decision, on_outcome=self.on_outcome,
+                                    stale=self.stale_map)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = str(p("latency_topic", "/cloud_bridge/latency"))
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
@@ -196,6 +198,16 @@ class LearnerNode:
     # --- inputs ---------------------------------------------------------------------------------
     def on_map_metadata(self, msg):
         self.map_info = msg
+
+    def stale_map(self, response):
+        """Why a path was planned on a map older than the latest map_metadata announced, or None. The
+        map in force is the one whose load time map_metadata carries (map_server and map_publisher stamp
+        the grid at or after it); a zero load time (a publisher that does not set it) disables the check."""
+        info = self.map_info
+        if info is None or info.map_load_time.is_zero() or response.map_stamp >= info.map_load_time:
+            return None
+        return (f"planned on the map of {response.map_stamp.to_sec():.3f}, the map in force was loaded at "
+                f"{info.map_load_time.to_sec():.3f}")
 
     def on_latency(self, msg):
         self.round_trip_s = msg.round_trip_s
@@ -256,7 +268,7 @@ class LearnerNode:
         self.goal_pub.publish(request.goal)
         result = self.router.route(request, self.build_state(request))
         if result.response is None:
-            return PlanPathResponse(status=result.status, message=f"planner call failed: {result.raised}")
+            return PlanPathResponse(status=result.status, message=result.raised)
         return result.response
 
     def on_plan(self, request):
@@ -382,6 +394,8 @@ def main():
       ~goal_tolerance (float, 0.5)       tolerance of RViz goals (m)
       ~start_x, ~start_y (float)         start of RViz goals when tf has no robot pose (default map centre)
       ~base_frame (str, base_link)
+      ~map_wait_s (float, 2.0)           how long a planner still on an older map than map_metadata's is
+                                         asked again before its answer counts as failed (never delivered)
       ~service_wait_s (float, 60)        how long to wait for both planners at start
       ~wait_for_recorder_s (float, 0)    wait this long for a subscriber (rosbag) of ~decision and ~outcome
       ~progress_every (int, 25), ~stats_window (int, 50)
