@@ -5,6 +5,7 @@ recovery: the map replaced, the cloud server crashed and restarted, a WAN outage
 timeout, a bandwidth collapse, the bridge restarted, the learner and the recorder SIGKILLed and
 restarted, roscore restarted. After each: every request answered, no path from a map older than the
 one the learner had when it answered, every decision and outcome in a bag."""
+import atexit
 import os
 import signal
 import socket
@@ -105,6 +106,7 @@ class FaultMatrixTest(unittest.TestCase):
         cls.processes = {}
         cls.emulator = None
         cls.addClassCleanup(cls.stop_all)
+        atexit.register(cls.stop_all)   # also when rostest interrupts the test (time limit, Ctrl-C)
         cls.processes["master"] = start_master()
         rospy.init_node("rtest_fault_matrix", disable_signals=True)
         cls.lock = threading.Lock()
@@ -178,6 +180,9 @@ class FaultMatrixTest(unittest.TestCase):
 
     @classmethod
     def stop_all(cls):
+        if getattr(cls, "stopped", False):
+            return
+        cls.stopped = True
         plan = getattr(cls, "plan", None)
         if plan is not None:
             plan.close()
@@ -389,7 +394,7 @@ class FaultMatrixTest(unittest.TestCase):
         # A request waiting inside the learner when it dies: the previous probe's cloud side is held by a
         # WAN outage, so the next request waits for it. Its caller must get an error, not wait forever.
         self.outage_now(3 * CLOUD_TIMEOUT_S)
-        self.serve_all(GOALS[:1])
+        self.call_with_decision(GOALS[0])   # its path is back; its cloud side waits out the bridge's timeout
         waiting = {}
 
         def call():
@@ -455,10 +460,26 @@ class FaultMatrixTest(unittest.TestCase):
         print(f"recorder SIGKILLed: {len(in_bag)} of {len(recorded)} outcomes read from its .bag.active, "
               f"{len(lost)} lost from its unwritten tail; rosbag reindex keeps {len(ids)}", file=sys.stderr)
 
+        # Restarted with a recorder slow to come up (stopped until the first decision or for 5 s) while
+        # other subscribers (this test's) connect at once: the learner must wait for the recorder.
         self.__class__.last_session_after = max(recorded)
         self.start_recorder()
-        self.start_learner()
-        self.assertEqual(len(self.serve_all()), len(GOALS))
+        recorder = self.processes["record"]
+        os.kill(recorder.pid, signal.SIGSTOP)
+
+        def resume_recorder():
+            deadline = time.monotonic() + 5.0
+            while time.monotonic() < deadline and not any(i > self.last_session_after for i in list(self.decisions)):
+                time.sleep(0.02)
+            os.kill(recorder.pid, signal.SIGCONT)
+
+        resumer = threading.Thread(target=resume_recorder)
+        resumer.start()
+        try:
+            self.start_learner()
+        finally:
+            resumer.join()
+        self.assertEqual(len(self.serve_all()), len(GOALS))   # test_9 finds all of them in the bag
 
     def test_8_roscore_restarted(self):
         self.serve_all(GOALS[:1])

@@ -90,6 +90,15 @@ def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, 
     return DQNDecision(agent, learn=learn, seed=seed + agent.steps), agent
 
 
+def recorder_connected(publisher, recorder: str) -> bool:
+    """Whether the node `recorder` (a resolved name; "" for any node) has a connection to `publisher`.
+    rospy keeps each subscriber's caller id on its connection (endpoint_id)."""
+    impl = publisher.impl
+    with impl.c_lock:
+        subscribers = [getattr(connection, "endpoint_id", "") for connection in impl.connections]
+    return bool(subscribers) if not recorder else recorder in subscribers
+
+
 class LearnerNode:
     def __init__(self):
         p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
@@ -145,7 +154,9 @@ class LearnerNode:
         self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
                           CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
-        self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)))
+        recorder = str(p("recorder_node", "offload_record"))
+        self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)),
+                                rospy.names.resolve_name(recorder) if recorder else "")
         self.router = OffloadRouter(self.policy, local, cloud, statuses, self.router_config,
                                     on_decision=self.publish_decision, on_outcome=self.on_outcome,
                                     stale=self.stale_map)
@@ -172,17 +183,19 @@ class LearnerNode:
                       self.policy_name, self.learn and self.policy.learns, self.router_config.probe_rate,
                       local.service, cloud.service)
 
-    def _wait_for_recorder(self, timeout_s: float) -> None:
-        """Before serving, wait until something (rosbag) subscribes to ~decision and ~outcome, so a
-        recording starts with the first request."""
+    def _wait_for_recorder(self, timeout_s: float, recorder: str) -> None:
+        """Before serving, wait until the recorder (the node `recorder`, or with "" any subscriber) is
+        connected to ~decision and ~outcome, so a recording starts with the first request. Another
+        subscriber (a monitor, a test, `rostopic echo`) does not count: serving as soon as it connected lost
+        the first records when rosbag connected later (found by the fault matrix)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not rospy.is_shutdown():
-            if self.decision_pub.get_num_connections() > 0 and self.outcome_pub.get_num_connections() > 0:
+            if all(recorder_connected(publisher, recorder) for publisher in (self.decision_pub, self.outcome_pub)):
                 return
             time.sleep(0.05)
         if timeout_s > 0:
-            rospy.logwarn("nothing subscribed to %s within %g s: serving anyway", self.decision_pub.resolved_name,
-                          timeout_s)
+            rospy.logwarn("%s not connected to %s within %g s: serving anyway", recorder or "no subscriber",
+                          self.decision_pub.resolved_name, timeout_s)
 
     @staticmethod
     def _tf_buffer():
@@ -397,7 +410,8 @@ def main():
       ~map_wait_s (float, 2.0)           how long a planner still on an older map than map_metadata's is
                                          asked again before its answer counts as failed (never delivered)
       ~service_wait_s (float, 60)        how long to wait for both planners at start
-      ~wait_for_recorder_s (float, 0)    wait this long for a subscriber (rosbag) of ~decision and ~outcome
+      ~wait_for_recorder_s (float, 0)    wait this long for ~recorder_node to subscribe to ~decision and ~outcome
+      ~recorder_node (str, offload_record)  the recorder's node name (record.launch's); "" for any subscriber
       ~progress_every (int, 25), ~stats_window (int, 50)
     """
     rospy.init_node("offload_learner")
