@@ -20,7 +20,6 @@ import xml.etree.ElementTree as ElementTree
 import numpy as np
 
 
-
 def free_port() -> int:
     with socket.socket() as probe:
         probe.bind(("127.0.0.1", 0))
