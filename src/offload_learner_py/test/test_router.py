@@ -239,3 +239,99 @@ def test_baseline_policies():
 def test_router_config_rejects_bad_values(kwargs, message):
     with pytest.raises(ValueError, match=message):
         RouterConfig(**kwargs)
+
+
+class StaleThenFresh:
+    """A planner that answers from the old map `stale_calls` times, then from the new one; each call
+    costs `cost_s` on the virtual clock."""
+
+    def __init__(self, clock, cost_s, stale_calls):
+        self.clock, self.cost_s, self.stale_calls = clock, cost_s, stale_calls
+        self.calls = 0
+
+    def __call__(self, request):
+        self.calls += 1
+        self.clock.advance(self.cost_s)
+        return OK, {"side": self, "map": "old" if self.calls <= self.stale_calls else "new"}
+
+
+def stale_router(policy, local, cloud, clock, probe_rate=0.0, map_wait_s=2.0):
+    recorder = Recorder()
+    statuses = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, no_map=NO_MAP)
+    router = OffloadRouter(policy, local, cloud, statuses,
+                           RouterConfig(probe_rate=probe_rate, cloud_timeout_s=5.0, map_wait_s=map_wait_s,
+                                        map_retry_s=0.02),
+                           on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock,
+                           stale=lambda response: "old map" if response["map"] == "old" else None,
+                           sleep=clock.advance)
+    return router, recorder
+
+
+NO_MAP = 1
+
+
+def test_a_path_from_a_stale_map_is_never_delivered_the_planner_is_asked_again():
+    clock = VirtualClock()
+    local, cloud = StaleThenFresh(clock, 0.010, stale_calls=3), FakePlanner(clock, 0.050)
+    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == OK and result.response["map"] == "new"
+    assert local.calls == 4
+    (outcome,) = recorder.outcomes
+    # the measured latency includes the calls on the old map and the pauses between them
+    assert outcome.local_s == pytest.approx(4 * 0.010 + 3 * 0.02)
+
+
+def test_a_planner_that_stays_on_the_old_map_gets_no_map_not_a_stale_path():
+    clock = VirtualClock()
+    local, cloud = StaleThenFresh(clock, 0.010, stale_calls=10**9), FakePlanner(clock, 0.050)
+    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, map_wait_s=0.5)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == NO_MAP and result.response is None
+    assert "map in force" in result.raised and "old map" in result.raised
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == NO_PATH_DELIVERED and outcome.reward is None
+    assert 0.5 <= outcome.local_s < 0.5 + 0.010 + 0.02 + 1e-9
+
+
+def test_a_stale_cloud_path_falls_back_to_the_local_path_and_costs_the_timeout():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.120), StaleThenFresh(clock, 0.010, stale_calls=10**9)
+    router, recorder = stale_router(FixedPolicy(CLOUD, "cloud"), _Fresh(local), cloud, clock, map_wait_s=0.3)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == OK and result.response["map"] == "new" and result.response["side"] is local
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == LOCAL and outcome.cloud.status == ERROR and outcome.cloud_s == 5.0
+
+
+def test_probe_delivers_the_fresh_side_even_when_the_stale_side_answers_first():
+    clock = VirtualClock()
+    local, cloud = StaleThenFresh(clock, 0.001, stale_calls=10**9), _Fresh(FakePlanner(clock, 0.300))
+    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=1.0,
+                                    map_wait_s=1.0)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == OK and result.response["map"] == "new"
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == CLOUD and outcome.local.status == NO_MAP and outcome.reward is None
+
+
+class _Fresh:
+    """A FakePlanner whose answers come from the new map."""
+
+    def __init__(self, planner):
+        self.planner = planner
+
+    def __call__(self, request):
+        status, response = self.planner(request)
+        return status, {**response, "map": "new"}
+
+
+def test_router_config_rejects_a_bad_map_wait():
+    with pytest.raises(ValueError, match="map_wait_s"):
+        RouterConfig(map_wait_s=float("nan"))
+    with pytest.raises(ValueError, match="map_retry_s"):
+        RouterConfig(map_retry_s=0.0)

@@ -309,7 +309,9 @@ def _scan_unindexed(path: str, report: BagReport, why: str = "") -> Iterator[Tup
     report.recovered_note = (f"not indexed (a .bag.active left by a stopped recorder, or a cut-off or damaged "
                              f"index{why}): read record by record, {complete_chunks} complete chunks"
                              + (", and the records completed in a cut-off last chunk" if partial else "")
-                             + f"; `rosbag reindex {path}` makes it an ordinary bag")
+                             + f"; `rosbag reindex {path}` makes it an ordinary bag"
+                             + (" but drops the records of the cut-off last chunk, which this reader keeps"
+                                if partial else ""))
 
 
 def _decompress_chunk(compression: str, data: bytes, fields: Dict[str, bytes]) -> bytes:

@@ -33,6 +33,7 @@ class Statuses:
     ok: int
     cloud_timeout: int
     cloud_error: int
+    no_map: Optional[int] = None    # a local path on a stale map is refused with this (else cloud_error)
 
     def cloud_failed(self, status: int) -> bool:
         """The cloud could not answer; the request itself may be fine, so plan it locally."""
@@ -53,7 +54,7 @@ class SideResult:
     status: int
     response: Any
     seconds: float
-    raised: Optional[str] = None    # the call itself failed (planner node down): why
+    raised: Optional[str] = None    # no usable answer (planner node down, a stale map): why
 
 
 @dataclass
@@ -198,12 +199,21 @@ class RouterConfig:
     weights: CostWeights = field(default_factory=CostWeights)
     seed: int = 1
     """seed of the probe draws."""
+    map_wait_s: float = 2.0
+    """how long a side that answers from a map older than the one in force is asked again before its
+    answer counts as a failure (a planner gets a new map a moment after the learner hears of it)."""
+    map_retry_s: float = 0.02
+    """pause between those calls."""
 
     def __post_init__(self):
         if not 0.0 <= self.probe_rate <= 1.0:
             raise ValueError(f"probe_rate must be in [0, 1], got {self.probe_rate}")
         if not (self.cloud_timeout_s > 0 and math.isfinite(self.cloud_timeout_s)):
             raise ValueError(f"cloud_timeout_s must be positive, got {self.cloud_timeout_s}")
+        if not (self.map_wait_s >= 0 and math.isfinite(self.map_wait_s)):
+            raise ValueError(f"map_wait_s must be finite and >= 0, got {self.map_wait_s}")
+        if not (self.map_retry_s > 0 and math.isfinite(self.map_retry_s)):
+            raise ValueError(f"map_retry_s must be positive, got {self.map_retry_s}")
 
 
 PlanCall = Callable[[Any], Tuple[int, Any]]
@@ -212,13 +222,21 @@ PlanCall = Callable[[Any], Tuple[int, Any]]
 class OffloadRouter:
     """Routes requests between `local` and `cloud` planners. `route()` returns the response the caller
     gets; `on_outcome(outcome)` is called once per request when everything about it is known (after
-    learning), from a background thread on probe steps."""
+    learning), from a background thread on probe steps.
+
+    `stale(response)` (optional) says why a good answer was planned on a map older than the one in
+    force, or None: such an answer is never delivered. The side is asked again until it answers from the
+    current map or `config.map_wait_s` has passed; then it counts as failed (the cloud: CLOUD_ERROR, so
+    the robot plans locally; the local planner: `statuses.no_map`)."""
 
     def __init__(self, policy: DecisionPolicy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
-                 on_outcome: Callable = None, clock: Callable[[], float] = time.perf_counter):
+                 on_outcome: Callable = None, clock: Callable[[], float] = time.perf_counter,
+                 stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep):
         self.policy, self.local, self.cloud, self.statuses = policy, local, cloud, statuses
         self.config = config
+        self.stale = stale
+        self.sleep = sleep
         self.on_decision = on_decision or (lambda request_id, state, decision, probe: None)
         self.on_outcome = on_outcome or (lambda outcome: None)
         self.clock = clock
@@ -259,21 +277,30 @@ class OffloadRouter:
             self._previous_done.set()
             raise
 
-    def _call(self, side: PlanCall, request, failure_status: int) -> SideResult:
+    def _call(self, side: PlanCall, request, failure_status: int, stale_status: int) -> SideResult:
         began = self.clock()
-        try:
-            status, response = side(request)
-        except Exception as error:   # the planner node is gone or broke: a failed side, never a lost request
-            return SideResult(failure_status, None, self.clock() - began, raised=f"{type(error).__name__}: {error}")
-        return SideResult(int(status), response, self.clock() - began)
+        while True:
+            try:
+                status, response = side(request)
+            except Exception as error:   # the planner node is gone or broke: a failed side, never a lost request
+                return SideResult(failure_status, None, self.clock() - began,
+                                  raised=f"planner call failed: {type(error).__name__}: {error}")
+            why = self.stale(response) if self.stale is not None and status == self.statuses.ok else None
+            if why is None:
+                return SideResult(int(status), response, self.clock() - began)
+            if self.clock() - began >= self.config.map_wait_s:
+                return SideResult(stale_status, None, self.clock() - began,
+                                  raised=f"no path on the map in force within {self.config.map_wait_s:g} s: {why}")
+            self.sleep(self.config.map_retry_s)
 
     def _call_local(self, request) -> SideResult:
         # A local planner that cannot be called at all is reported as a cloud-style error status so
         # the caller still learns why; there is nobody else to plan.
-        return self._call(self.local, request, self.statuses.cloud_error)
+        no_map = self.statuses.no_map if self.statuses.no_map is not None else self.statuses.cloud_error
+        return self._call(self.local, request, self.statuses.cloud_error, no_map)
 
     def _call_cloud(self, request) -> SideResult:
-        return self._call(self.cloud, request, self.statuses.cloud_error)
+        return self._call(self.cloud, request, self.statuses.cloud_error, self.statuses.cloud_error)
 
     def _unlearnable(self, request_id, request):
         began = self.clock()

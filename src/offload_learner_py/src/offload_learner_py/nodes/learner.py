@@ -90,6 +90,15 @@ def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, 
     return DQNDecision(agent, learn=learn, seed=seed + agent.steps), agent
 
 
+def recorder_connected(publisher, recorder: str) -> bool:
+    """Whether the node `recorder` (a resolved name; "" for any node) has a connection to `publisher`.
+    rospy keeps each subscriber's caller id on its connection (endpoint_id)."""
+    impl = publisher.impl
+    with impl.c_lock:
+        subscribers = [getattr(connection, "endpoint_id", "") for connection in impl.connections]
+    return bool(subscribers) if not recorder else recorder in subscribers
+
+
 class LearnerNode:
     def __init__(self):
         p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
@@ -106,7 +115,8 @@ class LearnerNode:
         alpha = float(p("alpha", 0.5))
         self.router_config = RouterConfig(probe_rate=float(p("probe_rate", 1.0)),
                                           cloud_timeout_s=float(p("cloud_timeout_s", 5.0)),
-                                          weights=CostWeights(alpha, 1.0 - alpha), seed=seed)
+                                          weights=CostWeights(alpha, 1.0 - alpha), seed=seed,
+                                          map_wait_s=float(p("map_wait_s", 2.0)))
         self.policy, self.agent = make_policy(self.policy_name, self.checkpoint_path, os.path.expanduser(
             str(p("model", ""))), self.learn, seed, dqn_overrides, float(p("threshold_input_size", 1.1)))
         self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
@@ -137,16 +147,19 @@ class LearnerNode:
             rospy.loginfo("waiting for %s", side.service)
             rospy.wait_for_service(side.service, timeout=wait_s)
         statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
-                            cloud_error=PlanPathResponse.CLOUD_ERROR)
+                            cloud_error=PlanPathResponse.CLOUD_ERROR, no_map=PlanPathResponse.NO_MAP)
         self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
         self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
         self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
         self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
                           CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
-        self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)))
+        recorder = str(p("recorder_node", "offload_record"))
+        self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)),
+                                rospy.names.resolve_name(recorder) if recorder else "")
         self.router = OffloadRouter(self.policy, local, cloud, statuses, self.router_config,
-                                    on_decision=self.publish_decision, on_outcome=self.on_outcome)
+                                    on_decision=self.publish_decision, on_outcome=self.on_outcome,
+                                    stale=self.stale_map)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = str(p("latency_topic", "/cloud_bridge/latency"))
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
@@ -170,17 +183,19 @@ class LearnerNode:
                       self.policy_name, self.learn and self.policy.learns, self.router_config.probe_rate,
                       local.service, cloud.service)
 
-    def _wait_for_recorder(self, timeout_s: float) -> None:
-        """Before serving, wait until something (rosbag) subscribes to ~decision and ~outcome, so a
-        recording starts with the first request."""
+    def _wait_for_recorder(self, timeout_s: float, recorder: str) -> None:
+        """Before serving, wait until the recorder (the node `recorder`, or with "" any subscriber) is
+        connected to ~decision and ~outcome, so a recording starts with the first request. Another
+        subscriber (a monitor, a test, `rostopic echo`) does not count: serving as soon as it connected lost
+        the first records when rosbag connected later (found by the fault matrix)."""
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline and not rospy.is_shutdown():
-            if self.decision_pub.get_num_connections() > 0 and self.outcome_pub.get_num_connections() > 0:
+            if all(recorder_connected(publisher, recorder) for publisher in (self.decision_pub, self.outcome_pub)):
                 return
             time.sleep(0.05)
         if timeout_s > 0:
-            rospy.logwarn("nothing subscribed to %s within %g s: serving anyway", self.decision_pub.resolved_name,
-                          timeout_s)
+            rospy.logwarn("%s not connected to %s within %g s: serving anyway", recorder or "no subscriber",
+                          self.decision_pub.resolved_name, timeout_s)
 
     @staticmethod
     def _tf_buffer():
@@ -196,6 +211,16 @@ class LearnerNode:
     # --- inputs ---------------------------------------------------------------------------------
     def on_map_metadata(self, msg):
         self.map_info = msg
+
+    def stale_map(self, response):
+        """Why a path was planned on a map older than the latest map_metadata announced, or None. The
+        map in force is the one whose load time map_metadata carries (map_server and map_publisher stamp
+        the grid at or after it); a zero load time (a publisher that does not set it) disables the check."""
+        info = self.map_info
+        if info is None or info.map_load_time.is_zero() or response.map_stamp >= info.map_load_time:
+            return None
+        return (f"planned on the map of {response.map_stamp.to_sec():.3f}, the map in force was loaded at "
+                f"{info.map_load_time.to_sec():.3f}")
 
     def on_latency(self, msg):
         self.round_trip_s = msg.round_trip_s
@@ -256,7 +281,7 @@ class LearnerNode:
         self.goal_pub.publish(request.goal)
         result = self.router.route(request, self.build_state(request))
         if result.response is None:
-            return PlanPathResponse(status=result.status, message=f"planner call failed: {result.raised}")
+            return PlanPathResponse(status=result.status, message=result.raised)
         return result.response
 
     def on_plan(self, request):
@@ -382,8 +407,11 @@ def main():
       ~goal_tolerance (float, 0.5)       tolerance of RViz goals (m)
       ~start_x, ~start_y (float)         start of RViz goals when tf has no robot pose (default map centre)
       ~base_frame (str, base_link)
+      ~map_wait_s (float, 2.0)           how long a planner still on an older map than map_metadata's is
+                                         asked again before its answer counts as failed (never delivered)
       ~service_wait_s (float, 60)        how long to wait for both planners at start
-      ~wait_for_recorder_s (float, 0)    wait this long for a subscriber (rosbag) of ~decision and ~outcome
+      ~wait_for_recorder_s (float, 0)    wait this long for ~recorder_node to subscribe to ~decision and ~outcome
+      ~recorder_node (str, offload_record)  the recorder's node name (record.launch's); "" for any subscriber
       ~progress_every (int, 25), ~stats_window (int, 50)
     """
     rospy.init_node("offload_learner")
