@@ -257,7 +257,7 @@ class StaleThenFresh:
 
 def stale_router(policy, local, cloud, clock, probe_rate=0.0, map_wait_s=2.0):
     recorder = Recorder()
-    statuses = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, no_map=NO_MAP)
+    statuses = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR)
     router = OffloadRouter(policy, local, cloud, statuses,
                            RouterConfig(probe_rate=probe_rate, cloud_timeout_s=5.0, map_wait_s=map_wait_s,
                                         map_retry_s=0.02),
@@ -283,16 +283,19 @@ def test_a_path_from_a_stale_map_is_never_delivered_the_planner_is_asked_again()
     assert outcome.local_s == pytest.approx(4 * 0.010 + 3 * 0.02)
 
 
-def test_a_planner_that_stays_on_the_old_map_gets_no_map_not_a_stale_path():
+def test_a_local_planner_that_never_takes_the_announced_map_keeps_serving_its_last_good_map():
+    """The announced map never reached the planner in a usable form (a malformed grid it refused): after
+    the wait the robot gets the path on the last map the planner accepted, with a note, and nothing is
+    learned from a latency that measured the wait."""
     clock = VirtualClock()
     local, cloud = StaleThenFresh(clock, 0.010, stale_calls=10**9), FakePlanner(clock, 0.050)
     router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, map_wait_s=0.5)
     result = router.route("req", STATE)
     finish(router)
-    assert result.status == NO_MAP and result.response is None
-    assert "map in force" in result.raised and "old map" in result.raised
+    assert result.status == OK and result.response["map"] == "old" and result.raised is None
+    assert "last map the planner accepted" in result.note and "old map" in result.note
     (outcome,) = recorder.outcomes
-    assert outcome.delivered == NO_PATH_DELIVERED and outcome.reward is None
+    assert outcome.delivered == LOCAL and outcome.reward is None
     assert 0.5 <= outcome.local_s < 0.5 + 0.010 + 0.02 + 1e-9
 
 
@@ -316,7 +319,7 @@ def test_probe_delivers_the_fresh_side_even_when_the_stale_side_answers_first():
     finish(router)
     assert result.status == OK and result.response["map"] == "new"
     (outcome,) = recorder.outcomes
-    assert outcome.delivered == CLOUD and outcome.local.status == NO_MAP and outcome.reward is None
+    assert outcome.delivered == CLOUD and outcome.local.note and outcome.reward is None
 
 
 class _Fresh:
@@ -335,3 +338,14 @@ def test_router_config_rejects_a_bad_map_wait():
         RouterConfig(map_wait_s=float("nan"))
     with pytest.raises(ValueError, match="map_retry_s"):
         RouterConfig(map_retry_s=0.0)
+
+
+def test_probe_with_both_sides_on_the_old_map_delivers_the_local_last_good_map():
+    clock = VirtualClock()
+    local, cloud = StaleThenFresh(clock, 0.001, stale_calls=10**9), StaleThenFresh(clock, 0.002, stale_calls=10**9)
+    router, recorder = stale_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0, map_wait_s=0.2)
+    result = router.route("req", STATE)
+    finish(router)
+    assert result.status == OK and result.response["side"] is local and result.note
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered == LOCAL and outcome.cloud.status == ERROR and outcome.reward is None

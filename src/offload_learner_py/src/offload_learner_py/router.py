@@ -33,7 +33,6 @@ class Statuses:
     ok: int
     cloud_timeout: int
     cloud_error: int
-    no_map: Optional[int] = None    # a local path on a stale map is refused with this (else cloud_error)
 
     def cloud_failed(self, status: int) -> bool:
         """The cloud could not answer; the request itself may be fine, so plan it locally."""
@@ -55,6 +54,7 @@ class SideResult:
     response: Any
     seconds: float
     raised: Optional[str] = None    # no usable answer (planner node down, a stale map): why
+    note: Optional[str] = None      # a usable answer with a caveat (planned on the last map the planner took)
 
 
 @dataclass
@@ -225,9 +225,11 @@ class OffloadRouter:
     learning), from a background thread on probe steps.
 
     `stale(response)` (optional) says why a good answer was planned on a map older than the one in
-    force, or None: such an answer is never delivered. The side is asked again until it answers from the
-    current map or `config.map_wait_s` has passed; then it counts as failed (the cloud: CLOUD_ERROR, so
-    the robot plans locally; the local planner: `statuses.no_map`)."""
+    force, or None. The side is asked again until it answers from the current map or `config.map_wait_s`
+    has passed. Then the cloud counts as failed (CLOUD_ERROR, so the robot plans locally), while the
+    local planner's answer is delivered with a note: it planned on the last map it accepted, so the
+    announced map never reached it in a usable form (a malformed grid it refused, a lost message), and
+    the last good map keeps serving rather than leaving a robot without a path."""
 
     def __init__(self, policy: DecisionPolicy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
@@ -277,7 +279,8 @@ class OffloadRouter:
             self._previous_done.set()
             raise
 
-    def _call(self, side: PlanCall, request, failure_status: int, stale_status: int) -> SideResult:
+    def _call(self, side: PlanCall, request, failure_status: int, stale_status: Optional[int]) -> SideResult:
+        """stale_status None: after the wait, an answer from the older map is delivered with a note."""
         began = self.clock()
         while True:
             try:
@@ -289,6 +292,10 @@ class OffloadRouter:
             if why is None:
                 return SideResult(int(status), response, self.clock() - began)
             if self.clock() - began >= self.config.map_wait_s:
+                if stale_status is None:
+                    return SideResult(int(status), response, self.clock() - began,
+                                      note=f"planned on the last map the planner accepted: {why} (still not "
+                                           f"taken after {self.config.map_wait_s:g} s)")
                 return SideResult(stale_status, None, self.clock() - began,
                                   raised=f"no path on the map in force within {self.config.map_wait_s:g} s: {why}")
             self.sleep(self.config.map_retry_s)
@@ -296,8 +303,7 @@ class OffloadRouter:
     def _call_local(self, request) -> SideResult:
         # A local planner that cannot be called at all is reported as a cloud-style error status so
         # the caller still learns why; there is nobody else to plan.
-        no_map = self.statuses.no_map if self.statuses.no_map is not None else self.statuses.cloud_error
-        return self._call(self.local, request, self.statuses.cloud_error, no_map)
+        return self._call(self.local, request, self.statuses.cloud_error, None)
 
     def _call_cloud(self, request) -> SideResult:
         return self._call(self.cloud, request, self.statuses.cloud_error, self.statuses.cloud_error)
@@ -344,7 +350,8 @@ class OffloadRouter:
             result = call(request)
             with lock:
                 results[side] = result
-                if result.status == self.statuses.ok and "delivered" not in results:
+                # A noted answer (the last good map) only when the other side has nothing fresher.
+                if result.status == self.statuses.ok and result.note is None and "delivered" not in results:
                     results["delivered"] = side
                     outcome.delivered_s = self.clock() - began
                     first_good.set()
@@ -361,6 +368,8 @@ class OffloadRouter:
             local_future.result()
             delivered = results[LOCAL]
             outcome.delivered_s = self.clock() - began
+            if delivered.status == self.statuses.ok:
+                outcome.delivered = LOCAL
         else:
             delivered = results[side]
             outcome.delivered = side
@@ -388,7 +397,9 @@ class OffloadRouter:
     def _finish(self, outcome: Outcome) -> None:
         """Reward and learn where both latencies are known and the request itself was plannable."""
         try:
-            local_ok = outcome.local is not None and outcome.local.status == self.statuses.ok
+            # A local answer that waited for a map the planner never took measures the wait, not planning.
+            local_ok = outcome.local is not None and outcome.local.status == self.statuses.ok \
+                and outcome.local.note is None
             if outcome.state is not None and outcome.local_s is not None and outcome.cloud_s is not None and local_ok:
                 local_s = max(outcome.local_s, 1e-9)
                 outcome.reward = reward(outcome.decision.action, local_s, outcome.cloud_s, self.config.weights)

@@ -147,7 +147,7 @@ class LearnerNode:
             rospy.loginfo("waiting for %s", side.service)
             rospy.wait_for_service(side.service, timeout=wait_s)
         statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
-                            cloud_error=PlanPathResponse.CLOUD_ERROR, no_map=PlanPathResponse.NO_MAP)
+                            cloud_error=PlanPathResponse.CLOUD_ERROR)
         self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
         self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
         self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
@@ -282,6 +282,8 @@ class LearnerNode:
         result = self.router.route(request, self.build_state(request))
         if result.response is None:
             return PlanPathResponse(status=result.status, message=result.raised)
+        if result.note:
+            rospy.logwarn_throttle(10.0, "delivered a path %s", result.note)
         return result.response
 
     def on_plan(self, request):
