@@ -3,6 +3,7 @@ import os
 import subprocess
 import sys
 
+import numpy as np
 import pytest
 
 from offload_learner_py import experiments
@@ -77,6 +78,11 @@ def test_compare_command_scores_every_policy_on_one_table(tmp_path, bundled_trac
     assert set(result["accuracy"]) == {"dqn", "always_local", "always_cloud", "random", "threshold_d", "oracle",
                                        "lstm", "lstm_all_features"}
     assert result["accuracy"]["oracle"] == 1.0 and result["test_rows"] == 200
+    # Eq. 15: the cloud is faster exactly when u < 0.6, so that is where the oracle offloads.
+    test = experiments.TransitionTable.load_npz(data).slice(200, 400)
+    assert result["policies"]["oracle"]["cloud_share"] == pytest.approx(np.mean(test.cpu_availability < 0.6))
+    assert result["policies"]["oracle"]["mean_latency_s"] == pytest.approx(
+        np.where(test.cpu_availability < 0.6, test.cloud_s, test.local_s).mean())
     table = (out / "comparison.md").read_text()
     assert "| dqn |" in table and "| lstm |" in table
     for name in ("accuracy.png", "confusion_matrix_dqn.png", "action_vs_cpu.png", "training.png"):
