@@ -6,6 +6,18 @@ from dataclasses import asdict, dataclass, fields
 from typing import Tuple
 
 
+# The largest network a config may describe: a guard against configs (and checkpoints) that would
+# allocate gigabytes before anything else is checked. The paper's 3 x 256 network has 133,378 weights;
+# 20 million is three hidden layers of about 3,100.
+MAX_PARAMETERS = 20_000_000
+
+
+def parameter_count(hidden_sizes, state_size: int = 3, n_actions: int = 2) -> int:
+    """Weights and biases of the Q-network state_size -> hidden_sizes -> n_actions."""
+    widths = [state_size, *hidden_sizes, n_actions]
+    return sum(w_in * w_out + w_out for w_in, w_out in zip(widths[:-1], widths[1:]))
+
+
 def _is_int(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
@@ -78,6 +90,9 @@ class DQNConfig:
             raise ValueError(f"learning_starts must be >= 0, got {self.learning_starts}")
         if not self.hidden_sizes or min(self.hidden_sizes) < 1:
             raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
+        if parameter_count(self.hidden_sizes) > MAX_PARAMETERS:
+            raise ValueError(f"hidden_sizes {list(self.hidden_sizes)} give {parameter_count(self.hidden_sizes)} "
+                             f"parameters, more than {MAX_PARAMETERS}")
         if self.batch_size > self.replay_capacity:
             raise ValueError("batch_size cannot exceed replay_capacity")
 
