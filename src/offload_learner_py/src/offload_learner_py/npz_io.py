@@ -22,8 +22,11 @@ _READ_ERRORS = (OSError, EOFError, zipfile.BadZipFile, zlib.error, json.JSONDeco
 
 
 def save_versioned_npz(path: str, file_format: str, metadata: Mapping, arrays: Mapping[str, np.ndarray]) -> None:
-    np.savez_compressed(path, format=np.array(file_format), metadata=np.array(json.dumps(dict(metadata))),
-                        **arrays)
+    # Through a file object: given a path without ".npz", numpy would append the suffix and write
+    # another file than the one the caller named.
+    with open(path, "wb") as out:
+        np.savez_compressed(out, format=np.array(file_format), metadata=np.array(json.dumps(dict(metadata))),
+                            **arrays)
 
 
 def load_versioned_npz(path: str, file_format: str, names: Iterable[str], what: str,
