@@ -217,3 +217,36 @@ def test_greedy_action_follows_each_state_feature(feature, seed):
     clear = clear_of_boundary(probe)
     assert 0.3 < right[clear].mean() < 0.7  # neither action is right everywhere
     assert np.mean(greedy[clear] == right[clear]) > 0.9
+
+
+def test_train_frequency_sets_when_gradient_steps_run():
+    agent = DQNAgent(DQNConfig(learning_starts=6, batch_size=4, train_frequency=3, gradient_steps=2))
+    assert agent.gradient_steps == 0
+    states = _states(31)
+    trained_at = [t + 1 for t in range(30) if agent.observe(states[t], CLOUD, 0.5, states[t + 1]) is not None]
+    assert trained_at == [6, 9, 12, 15, 18, 21, 24, 27, 30]  # from learning_starts on, every 3rd step
+    assert agent.gradient_steps == 2 * len(trained_at) and agent.steps == 30
+
+
+def test_a_tie_between_the_q_values_stays_local():
+    agent = DQNAgent(DQNConfig(learning_starts=0))
+    with torch.no_grad():
+        agent.q_network.layers[-1].weight.zero_()
+        agent.q_network.layers[-1].bias.fill_(0.25)
+    state = _states(1)[0]
+    assert agent.q_values(state)[LOCAL] == agent.q_values(state)[CLOUD]
+    assert agent.greedy_action(state) == LOCAL
+    assert agent.fast_decision().decide(*state)[0] == LOCAL
+
+
+def test_exploration_stays_epsilon_long_after_warm_up():
+    agent = DQNAgent(DQNConfig(learning_starts=50, epsilon=0.1))
+    state = _states(1)[0]
+    for steps in (49, 51, 500):
+        agent.steps = steps
+        expected = 0.5 if steps < 50 else None
+        _, propensity = agent.act(state)
+        if expected is not None:
+            assert propensity == expected
+        else:
+            assert propensity in (pytest.approx(0.95), pytest.approx(0.05))
