@@ -250,3 +250,14 @@ def test_exploration_stays_epsilon_long_after_warm_up():
             assert propensity == expected
         else:
             assert propensity in (pytest.approx(0.95), pytest.approx(0.05))
+
+
+def test_fast_path_clamps_the_input_size_like_the_normalisation():
+    # d = 0 (goal beside the start) sits on the log floor; a rounding error below 0 is clamped to 0 by
+    # both paths rather than taking the log of a negative number in one of them.
+    agent, _ = _train(DQNConfig(seed=2, learning_starts=20, batch_size=16))
+    fast = agent.fast_decision()
+    for d in (0.0, -1e-9, -0.5):
+        _, q_local, q_cloud = fast.decide(d, 0.6, 0.03)
+        assert np.allclose([q_local, q_cloud], agent.q_values(np.array([d, 0.6, 0.03])), atol=1e-5)
+        assert np.allclose([q_local, q_cloud], agent.q_values(np.array([0.0, 0.6, 0.03])), atol=1e-5)
