@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test bench-planner bench-link bench-decision clean
+.PHONY: help deps venv build test bench-planner bench-link bench-decision mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -27,6 +27,7 @@ help:
 	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
 	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
+	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -64,6 +65,11 @@ bench-link: build
 
 bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
+
+# cosmic-ray over the learner's reward, state and DQN modules and the cloud protocol (about 14 min),
+# then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 10 min).
+mutate: build
+	@$(ROSENV) $(PY) tools/mutate_py.py; $(PY) tools/mutate_cpp.py
 
 clean:
 	rm -rf build devel .ros
