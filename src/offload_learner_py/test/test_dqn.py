@@ -261,3 +261,23 @@ def test_fast_path_clamps_the_input_size_like_the_normalisation():
         _, q_local, q_cloud = fast.decide(d, 0.6, 0.03)
         assert np.allclose([q_local, q_cloud], agent.q_values(np.array([d, 0.6, 0.03])), atol=1e-5)
         assert np.allclose([q_local, q_cloud], agent.q_values(np.array([0.0, 0.6, 0.03])), atol=1e-5)
+
+
+def test_propensities_when_the_greedy_action_is_cloud():
+    agent = DQNAgent(DQNConfig(learning_starts=0, epsilon=0.1))
+    with torch.no_grad():
+        agent.q_network.layers[-1].weight.zero_()
+        agent.q_network.layers[-1].bias.copy_(torch.tensor([0.0, 1.0]))  # Q(cloud) > Q(local) everywhere
+    state = _states(1)[0]
+    assert agent.greedy_action(state) == CLOUD
+    draws = [agent.act(state) for _ in range(400)]
+    assert {action for action, _ in draws} == {LOCAL, CLOUD}
+    for action, propensity in draws:
+        assert propensity == pytest.approx(0.95 if action == CLOUD else 0.05)
+
+
+def test_without_warm_up_training_starts_at_the_first_step():
+    agent = DQNAgent(DQNConfig(learning_starts=0, batch_size=1, train_frequency=1))
+    states = _states(3)
+    assert agent.observe(states[0], CLOUD, 0.5, states[1]) is not None
+    assert agent.gradient_steps == 1
