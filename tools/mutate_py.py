@@ -39,6 +39,10 @@ EXCLUDED_OPERATORS = [
 ]
 
 
+class NotJudged(Exception):
+    """A module whose mutants cannot be judged (its tests fail without any mutation)."""
+
+
 @dataclass(frozen=True)
 class Target:
     name: str
@@ -56,6 +60,7 @@ TARGETS = {
                      ("test_reward.py", "test_synthetic.py"), LEARNER / "test", budget_s=90),
     "state": Target("state", LEARNER / "src" / "offload_learner_py", "state.py",
                     ("test_state.py", "test_trace.py"), LEARNER / "test", budget_s=90,
+                    test_support=("conftest.py", "test_dataset.py"),  # test_trace imports a helper from it
                     # the end-to-end trace test needs the built planner, not this module's copy
                     pytest_args=("--deselect=test/test_trace.py::"
                                  "test_trace_command_records_the_real_planner_on_a_real_map",)),
@@ -163,8 +168,8 @@ def run_target(target: Target, work_dir: Path, jobs: int, budget_s: float) -> di
     baseline = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", *target_tests(target)], cwd=first,
                               env=dict(env, MUTATE_RECORD_DURATIONS="1"), capture_output=True, text=True)
     if baseline.returncode != 0:
-        sys.exit(f"mutate: {target.name}: the tests fail on the unmutated copy in {first}, so no mutant can be "
-                 f"judged:\n{baseline.stdout[-3000:]}{baseline.stderr[-2000:]}")
+        raise NotJudged(f"the tests fail on the unmutated copy in {first}, so no mutant can be judged:\n"
+                        f"{baseline.stdout[-3000:]}{baseline.stderr[-2000:]}")
     for shard in shards[1:]:
         shutil.copy2(first / "durations.json", shard / "durations.json")
     _run([_tool("cosmic-ray"), "init", "cosmic-ray.toml", "session.sqlite"], first, env)
@@ -262,18 +267,24 @@ def main(argv=None) -> int:
         parser.error(f"unknown modules {unknown}; choose from {', '.join(TARGETS)}")
     print(f"mutation testing with cosmic-ray, {args.jobs} shard(s); survival = survived / mutants run "
           f"(lower is better; read each survivor)", flush=True)
-    summaries = []
+    summaries, failed = [], []
     for name in modules:
         target = TARGETS[name]
         began = time.monotonic()
-        summary = run_target(target, args.work, args.jobs, target.budget_s * args.budget_scale)
+        try:
+            summary = run_target(target, args.work, args.jobs, target.budget_s * args.budget_scale)
+        except NotJudged as error:
+            print(f"{name:9s} {target.module}: NOT JUDGED: {error}", flush=True)
+            failed.append(name)
+            continue
         summaries.append(summary)
         report(summary)
         print(f"    ({time.monotonic() - began:.0f} s)", flush=True)
     print("summary: " + ", ".join(
         f"{s['target'].name} {100.0 * len(s['survived']) / s['run']:.1f} % ({len(s['survived'])}/{s['run']})"
-        if s["run"] else f"{s['target'].name} n/a" for s in summaries))
-    return 0
+        if s["run"] else f"{s['target'].name} n/a" for s in summaries)
+        + "".join(f", {name} NOT JUDGED" for name in failed))
+    return 1 if failed else 0
 
 
 if __name__ == "__main__":
