@@ -67,7 +67,7 @@ bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
 
 # cosmic-ray over the learner's reward, state and DQN modules and the cloud protocol (about 15 min),
-# then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 10 min).
+# then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 5 min).
 mutate: build
 	@$(ROSENV) $(PY) tools/mutate_py.py; $(PY) tools/mutate_cpp.py
 
