@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz clean
+.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -34,6 +34,7 @@ help:
 	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
+	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
 
 deps:
 	@missing=$$(for p in $(DEBS); do dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
@@ -95,6 +96,10 @@ bench-online: build
 
 bench-offline: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_offline
+# cosmic-ray over the learner's reward, state and DQN modules and the cloud protocol (about 15 min),
+# then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 5 min).
+mutate: build
+	@$(ROSENV) $(PY) tools/mutate_py.py; $(PY) tools/mutate_cpp.py
 
 clean:
 	rm -rf build devel .ros

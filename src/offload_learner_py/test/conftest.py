@@ -1,9 +1,9 @@
 """Shared fixtures: a small fake trace (no planner needed) and the bundled real one."""
 import os
+import sys
 
 import numpy as np
 import pytest
-import torch
 
 from offload_learner_py.dataset import TransitionTable
 from offload_learner_py.trace import PlanningTrace
@@ -15,7 +15,11 @@ BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "..", "src", "offload_le
 @pytest.fixture(autouse=True, scope="session")
 def _one_torch_thread():
     # Tests share two cores with other work; one thread is also the fastest for these tiny networks.
-    torch.set_num_threads(1)
+    # torch is imported by the test modules that need it (collected before this runs); tests of the
+    # torch-free modules start without it, which keeps `make mutate` fast.
+    torch = sys.modules.get("torch")
+    if torch is not None:
+        torch.set_num_threads(1)
 
 
 @pytest.fixture

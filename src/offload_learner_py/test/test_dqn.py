@@ -142,3 +142,142 @@ def test_fast_path_matches_torch_eager():
         assert np.allclose([q_local, q_cloud], expected, atol=1e-5)
         if abs(expected[1] - expected[0]) > 1e-5:
             assert action == agent.greedy_action(state)
+
+
+class _NextStateQ(nn.Module):
+    """A target network whose Q'(s') is known by construction: (d', u') of the normalised next state."""
+
+    def forward(self, x):
+        return x[:, :2]
+
+
+def _agent_with_constant_q(gamma, q_local, q_cloud, huber_delta=100.0):
+    """An agent whose online network answers (q_local, q_cloud) for every state (zero weights, known
+    output bias) and whose inputs are the raw states (identity normalisation, no log)."""
+    config = DQNConfig(gamma=gamma, batch_size=8, learning_starts=0, huber_delta=huber_delta, log_input_size=False)
+    agent = DQNAgent(config, StateNormalisation.identity(log_input_size=False))
+    with torch.no_grad():
+        for parameter in agent.q_network.parameters():
+            parameter.zero_()
+        agent.q_network.layers[-1].bias.copy_(torch.tensor([q_local, q_cloud]))
+    agent.target_network = _NextStateQ()
+    return agent
+
+
+@pytest.mark.parametrize("gamma,action,expected_target", [
+    # r + gamma * max_a' Q'(s', a') with Q'(s') = (0.25, 0.75): the max, of the next state, added.
+    (0.5, CLOUD, 0.125 + 0.5 * 0.75),
+    (0.5, LOCAL, 0.125 + 0.5 * 0.75),
+    (0.0, CLOUD, 0.125),  # contextual bandit: the reward alone, whatever the target network says
+])
+def test_td_target_is_reward_plus_gamma_max_next_q(gamma, action, expected_target):
+    agent = _agent_with_constant_q(gamma, q_local=-1.0, q_cloud=0.5)
+    state, next_state = np.array([0.5, 0.0, 0.0]), np.array([0.25, 0.75, 0.0])
+    for _ in range(8):
+        agent.memory.add(state, action, 0.125, next_state)
+    q = (-1.0, 0.5)[action]
+    # Huber loss in its quadratic zone (|error| < delta): 0.5 * error^2 / delta, the same on every sample.
+    expected_loss = 0.5 * (q - expected_target) ** 2 / agent.config.huber_delta
+    assert agent.train_step() == pytest.approx(expected_loss, rel=1e-5)
+    # One gradient step moves Q(s, a) towards the target and leaves the other action alone.
+    after = agent.q_values(state)
+    assert np.sign(after[action] - q) == np.sign(expected_target - q)
+    assert after[1 - action] == pytest.approx((-1.0, 0.5)[1 - action], abs=1e-6)
+
+
+def _learn_state_rule(seed, cloud_is_better, steps=800):
+    """Online learning where offloading pays +0.5 exactly where cloud_is_better(states) and -0.5
+    elsewhere; returns the greedy action on held-out states and the right one."""
+    agent = DQNAgent(DQNConfig(seed=seed, learning_starts=100, train_frequency=1))
+    states = _states(steps, seed)
+    right = cloud_is_better(states)
+    for t in range(steps - 1):
+        action, _ = agent.act(states[t])
+        r = (0.5 if right[t] else -0.5) if action == CLOUD else 0.0
+        agent.observe(states[t], action, r, states[t + 1])
+    probe = _states(300, seed + 1000)
+    greedy = np.array([agent.greedy_action(s) for s in probe])
+    return greedy, cloud_is_better(probe).astype(np.int64), probe
+
+
+# The right action depends on one feature of the state at a time, and each side of the boundary holds
+# about half of the states: a policy that ignores the state scores about 50 %.
+STATE_RULES = {
+    "input_size": (lambda s: s[:, 0] > 10 ** -2.25, lambda s: np.abs(np.log10(s[:, 0]) + 2.25) > 0.2),
+    "cpu_availability": (lambda s: s[:, 1] < 0.6, lambda s: np.abs(s[:, 1] - 0.6) > 0.02),
+    "round_trip_s": (lambda s: s[:, 2] < 0.030, lambda s: np.abs(s[:, 2] - 0.030) > 0.0004),
+}
+
+
+@pytest.mark.parametrize("seed", [11, 23, 37])
+@pytest.mark.parametrize("feature", sorted(STATE_RULES))
+def test_greedy_action_follows_each_state_feature(feature, seed):
+    cloud_is_better, clear_of_boundary = STATE_RULES[feature]
+    greedy, right, probe = _learn_state_rule(seed, cloud_is_better)
+    clear = clear_of_boundary(probe)
+    assert 0.3 < right[clear].mean() < 0.7  # neither action is right everywhere
+    assert np.mean(greedy[clear] == right[clear]) > 0.9
+
+
+def test_train_frequency_sets_when_gradient_steps_run():
+    agent = DQNAgent(DQNConfig(learning_starts=6, batch_size=4, train_frequency=3, gradient_steps=2))
+    assert agent.gradient_steps == 0
+    states = _states(31)
+    trained_at = [t + 1 for t in range(30) if agent.observe(states[t], CLOUD, 0.5, states[t + 1]) is not None]
+    assert trained_at == [6, 9, 12, 15, 18, 21, 24, 27, 30]  # from learning_starts on, every 3rd step
+    assert agent.gradient_steps == 2 * len(trained_at) and agent.steps == 30
+
+
+def test_a_tie_between_the_q_values_stays_local():
+    agent = DQNAgent(DQNConfig(learning_starts=0))
+    with torch.no_grad():
+        agent.q_network.layers[-1].weight.zero_()
+        agent.q_network.layers[-1].bias.fill_(0.25)
+    state = _states(1)[0]
+    assert agent.q_values(state)[LOCAL] == agent.q_values(state)[CLOUD]
+    assert agent.greedy_action(state) == LOCAL
+    assert agent.fast_decision().decide(*state)[0] == LOCAL
+
+
+def test_exploration_stays_epsilon_long_after_warm_up():
+    agent = DQNAgent(DQNConfig(learning_starts=50, epsilon=0.1))
+    state = _states(1)[0]
+    for steps in (49, 51, 500):
+        agent.steps = steps
+        expected = 0.5 if steps < 50 else None
+        _, propensity = agent.act(state)
+        if expected is not None:
+            assert propensity == expected
+        else:
+            assert propensity in (pytest.approx(0.95), pytest.approx(0.05))
+
+
+def test_fast_path_clamps_the_input_size_like_the_normalisation():
+    # d = 0 (goal beside the start) sits on the log floor; a rounding error below 0 is clamped to 0 by
+    # both paths rather than taking the log of a negative number in one of them.
+    agent, _ = _train(DQNConfig(seed=2, learning_starts=20, batch_size=16))
+    fast = agent.fast_decision()
+    for d in (0.0, -1e-9, -0.5):
+        _, q_local, q_cloud = fast.decide(d, 0.6, 0.03)
+        assert np.allclose([q_local, q_cloud], agent.q_values(np.array([d, 0.6, 0.03])), atol=1e-5)
+        assert np.allclose([q_local, q_cloud], agent.q_values(np.array([0.0, 0.6, 0.03])), atol=1e-5)
+
+
+def test_propensities_when_the_greedy_action_is_cloud():
+    agent = DQNAgent(DQNConfig(learning_starts=0, epsilon=0.1))
+    with torch.no_grad():
+        agent.q_network.layers[-1].weight.zero_()
+        agent.q_network.layers[-1].bias.copy_(torch.tensor([0.0, 1.0]))  # Q(cloud) > Q(local) everywhere
+    state = _states(1)[0]
+    assert agent.greedy_action(state) == CLOUD
+    draws = [agent.act(state) for _ in range(400)]
+    assert {action for action, _ in draws} == {LOCAL, CLOUD}
+    for action, propensity in draws:
+        assert propensity == pytest.approx(0.95 if action == CLOUD else 0.05)
+
+
+def test_without_warm_up_training_starts_at_the_first_step():
+    agent = DQNAgent(DQNConfig(learning_starts=0, batch_size=1, train_frequency=1))
+    states = _states(3)
+    assert agent.observe(states[0], CLOUD, 0.5, states[1]) is not None
+    assert agent.gradient_steps == 1

@@ -25,7 +25,12 @@ def test_fixed_policies(size_split_table):
     table = size_split_table(50, 0)
     assert np.all(AlwaysLocal().choose(table) == 0) and np.all(AlwaysCloud().choose(table) == 1)
     assert np.array_equal(RandomPolicy(4).choose(table), RandomPolicy(4).choose(table))
-    assert accuracy(OraclePolicy().choose(table), table) == 1.0
+    # The table is built so that the cloud is faster exactly above d = 0.01 (conftest): the oracle must
+    # say so, and accuracy must score that answer 1 and its opposite 0.
+    by_construction = (table.input_size > 0.01).astype(np.int64)
+    assert 0 < by_construction.sum() < len(table)
+    assert np.array_equal(OraclePolicy().choose(table), by_construction)
+    assert accuracy(by_construction, table) == 1.0 and accuracy(1 - by_construction, table) == 0.0
 
 
 def test_threshold_on_input_size_is_fitted_from_training_data(size_split_table):

@@ -67,3 +67,37 @@ def test_vector_rewards_match_scalar():
     assert np.allclose(rewards(actions, local_s, cloud_s), expected)
     with pytest.raises(ValueError):
         rewards([2], [0.1], [0.1])
+
+
+def test_weights_cannot_be_changed_after_validation():
+    weights = CostWeights(0.3, 0.7)
+    with pytest.raises(AttributeError):
+        weights.alpha = 0.9  # would break alpha + beta = 1 behind the validation's back
+
+
+def test_any_positive_timeout_is_valid_and_none_other():
+    assert cloud_latency_s(0.1, 0.5) == 0.1 and cloud_latency_s(None, 0.5) == 0.5
+    for bad in (0.0, -1.0):
+        with pytest.raises(ValueError, match="timeout_s must be positive"):
+            cloud_latency_s(0.1, bad)
+
+
+@pytest.mark.parametrize("local_s,cloud_s", [(0.1, -0.1), (0.1, np.inf), (np.nan, 0.1)])
+def test_scalar_reward_rejects_each_bad_latency(local_s, cloud_s):
+    with pytest.raises(ValueError, match="latencies must be finite and positive"):
+        reward(CLOUD, local_s, cloud_s)
+
+
+@pytest.mark.parametrize("column", ["local_s", "cloud_s"])
+@pytest.mark.parametrize("bad", [0.0, -0.1, -2.0, np.inf, np.nan])
+def test_vector_rewards_reject_a_bad_latency_in_either_column(column, bad):
+    good = {"local_s": [0.1, 0.2], "cloud_s": [0.2, 0.1]}
+    good[column] = [0.1, bad]
+    with pytest.raises(ValueError, match="latencies must be finite and positive"):
+        rewards([CLOUD, CLOUD], good["local_s"], good["cloud_s"])
+
+
+@pytest.mark.parametrize("action", [-1, 2, 3])
+def test_vector_rewards_reject_actions_other_than_local_and_cloud(action):
+    with pytest.raises(ValueError, match="actions must be"):
+        rewards([LOCAL, action], [0.1, 0.1], [0.2, 0.2])

@@ -48,3 +48,52 @@ def test_state_validates_ranges():
     for bad in [(-1, 0.5, 0.03), (0.5, 1.5, 0.03), (0.5, 0.5, -0.1), (float("nan"), 0.5, 0.03)]:
         with pytest.raises(ValueError):
             State(*bad)
+
+
+def test_the_state_has_the_papers_three_features():
+    from offload_learner_py.state import STATE_FIELDS, STATE_SIZE
+    assert STATE_SIZE == 3 and STATE_FIELDS == ("input_size", "cpu_availability", "round_trip_s")
+    assert State(0.5, 0.6, 0.03).as_array().shape == (STATE_SIZE,)
+
+
+def test_input_size_between_one_and_two_nodes_is_n_ln_n():
+    # n = x^2 / 2 / r^2 = 1.5 for x = r sqrt(3): above one node the formula applies, d = 1.5 ln 1.5.
+    assert raw_input_size(0.05 * math.sqrt(3.0), 0.05) == pytest.approx(1.5 * math.log(1.5))
+    assert raw_input_size(0.05 * math.sqrt(2.0), 0.05) == pytest.approx(0.0, abs=1e-12)  # n = 1: ln 1 = 0
+
+
+def test_input_size_uses_the_offset_between_start_and_goal_on_both_axes():
+    # A 3-4-5 triangle away from the origin: x = 5 m, n = 12.5 / 0.05^2 = 5000, d = n ln n / cells.
+    cells = 1000
+    expected = 5000.0 * math.log(5000.0) / cells
+    assert input_size((10.0, 20.0), (13.0, 24.0), 0.05, cells) == pytest.approx(expected, rel=1e-12)
+    assert input_size((13.0, 24.0), (10.0, 20.0), 0.05, cells) == pytest.approx(expected, rel=1e-12)
+    # The same in cells: (70, 30) to (130, 110) is 60 x 80 cells = 100 cells = 5 m at 0.05 m.
+    assert input_size_from_cells((70, 30), (130, 110), 0.05, cells) == pytest.approx(expected, rel=1e-12)
+    assert input_size_from_cells((130, 30), (70, 110), 0.05, cells) == pytest.approx(expected, rel=1e-12)
+
+
+@pytest.mark.parametrize("cells", [0, -5])
+def test_map_cell_count_must_be_positive(cells):
+    with pytest.raises(ValueError, match="map_cell_count must be positive"):
+        input_size((0, 0), (1, 1), 0.05, cells)
+
+
+def test_one_cell_map_is_valid():
+    assert input_size((0, 0), (1.0, 0), 0.05, 1) == pytest.approx(raw_input_size(1.0, 0.05))
+
+
+def test_negative_resolution_is_rejected():
+    with pytest.raises(ValueError, match="resolution_m must be positive"):
+        node_count(1.0, -0.05)
+
+
+def test_state_bounds_are_inclusive_and_the_state_is_immutable():
+    for edge in [(0.0, 0.5, 0.03), (0.5, 0.0, 0.03), (0.5, 1.0, 0.03), (0.5, 0.5, 0.0)]:
+        State(*edge)  # d = 0 (goal beside the start), an idle or saturated CPU, a zero round trip
+    for bad in [(0.5, -0.5, 0.03), (0.5, -1e-9, 0.03), (0.5, 1.0 + 1e-9, 0.03)]:
+        with pytest.raises(ValueError, match="cpu_availability must be in"):
+            State(*bad)
+    state = State(0.5, 0.6, 0.03)
+    with pytest.raises(AttributeError):
+        state.cpu_availability = 2.0  # would bypass the validation

@@ -1,3 +1,7 @@
+import os
+import subprocess
+import sys
+
 import numpy as np
 import pytest
 
@@ -118,3 +122,50 @@ def test_corrupt_or_invalid_trace_files_are_clear_errors(tmp_path, small_trace):
         PlanningTrace(**{**arrays, "start_cell": np.zeros(50, np.int64)})
     with pytest.raises(ValueError, match="different lengths"):
         PlanningTrace(**{**arrays, "local_s": arrays["local_s"][:10]})
+
+
+SMALL_REAL_MAP = os.path.join(os.path.dirname(__file__), "..", "..", "offload_planner_cpp", "maps", "turtlebot3_world",
+                              "map.yaml")
+
+
+def _trace_cli(*args, cwd):
+    return subprocess.run([sys.executable, "-m", "offload_learner_py.trace", *args], cwd=cwd, capture_output=True,
+                          text=True, timeout=120)
+
+
+def test_trace_command_records_the_real_planner_on_a_real_map(tmp_path):
+    """End to end: the CLI, offload_planner_cpp's map loader and planner, the saved file. Needs the
+    built workspace (`source devel/setup.bash`)."""
+    import offload_planner_cpp
+    from offload_planner_cpp import maps
+
+    result = _trace_cli("--map", SMALL_REAL_MAP, "--queries", "12", "--seed", "3", "--out", "t.npz", cwd=tmp_path)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.startswith("wrote t.npz: 12 plans") and "planned 12/12" in result.stderr
+    trace = PlanningTrace.load_npz(str(tmp_path / "t.npz"))
+    occupancy = maps.load_map_server_yaml(SMALL_REAL_MAP)
+    grid, resolution = occupancy.grid, occupancy.resolution
+    assert (grid.shape, resolution) == ((384, 384), 0.05)
+    assert len(trace) == 12 and trace.metadata["seed"] == 3 and trace.metadata["map_cell_count"] == 384 * 384
+    assert trace.metadata["map_shape"] == [384, 384] and trace.metadata["resolution_m"] == 0.05
+    for cells in (trace.start_cell, trace.goal_cell):  # (x, y) of known free cells
+        assert np.all((grid[cells[:, 1], cells[:, 0]] >= 0) & (grid[cells[:, 1], cells[:, 0]] < 50))
+    assert not np.any(np.all(trace.start_cell == trace.goal_cell, axis=1))
+    # Eq. 11-12 by hand: n = (x^2 / 2) / r^2, d = n ln n over the map's cells.
+    x = 0.05 * np.hypot(*(trace.goal_cell - trace.start_cell).T)
+    n = x ** 2 / 2 / 0.05 ** 2
+    assert np.allclose(trace.distance_m, x) and np.allclose(trace.input_size, n * np.log(n) / (384 * 384))
+    assert np.all(trace.expansions > 0) and np.all((trace.planner_s > 0) & (trace.planner_s <= trace.local_s))
+    # The real planner again on the same pairs: it finds each path, no shorter than the straight line, after
+    # settling the same cells it reported in the trace (Dijkstra is deterministic).
+    for start, goal, distance_m, expansions in zip(trace.start_cell, trace.goal_cell, trace.distance_m,
+                                                   trace.expansions):
+        plan = offload_planner_cpp.plan(grid, tuple(int(v) for v in start), tuple(int(v) for v in goal))
+        assert plan.cost * resolution >= distance_m - 1e-9
+        assert plan.expansions == expansions
+        assert tuple(plan.path[0]) == tuple(start) and tuple(plan.path[-1]) == tuple(goal)
+    again = _trace_cli("--map", SMALL_REAL_MAP, "--queries", "12", "--seed", "3", "--out", "again.npz", cwd=tmp_path)
+    assert again.returncode == 0, again.stderr
+    same_seed = PlanningTrace.load_npz(str(tmp_path / "again.npz"))
+    assert np.array_equal(same_seed.start_cell, trace.start_cell) and np.array_equal(same_seed.goal_cell,
+                                                                                     trace.goal_cell)

@@ -7,11 +7,17 @@ import zipfile
 import torch
 
 from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent
+from offload_learner_py.dqn import N_ACTIONS, DQNAgent
 from offload_learner_py.normalisation import StateNormalisation
+from offload_learner_py.state import STATE_SIZE
 
 CHECKPOINT_FORMAT = "offload_learner_py.dqn"
 CHECKPOINT_VERSION = 1
+# Bounds checked before anything is unpickled. The weights live in their own zip members; the pickle
+# holds only the structure, config and counters (a few KiB). The largest network a config allows
+# (config.MAX_PARAMETERS) takes about 320 MB for two networks and Adam's two moments.
+MAX_CHECKPOINT_BYTES = 512 * 2 ** 20
+MAX_PICKLE_BYTES = 2 ** 20
 
 
 class IncompatibleCheckpointError(ValueError):
@@ -45,16 +51,28 @@ def save_checkpoint(agent: DQNAgent, path: str) -> None:
         raise
 
 
-def load_checkpoint(path: str, expected_config: DQNConfig = None) -> DQNAgent:
-    """Rebuild the agent. With expected_config, refuse a checkpoint whose network shape differs."""
+def load_checkpoint(path: str, expected_config: DQNConfig = None,
+                    max_bytes: int = MAX_CHECKPOINT_BYTES) -> DQNAgent:
+    """Rebuild the agent. With expected_config, refuse a checkpoint whose network shape differs. A file
+    over max_bytes (on disk or uncompressed), or whose pickle is over MAX_PICKLE_BYTES, is refused before
+    it is read."""
+    try:
+        size = os.path.getsize(path)
+    except OSError as error:
+        raise IncompatibleCheckpointError(f"{path} is not a readable offload DQN checkpoint: {error}") from error
+    if size > max_bytes:
+        raise IncompatibleCheckpointError(f"{path}: {size} bytes, over the {max_bytes}-byte cap of a checkpoint")
     try:
         # torch.load does not check the CRCs of the zip members it reads, so damaged weights would load
         # silently; the zip layer does check them.
         with zipfile.ZipFile(path) as archive:
+            _check_sizes(archive, path, max_bytes)
             damaged = archive.testzip()
         if damaged is not None:
             raise ValueError(f"member {damaged} fails its CRC check")
         payload = torch.load(path, map_location="cpu", weights_only=True)
+    except IncompatibleCheckpointError:
+        raise
     except Exception as error:  # torch raises several types for a foreign or corrupt file
         raise IncompatibleCheckpointError(f"{path} is not a readable offload DQN checkpoint (missing, truncated or "
                                           f"corrupt): {error}") from error
@@ -76,6 +94,8 @@ def load_checkpoint(path: str, expected_config: DQNConfig = None) -> DQNAgent:
         steps, gradient_steps = _count(payload, "steps"), _count(payload, "gradient_steps")
     except (KeyError, TypeError, ValueError) as error:
         raise IncompatibleCheckpointError(f"{path} has no valid step counters: {error}") from error
+    for name in ("q_network", "target_network"):
+        _check_shapes(payload.get(name), config, path, name)
     agent = DQNAgent(config, normalisation if payload.get("normalisation_frozen", True) else None)
     try:
         agent.q_network.load_state_dict(payload["q_network"])
@@ -93,3 +113,38 @@ def _count(payload: dict, key: str) -> int:
     if isinstance(value, bool) or not isinstance(value, int) or value < 0:
         raise ValueError(f"{key} must be a non-negative integer, got {value!r}")
     return value
+
+
+def _check_sizes(archive: zipfile.ZipFile, path: str, max_bytes: int) -> None:
+    """Declared (uncompressed) sizes, from the zip directory, before any member is read."""
+    total = 0
+    for info in archive.infolist():
+        total += info.file_size
+        if info.filename.endswith("data.pkl") and info.file_size > MAX_PICKLE_BYTES:
+            raise IncompatibleCheckpointError(f"{path}: its pickle {info.filename} is {info.file_size} bytes, over "
+                                              f"the {MAX_PICKLE_BYTES}-byte cap (a checkpoint's pickle holds no "
+                                              f"weights)")
+    if total > max_bytes:
+        raise IncompatibleCheckpointError(f"{path}: its members would decompress to {total} bytes, over the "
+                                          f"{max_bytes}-byte cap of a checkpoint")
+
+
+def _check_shapes(state_dict, config: DQNConfig, path: str, name: str) -> None:
+    """Every weight the config's network needs, with its shape, before the network is built."""
+    if not isinstance(state_dict, dict):
+        raise IncompatibleCheckpointError(f"{path} has no {name} weights")
+    widths = [STATE_SIZE, *config.hidden_sizes, N_ACTIONS]
+    expected = {}
+    for i, (width_in, width_out) in enumerate(zip(widths[:-1], widths[1:])):
+        expected[f"layers.{2 * i}.weight"] = (width_out, width_in)
+        expected[f"layers.{2 * i}.bias"] = (width_out,)
+    if set(state_dict) != set(expected):
+        raise IncompatibleCheckpointError(f"{path}: weights do not fit the network its config describes "
+                                          f"(hidden layers {list(config.hidden_sizes)}): {name} holds "
+                                          f"{sorted(state_dict)}, it needs {sorted(expected)}")
+    for key, shape in expected.items():
+        found = tuple(getattr(state_dict[key], "shape", ()))
+        if found != shape:
+            raise IncompatibleCheckpointError(f"{path}: weights do not fit the network its config describes "
+                                              f"(hidden layers {list(config.hidden_sizes)}): {name} {key} needs "
+                                              f"shape {shape}, the file holds {found}")

@@ -6,6 +6,20 @@ from dataclasses import asdict, dataclass, fields
 from typing import Tuple
 
 
+# The largest network a config may describe: a guard against configs (and checkpoints) that would
+# allocate gigabytes before anything else is checked. The paper's 3 x 256 network has 133,378 weights;
+# 20 million is three hidden layers of about 3,100.
+MAX_PARAMETERS = 20_000_000
+# Replay memory is preallocated (two float32 state arrays): 10 million experiences take about 280 MB.
+MAX_REPLAY_CAPACITY = 10_000_000
+
+
+def parameter_count(hidden_sizes, state_size: int = 3, n_actions: int = 2) -> int:
+    """Weights and biases of the Q-network state_size -> hidden_sizes -> n_actions."""
+    widths = [state_size, *hidden_sizes, n_actions]
+    return sum(w_in * w_out + w_out for w_in, w_out in zip(widths[:-1], widths[1:]))
+
+
 def _is_int(value) -> bool:
     return isinstance(value, numbers.Integral) and not isinstance(value, bool)
 
@@ -59,11 +73,17 @@ class DQNConfig:
                     raise ValueError(f"{spec.name} must be an integer, got {value!r}")
             elif not (isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)):
                 raise ValueError(f"{spec.name} must be a finite number, got {value!r}")
-        for name in ("learning_rate", "huber_delta", "max_grad_norm"):
+        for name in ("huber_delta", "max_grad_norm"):
             if getattr(self, name) <= 0:
                 raise ValueError(f"{name} must be positive, got {getattr(self, name)}")
-        if self.weight_decay < 0:
-            raise ValueError(f"weight_decay must be >= 0, got {self.weight_decay}")
+        # Adam's step is about learning_rate per weight; above 1 the weights of this network (inputs and
+        # rewards of order 1) diverge to inf and torch fails far from the cause.
+        if not 0.0 < self.learning_rate <= 1.0:
+            raise ValueError(f"learning_rate must be in (0, 1], got {self.learning_rate}")
+        if not 0.0 <= self.weight_decay <= 1.0:
+            raise ValueError(f"weight_decay must be in [0, 1], got {self.weight_decay}")
+        if self.replay_capacity > MAX_REPLAY_CAPACITY:
+            raise ValueError(f"replay_capacity must be at most {MAX_REPLAY_CAPACITY}, got {self.replay_capacity}")
         if not 0.0 <= self.gamma < 1.0:
             raise ValueError(f"gamma must be in [0, 1), got {self.gamma}")
         if not 0.0 <= self.epsilon <= 1.0:
@@ -78,6 +98,9 @@ class DQNConfig:
             raise ValueError(f"learning_starts must be >= 0, got {self.learning_starts}")
         if not self.hidden_sizes or min(self.hidden_sizes) < 1:
             raise ValueError(f"hidden_sizes must be positive, got {self.hidden_sizes}")
+        if parameter_count(self.hidden_sizes) > MAX_PARAMETERS:
+            raise ValueError(f"hidden_sizes {list(self.hidden_sizes)} give {parameter_count(self.hidden_sizes)} "
+                             f"parameters, more than {MAX_PARAMETERS}")
         if self.batch_size > self.replay_capacity:
             raise ValueError("batch_size cannot exceed replay_capacity")
 

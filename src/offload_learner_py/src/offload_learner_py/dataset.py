@@ -3,18 +3,22 @@ action, action propensity, reward). Saved as .npz (columns as arrays plus JSON m
 exportable to CSV. Both latencies are in every row, as the paper measured both at every step, so
 any policy can be scored offline against the oracle."""
 import csv
+import os
 from dataclasses import dataclass, field
 from typing import Dict
 
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.npz_io import load_versioned, save_versioned_npz
+from offload_learner_py.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
 
 COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
            "action_propensity", "reward")
 TABLE_FORMAT = "offload_learner_py.transitions/1"
 _INTEGER_COLUMNS = ("t", "action")
+# A CSV is parsed into Python objects (about 50 bytes per field): 64 MiB, about a million rows, stays
+# within a few hundred MiB. Larger tables belong in .npz.
+MAX_CSV_BYTES = 64 * 2 ** 20
 
 
 class InvalidTableError(ValueError):
@@ -103,10 +107,10 @@ class TransitionTable:
         save_versioned_npz(path, TABLE_FORMAT, self.metadata, {name: getattr(self, name) for name in COLUMNS})
 
     @classmethod
-    def load_npz(cls, path: str) -> "TransitionTable":
-        """The table in an .npz written by save_npz. Any unreadable, foreign or invalid file raises
-        ValueError naming the file."""
-        return load_versioned(cls, path, TABLE_FORMAT, COLUMNS, "transition table")
+    def load_npz(cls, path: str, max_member_bytes: int = MAX_MEMBER_BYTES) -> "TransitionTable":
+        """The table in an .npz written by save_npz. Any unreadable, foreign, invalid or oversized file
+        (a column over max_member_bytes uncompressed) raises ValueError naming the file."""
+        return load_versioned(cls, path, TABLE_FORMAT, COLUMNS, "transition table", max_member_bytes)
 
     def to_csv(self, path: str) -> None:
         with open(path, "w", newline="") as out:
@@ -116,13 +120,17 @@ class TransitionTable:
                 writer.writerow([int(v) if isinstance(v, np.integer) else repr(float(v)) for v in row])
 
     @classmethod
-    def from_csv(cls, path: str) -> "TransitionTable":
+    def from_csv(cls, path: str, max_bytes: int = MAX_CSV_BYTES) -> "TransitionTable":
         """The table in a CSV written by to_csv: the header must be COLUMNS and every row must have one
-        number per column (blank lines are skipped). Anything else raises ValueError naming the file
-        and the line."""
+        number per column (blank lines are skipped). Anything else, or a file over max_bytes, raises
+        ValueError naming the file and the line."""
         values = {name: [] for name in COLUMNS}
         lines = []
         try:
+            size = os.path.getsize(path)
+            if size > max_bytes:
+                raise ValueError(f"{path}: {size} bytes, over the {max_bytes}-byte cap of a transition table CSV "
+                                 f"(use .npz for larger tables)")
             with open(path, newline="") as source:
                 reader = csv.reader(source)
                 header = next(reader, None)

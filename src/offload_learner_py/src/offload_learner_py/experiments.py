@@ -20,6 +20,7 @@ import argparse
 import json
 import os
 import sys
+import tempfile
 from dataclasses import replace
 from typing import Dict, List, Optional
 
@@ -196,31 +197,44 @@ def comparison_markdown(result: dict) -> str:
                      f"{score['cumulative_latency_s']:.3f} | {score['savings_vs_local_pct']:+.1f}% | "
                      f"{score['savings_vs_cloud_pct']:+.1f}% | {score['regret_s']:.4f} |")
     if "learned_threshold" in result:
-        lines += ["", f"DQN learned CPU threshold: {result['learned_threshold']:.4f}"]
+        threshold = result["learned_threshold"]
+        lines += ["", f"DQN learned CPU threshold: {threshold:.4f}" if np.isfinite(threshold) else
+                  "DQN learned CPU threshold: no threshold (the greedy policy never switches in the observed range)"]
     return "\n".join(lines) + "\n"
 
 
 def _write_json(path: str, values: dict) -> None:
+    """Strict JSON (RFC 8259 has no NaN or Infinity): a number that is not finite, such as the threshold
+    of a policy that never switches, is written as null."""
     temp_path = path + ".tmp"
     with open(temp_path, "w") as out:
-        json.dump(values, out, indent=2, default=_json_default)
+        json.dump(_finite_or_null(values), out, indent=2, allow_nan=False)
         out.write("\n")
     os.replace(temp_path, path)
 
 
-def _json_default(value):
-    if isinstance(value, (np.integer,)):
+def _finite_or_null(value):
+    if isinstance(value, dict):
+        return {key: _finite_or_null(item) for key, item in value.items()}
+    if isinstance(value, (list, tuple, np.ndarray)):
+        return [_finite_or_null(item) for item in value]
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
         return int(value)
-    if isinstance(value, (np.floating,)):
-        return float(value)
-    if isinstance(value, np.ndarray):
-        return value.tolist()
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if value is None or isinstance(value, str):
+        return value
     raise TypeError(f"cannot write {type(value).__name__} as JSON")
 
 
 def _config_from_args(args) -> DQNConfig:
-    """DQNConfig defaults, then --gamma, then any --set field=value (parsed as JSON when it can be)."""
+    """DQNConfig defaults, then the run's seed, then --gamma, then any --set field=value (parsed as JSON when
+    it can be)."""
     values = DQNConfig().to_dict()
+    if getattr(args, "seed", None) is not None:
+        values["seed"] = args.seed
     if args.gamma is not None:
         values["gamma"] = args.gamma
     for assignment in args.set or []:
@@ -231,12 +245,53 @@ def _config_from_args(args) -> DQNConfig:
             values[field] = json.loads(text)
         except json.JSONDecodeError:
             values[field] = text
-    if getattr(args, "seed", None) is not None:
-        values["seed"] = args.seed
     try:
         return DQNConfig.from_dict(values)
     except (TypeError, ValueError) as error:
         raise ValueError(f"invalid DQN configuration: {error}") from error
+
+
+def _resolve_seed(args) -> None:
+    """One seed per run: --seed, or --set seed=S, or 1; the two given with different values is an
+    error, never a silent override. `sweep` takes its seeds from --seeds only."""
+    assignments = [text.partition("=")[2] for text in args.set or [] if text.partition("=")[0] == "seed"]
+    if args.command == "sweep":
+        if assignments:
+            raise ValueError("sweep takes its seeds from --seeds, not --set seed=...")
+        return
+    if not assignments:
+        args.seed = 1 if args.seed is None else args.seed
+        return
+    try:
+        set_seed = json.loads(assignments[-1])
+    except json.JSONDecodeError:
+        raise ValueError(f"invalid DQN configuration: seed must be an integer, got {assignments[-1]!r}") from None
+    if args.seed is not None and set_seed != args.seed:
+        raise ValueError(f"--seed {args.seed} and --set seed={assignments[-1]} disagree; give one")
+    if isinstance(set_seed, bool) or not isinstance(set_seed, int) or set_seed < 0:
+        raise ValueError(f"invalid DQN configuration: seed must be a non-negative integer, got {set_seed!r}")
+    args.seed = set_seed
+
+
+def _require_writable_dir(path: str) -> None:
+    """Create the output directory and write a probe file in it, so a bad --out fails before the run."""
+    try:
+        os.makedirs(path, exist_ok=True)
+        with tempfile.TemporaryFile(dir=path):
+            pass
+    except OSError as error:
+        raise OSError(f"{path}: cannot write the output directory: {error}") from error
+
+
+def _require_writable_file(path: str) -> None:
+    if os.path.isdir(path):
+        raise OSError(f"{path}: cannot write the output file: it is a directory")
+    directory = os.path.dirname(os.path.abspath(path))
+    try:
+        with tempfile.TemporaryFile(dir=directory):
+            pass
+    except OSError as error:
+        raise OSError(f"{path}: cannot write the output file: {error}") from error
 
 
 def _count_type(minimum: int):
@@ -279,7 +334,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     synthetic = commands.add_parser("synthetic", help="train online on one synthetic dataset")
     synthetic.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
     synthetic.add_argument("--steps", type=_count_type(1), default=1000)
-    synthetic.add_argument("--seed", type=_count_type(0), default=1)
+    synthetic.add_argument("--seed", type=_count_type(0), default=None, help="seed of the data and the DQN "
+                           "(default 1, or --set seed=S)")
     synthetic.add_argument("--trace", default=BUNDLED_TRACE, help="planning trace .npz (default: bundled)")
     add_common(synthetic)
 
@@ -293,7 +349,8 @@ def main(argv: Optional[List[str]] = None) -> int:
     compare = commands.add_parser("compare", help="every policy on one transition table")
     compare.add_argument("--data", required=True, help="transition table (.npz or .csv)")
     compare.add_argument("--train-fraction", type=_fraction, default=0.5)
-    compare.add_argument("--seed", type=_count_type(0), default=1)
+    compare.add_argument("--seed", type=_count_type(0), default=None, help="seed of the DQN and the baselines "
+                         "(default 1, or --set seed=S)")
     add_common(compare)
 
     generate = commands.add_parser("generate", help="write a synthetic transition table (.npz, and .csv beside it)")
@@ -301,7 +358,7 @@ def main(argv: Optional[List[str]] = None) -> int:
     generate.add_argument("--steps", type=_count_type(1), default=1000)
     generate.add_argument("--seed", type=_count_type(0), default=1)
     generate.add_argument("--trace", default=BUNDLED_TRACE)
-    generate.add_argument("--out", required=True, help="output .npz")
+    generate.add_argument("--out", required=True, help="output .npz (the .csv is written beside it)")
 
     args = parser.parse_args(argv)
     try:
@@ -312,26 +369,34 @@ def main(argv: Optional[List[str]] = None) -> int:
 
 
 def _run(args) -> int:
+    # Every value is checked, and the output made sure to be writable, before any work starts.
     if args.command == "generate":
+        if not args.out.endswith(".npz"):
+            raise ValueError(f"--out must end in .npz (the .csv is written beside it), got {args.out}")
+        csv_path = args.out[:-len(".npz")] + ".csv"
+        _require_writable_file(args.out)
+        _require_writable_file(csv_path)
         table = generate_synthetic(args.kind, PlanningTrace.load_npz(args.trace), args.steps, args.seed)
         table.save_npz(args.out)
-        table.to_csv(os.path.splitext(args.out)[0] + ".csv")
-        print(f"wrote {args.out} and its .csv: {len(table)} steps of synthetic {args.kind}")
+        table.to_csv(csv_path)
+        print(f"wrote {args.out} and {csv_path}: {len(table)} steps of synthetic {args.kind}")
         return 0
+    _resolve_seed(args)
+    config = _config_from_args(args)
+    _require_writable_dir(args.out)
     torch.set_num_threads(args.threads)
     if args.command == "synthetic":
-        metrics = run_synthetic(args.kind, args.steps, args.seed, args.out, _config_from_args(args), args.trace)
+        metrics = run_synthetic(args.kind, args.steps, args.seed, args.out, config, args.trace)
         summary = {key: metrics[key] for key in ("accuracy", "accuracy_taken", "learned_threshold") if key in metrics}
         summary["lstm_accuracy"] = metrics["policies"]["lstm"]["accuracy"]
         print(json.dumps(summary))
     elif args.command == "sweep":
-        args.seed = None
-        summary = run_sweep(args.kind, args.seeds, args.steps, args.out, _config_from_args(args), args.trace)
+        summary = run_sweep(args.kind, args.seeds, args.steps, args.out, config, args.trace)
         brief = {key: {k: summary[key][k] for k in ("mean", "std", "min", "max")}
                  for key in ("accuracy", "accuracy_taken", "lstm_accuracy", "learned_threshold") if key in summary}
         print(json.dumps(brief))
     else:
-        result = run_compare(args.data, args.out, _config_from_args(args), args.train_fraction)
+        result = run_compare(args.data, args.out, config, args.train_fraction)
         print(comparison_markdown(result))
     return 0
 

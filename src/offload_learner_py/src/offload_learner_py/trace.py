@@ -13,7 +13,7 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
-from offload_learner_py.npz_io import load_versioned, save_versioned_npz
+from offload_learner_py.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
 from offload_learner_py.state import input_size_from_cells
 
 TRACE_FORMAT = "offload_learner_py.trace/1"
@@ -72,10 +72,10 @@ class PlanningTrace:
         save_versioned_npz(path, TRACE_FORMAT, self.metadata, {name: getattr(self, name) for name in _ARRAYS})
 
     @classmethod
-    def load_npz(cls, path: str) -> "PlanningTrace":
-        """The trace in an .npz written by save_npz. Any unreadable, foreign or invalid file raises
-        ValueError naming the file."""
-        return load_versioned(cls, path, TRACE_FORMAT, _ARRAYS, "planning trace")
+    def load_npz(cls, path: str, max_member_bytes: int = MAX_MEMBER_BYTES) -> "PlanningTrace":
+        """The trace in an .npz written by save_npz. Any unreadable, foreign, invalid or oversized file
+        (an array over max_member_bytes uncompressed) raises ValueError naming the file."""
+        return load_versioned(cls, path, TRACE_FORMAT, _ARRAYS, "planning trace", max_member_bytes)
 
 
 def free_cells(grid: np.ndarray, lethal_threshold: int = 50) -> np.ndarray:
