@@ -1,10 +1,12 @@
 #!/usr/bin/env python3
-"""Hand-written mutation testing of the C++ planner core (src/offload_planner_cpp/src/dijkstra.cpp).
+"""Hand-written mutation testing of the C++ planner core and its request contract (dijkstra.cpp,
+plan_request.cpp, map_geometry.h, the ROS wrapper planner_ros.cpp and the pybind11 bindings).
 `make mutate` runs it after the Python modules.
 
-For each mutant of tools/cpp_mutants.yaml, one at a time: write the mutated source, rebuild the gtest
-and the pybind11 module (catkin_make targets test_dijkstra and _core), run the gtest test_dijkstra and
-the binding tests (test_bindings.py), and record whether a test failed (killed), the build failed
+For each mutant of tools/cpp_mutants.yaml, one at a time: write the mutated source (its `file`, relative
+to src/offload_planner_cpp/, default src/dijkstra.cpp), rebuild the gtests and the pybind11 module
+(catkin_make targets test_dijkstra, test_planner_ros and _core), run both gtests and the binding and
+contract tests (test_bindings.py, test_request_contract.py), and record whether a test failed (killed), the build failed
 (does not compile) or everything passed (survived). The original source is written back after every
 mutant, and on any exit (failure, Ctrl-C, SIGTERM); the devel space is then rebuilt from it.
 
@@ -21,10 +23,11 @@ from pathlib import Path
 import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
-SOURCE = ROOT / "src" / "offload_planner_cpp" / "src" / "dijkstra.cpp"
+PACKAGE = ROOT / "src" / "offload_planner_cpp"
+DEFAULT_FILE = "src/dijkstra.cpp"
 MUTANTS = Path(__file__).resolve().parent / "cpp_mutants.yaml"
-GTEST = ROOT / "devel" / "lib" / "offload_planner_cpp" / "test_dijkstra"
-BINDING_TESTS = ROOT / "src" / "offload_planner_cpp" / "test" / "test_bindings.py"
+GTESTS = [ROOT / "devel" / "lib" / "offload_planner_cpp" / name for name in ("test_dijkstra", "test_planner_ros")]
+BINDING_TESTS = [PACKAGE / "test" / name for name in ("test_bindings.py", "test_request_contract.py")]
 TEST_TIMEOUT_S = 300  # a mutant that loops forever is killed by this, not waited for
 
 
@@ -72,30 +75,31 @@ def apply(source: str, mutant: dict) -> str:
 
 
 def build() -> subprocess.CompletedProcess:
-    return subprocess.run(["catkin_make", "--source", str(ROOT), "-j2", "test_dijkstra", "_core"], cwd=ROOT,
-                          capture_output=True, text=True)
+    return subprocess.run(["catkin_make", "--source", str(ROOT), "-j2", "test_dijkstra", "test_planner_ros", "_core"],
+                          cwd=ROOT, capture_output=True, text=True)
 
 
 def run_tests() -> tuple:
     """(killed, which test failed)."""
+    for gtest_path in GTESTS:
+        try:
+            gtest = subprocess.run([str(gtest_path), "--gtest_brief=1"], capture_output=True, text=True,
+                                   timeout=TEST_TIMEOUT_S)
+        except subprocess.TimeoutExpired:
+            return True, f"{gtest_path.name} (timed out)"
+        if gtest.returncode != 0:
+            failed = [line.split("]", 1)[1].split()[0] for line in gtest.stdout.splitlines()
+                      if line.startswith("[  FAILED  ]") and len(line.split("]", 1)[1].split()) > 0]
+            return True, f"{gtest_path.name} " + (failed[0] if failed else f"(exit {gtest.returncode})")
     try:
-        gtest = subprocess.run([str(GTEST), "--gtest_brief=1"], capture_output=True, text=True,
-                               timeout=TEST_TIMEOUT_S)
-    except subprocess.TimeoutExpired:
-        return True, "test_dijkstra (timed out)"
-    if gtest.returncode != 0:
-        failed = [line.split("]", 1)[1].split()[0] for line in gtest.stdout.splitlines()
-                  if line.startswith("[  FAILED  ]") and len(line.split("]", 1)[1].split()) > 0]
-        return True, "test_dijkstra " + (failed[0] if failed else f"(exit {gtest.returncode})")
-    try:
-        binding = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider",
-                                  str(BINDING_TESTS)], cwd=ROOT, capture_output=True, text=True,
+        binding = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", "-p", "no:cacheprovider"]
+                                 + [str(path) for path in BINDING_TESTS], cwd=ROOT, capture_output=True, text=True,
                                  timeout=TEST_TIMEOUT_S)
     except subprocess.TimeoutExpired:
-        return True, "test_bindings.py (timed out)"
+        return True, "binding tests (timed out)"
     if binding.returncode != 0:
         failed = [line.split()[1] for line in binding.stdout.splitlines() if line.startswith("FAILED")]
-        return True, failed[0] if failed else f"test_bindings.py (exit {binding.returncode})"
+        return True, failed[0] if failed else f"binding tests (exit {binding.returncode})"
     return False, ""
 
 
@@ -104,9 +108,17 @@ def main(argv=None) -> int:
     parser.add_argument("names", nargs="*", help="run only these mutants (default: all)")
     parser.add_argument("--list", type=Path, default=MUTANTS, help="mutant list (default tools/cpp_mutants.yaml)")
     args = parser.parse_args(argv)
-    original = SOURCE.read_bytes()
-    text = original.decode()
     mutants = load_mutants(args.list)
+    sources = {name: PACKAGE / name for name in {m.get("file", DEFAULT_FILE) for m in mutants}}
+    missing = [name for name, path in sources.items() if not path.is_file()]
+    if missing:
+        sys.exit(f"{args.list}: no such source file {missing} (file is relative to {PACKAGE.relative_to(ROOT)})")
+    originals = {name: path.read_bytes() for name, path in sources.items()}
+
+    def restore():
+        for name, path in sources.items():
+            path.write_bytes(originals[name])
+
     if args.names:
         unknown = set(args.names) - {m["name"] for m in mutants}
         if unknown:
@@ -125,25 +137,26 @@ def main(argv=None) -> int:
         killed, where = run_tests()
         if killed:
             sys.exit(f"mutate_cpp: the tests fail on the unmutated source ({where}); no mutant can be judged")
-        print(f"C++ mutants of {SOURCE.relative_to(ROOT)} ({len(mutants)} from {args.list.name}); tests: "
-              f"test_dijkstra (gtest), test_bindings.py", flush=True)
+        print(f"C++ mutants of {', '.join(sorted(sources))} ({len(mutants)} from {args.list.name}); tests: "
+              f"test_dijkstra, test_planner_ros (gtest), test_bindings.py, test_request_contract.py", flush=True)
         for mutant in mutants:
             began = time.monotonic()
+            source = sources[mutant.get("file", DEFAULT_FILE)]
             try:
-                mutated = apply(text, mutant)
+                mutated = apply(originals[mutant.get("file", DEFAULT_FILE)].decode(), mutant)
             except ValueError as error:
                 results.append((mutant, "stale", str(error)))
                 print(f"  stale     {mutant['name']}: {error}", flush=True)
                 continue
             try:
-                SOURCE.write_text(mutated)
+                source.write_text(mutated)
                 if build().returncode != 0:
                     outcome, detail = "no-build", "does not compile"
                 else:
                     killed, detail = run_tests()
                     outcome = "killed" if killed else "SURVIVED"
             finally:
-                SOURCE.write_bytes(original)
+                restore()
             results.append((mutant, outcome, detail))
             print(f"  {outcome:9s} {mutant['name']}: {detail or mutant.get('why', '')} "
                   f"({time.monotonic() - began:.0f} s)", flush=True)
@@ -153,7 +166,7 @@ def main(argv=None) -> int:
     else:
         return_code = 0
     finally:
-        SOURCE.write_bytes(original)
+        restore()
         signal.signal(signal.SIGTERM, previous)
         rebuilt = build()
         if rebuilt.returncode != 0:

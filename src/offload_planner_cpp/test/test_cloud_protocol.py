@@ -1,4 +1,5 @@
 """Protocol round trips and rejections, the map cache, and the Python port of the map geometry."""
+import hashlib
 import math
 
 import numpy as np
@@ -140,3 +141,47 @@ def test_map_cache_counts_per_map_overhead_so_tiny_maps_cannot_grow_it_without_b
     assert cache.size_bytes <= cap and cache.evictions == 5000 - len(cache)
     kept = cache.get((4999).to_bytes(16, "little"))
     assert kept.base is None or kept.base.nbytes == kept.nbytes   # a compact copy, not a view of the message
+
+
+# Golden bytes of protocol version 2, little endian, as README_cloud.md documents the layout. A change
+# to any wire constant (kinds, statuses, flags, version, field order or width) must fail here: a round
+# trip through this same module cannot see it, and robots and servers of different builds would.
+GOLDEN_GRID = np.array([[0, 100], [-1, 5]], np.int8)
+
+
+def test_golden_bytes_of_every_message():
+    assert bytes(protocol.encode_ping(7)[0]) == b"OFPL" + bytes([2, 1]) + (7).to_bytes(8, "little")
+    plan = [bytes(f) for f in protocol.encode_plan(
+        258, bytes(range(16)), (1, 2), (3, 4),
+        PlanOptions(goal_tolerance_cells=1.5, lethal_threshold=60, unknown_is_obstacle=False, stop_at_goal=True))]
+    assert plan == [b"OFPL\x02\x02" + (258).to_bytes(8, "little"),
+                    bytes(range(16)) + bytes.fromhex("01000000" "02000000" "03000000" "04000000")
+                    + bytes.fromhex("000000000000f83f")   # 1.5 as float64
+                    + (60).to_bytes(2, "little") + bytes([2])]   # flags: stop_at_goal only
+    upload = [bytes(f) for f in protocol.encode_upload(1, GOLDEN_GRID)]
+    assert upload == [b"OFPL\x02\x03" + (1).to_bytes(8, "little"), b'{"dtype":"int8","height":2,"width":2}',
+                      bytes([0, 100, 255, 5])]
+    assert protocol.grid_hash(GOLDEN_GRID) == hashlib.blake2b(upload[1] + upload[2], digest_size=16).digest()
+    reply = [bytes(f) for f in protocol.encode_reply(Reply(9, Status.GOAL_BLOCKED, "no", np.array(
+        [[1, 2], [3, 4]], np.int32), (3, 4), 77, 0.25, 2.5))]
+    assert reply == [b"OFPL\x02\x04" + (9).to_bytes(8, "little"),
+                     bytes([6]) + bytes.fromhex("03000000" "04000000") + (77).to_bytes(8, "little")
+                     + bytes.fromhex("000000000000d03f" "0000000000000440"),   # 0.25, 2.5
+                     b"no", bytes.fromhex("01000000" "02000000" "03000000" "04000000")]
+    assert bytes(protocol.encode_stats(5)[0]) == b"OFPL\x02\x05" + (5).to_bytes(8, "little")
+    # And the other way: golden bytes decode to the values they stand for.
+    decoded = protocol.decode_plan(258, plan[1:], MAX_CELLS)
+    assert (decoded.map_hash, decoded.start, decoded.goal) == (bytes(range(16)), (1, 2), (3, 4))
+    assert decoded.options == PlanOptions(1.5, 60, False, True)
+    back = protocol.decode_reply(reply)
+    assert (back.request_id, back.status, back.goal, back.expansions, back.planning_time_s, back.cost_cells) == \
+        (9, Status.GOAL_BLOCKED, (3, 4), 77, 0.25, 2.5)
+
+
+def test_wire_codes_are_fixed():
+    assert {k.name: int(k) for k in Kind} == {"PING": 1, "PLAN": 2, "UPLOAD": 3, "REPLY": 4, "STATS": 5}
+    assert {s.name: int(s) for s in protocol.LinkStatus} == {
+        "MAP_UNKNOWN": 20, "BAD_REQUEST": 21, "UNSUPPORTED_VERSION": 22, "TOO_LARGE": 23, "BUSY": 24,
+        "SERVER_ERROR": 25}
+    assert (protocol.VERSION, protocol.FLAG_UNKNOWN_IS_OBSTACLE, protocol.FLAG_STOP_AT_GOAL) == (2, 1, 2)
+    assert (protocol.MAX_MAP_SIDE, protocol.MAX_METADATA_BYTES, protocol.HASH_SIZE) == (100000, 1024, 16)

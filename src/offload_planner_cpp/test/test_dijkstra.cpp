@@ -145,6 +145,14 @@ TEST(Dijkstra, UnknownCellsAndLethalThreshold) {
   PlannerOptions high;
   high.lethal_threshold = 51;
   EXPECT_TRUE(c.plan({0, 0}, {0, 2}, high).ok());
+
+  Grid walls({"...", "###", "..."});  // occupancy 100: lethal only below the documented maximum 101
+  EXPECT_EQ(walls.plan({0, 0}, {0, 2}).status, PlanStatus::kNoPath);
+  PlannerOptions nothing_lethal;
+  nothing_lethal.lethal_threshold = 101;
+  const auto through = walls.plan({0, 0}, {0, 2}, nothing_lethal);
+  ASSERT_TRUE(through.ok()) << through.message;
+  EXPECT_NEAR(through.cost, 2.0, 1e-12);
 }
 
 TEST(Dijkstra, GoalToleranceFindsNearestFreeCell) {
@@ -281,6 +289,13 @@ TEST(Dijkstra, AgreesWithReferenceOnRandomGridsAndReusesBuffers) {
       } else {
         ASSERT_TRUE(r.ok()) << r.message;
         EXPECT_NEAR(r.cost, expected, 1e-9);
+        // The path traced back is itself a shortest one: its steps add up to the optimum.
+        double length = 0;
+        for (std::size_t k = 1; k < r.path.size(); ++k) {
+          const bool diagonal = r.path[k].x != r.path[k - 1].x && r.path[k].y != r.path[k - 1].y;
+          length += diagonal ? kSqrt2 : 1.0;
+        }
+        EXPECT_NEAR(length, expected, 1e-9) << "trial " << trial;
         ++checked;
       }
     }
