@@ -71,7 +71,7 @@ bench-link: build
 	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_link.py
 
 bench-fleet: build
-	@$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fleet --robots 50 --servers 3 --requests 40 --kill-at-s 1.5
+	@$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fleet --robots 50 --servers 3 --requests 40 --kill-at-s 1.5 --baseline
 
 # Longer coverage-guided runs than `make test` does; FUZZ_SECONDS per target.
 FUZZ_SECONDS ?= 120

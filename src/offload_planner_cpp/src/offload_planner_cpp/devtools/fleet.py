@@ -286,15 +286,27 @@ def main(argv=None) -> int:
     parser.add_argument("--map-size", type=int, default=128, help="cells a side of each robot's map")
     parser.add_argument("--timeout-s", type=float, default=10.0, help="a robot's deadline per plan")
     parser.add_argument("--think-s", type=float, default=0.05, help="mean pause of a robot between plans")
+    parser.add_argument("--baseline", action="store_true",
+                        help="first run the same robots against one server directly, no HAProxy and no kill, "
+                             "and print the run's figures against it")
     args = parser.parse_args(argv)
     try:
+        baseline = None
+        if args.baseline:
+            baseline = run_fleet(args.robots, 1, args.workers, False, args.requests, args.duration_s, None,
+                                 args.map_size, args.timeout_s, think_s=args.think_s)
+            print("baseline, one server, robots connected directly:\n  " + "\n  ".join(baseline.lines()))
         result = run_fleet(args.robots, args.servers, args.workers, not args.no_haproxy, args.requests,
                            args.duration_s, args.kill_at_s, args.map_size, args.timeout_s, think_s=args.think_s)
     except (ValueError, RuntimeError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2
     print("\n".join(result.lines()))
-    return 1 if result.lost or result.wrong else 0
+    if baseline is not None and len(baseline.latencies_s) and len(result.latencies_s):
+        ratio = [np.percentile(result.latencies_s, q) / np.percentile(baseline.latencies_s, q) for q in (50, 99)]
+        print(f"against the baseline: throughput x{result.plans_per_s / baseline.plans_per_s:.2f}, "
+              f"p50 x{ratio[0]:.2f}, p99 x{ratio[1]:.2f} (same robots, maps and goals)")
+    return 1 if result.lost or result.wrong or (baseline is not None and (baseline.lost or baseline.wrong)) else 0
 
 
 if __name__ == "__main__":
