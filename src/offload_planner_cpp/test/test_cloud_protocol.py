@@ -1,5 +1,6 @@
 """Protocol round trips and rejections, the map cache, and the Python port of the map geometry."""
 import hashlib
+import json
 import math
 
 import numpy as np
@@ -185,3 +186,64 @@ def test_wire_codes_are_fixed():
         "SERVER_ERROR": 25}
     assert (protocol.VERSION, protocol.FLAG_UNKNOWN_IS_OBSTACLE, protocol.FLAG_STOP_AT_GOAL) == (2, 1, 2)
     assert (protocol.MAX_MAP_SIDE, protocol.MAX_METADATA_BYTES, protocol.HASH_SIZE) == (100000, 1024, 16)
+
+
+def _raises(status, call):
+    with pytest.raises(ProtocolError) as error:
+        call()
+    assert error.value.status == status, error.value
+    return error.value
+
+
+def test_every_decoder_check_at_its_boundary():
+    """Each validation branch of the decoders, on both sides of its limit."""
+    assert protocol.is_planner_status(11) and protocol.is_planner_status(0) and not protocol.is_planner_status(20)
+    for bad in (np.zeros((2, 2), np.uint8), np.zeros(4, np.int8), np.zeros((4, 4), np.int8)[:, ::2]):
+        with pytest.raises(ValueError):
+            protocol.grid_hash(bad)
+    # Envelopes.
+    good = protocol.envelope(Kind.PING, 77)
+    assert protocol.decode_envelope(good) == (Kind.PING, 77) and protocol.request_id_of(good) == 77
+    assert protocol.request_id_of(good[:-1]) == 0 and protocol.request_id_of(good + b"x") == 0
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_envelope(b"OFPL"))
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_envelope(b"OFPX" + good[4:]))
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_envelope(good + b"\0"))
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_envelope(good[:5] + bytes([9]) + good[6:]))
+    # Maps: dtype, integer sides (a bool is not one), sides within 1..MAX_MAP_SIDE, cells within the cap.
+    def meta(**fields):
+        return json.dumps({"dtype": "int8", "width": 2, "height": 2, **fields}).encode()
+    assert protocol.decode_map(meta(), bytes(4), 4)[1].shape == (2, 2)
+    for fields in ({"dtype": "uint8"}, {"width": 2.0}, {"height": True}, {"width": 0}, {"height": -1},
+                   {"width": protocol.MAX_MAP_SIDE + 1}):
+        _raises(Status.BAD_REQUEST, lambda: protocol.decode_map(meta(**fields), bytes(4), 1 << 30))
+    assert protocol.decode_map(meta(width=protocol.MAX_MAP_SIDE, height=1), bytes(protocol.MAX_MAP_SIDE),
+                               1 << 30)[1].shape == (1, protocol.MAX_MAP_SIDE)
+    _raises(Status.TOO_LARGE, lambda: protocol.decode_map(meta(), bytes(4), 3))
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_map(meta(), bytes(3), 4))
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_map(meta(), bytes(5), 4))
+    # A plan whose uploaded map is not the one its hash names.
+    grid = np.zeros((2, 2), np.int8)
+    frames = protocol.encode_plan(1, protocol.grid_hash(grid), (0, 0), (1, 1), grid=grid)
+    assert protocol.decode_plan(1, frames[1:], 16).grid is not None
+    other = np.ones((2, 2), np.int8)
+    frames = protocol.encode_plan(1, protocol.grid_hash(grid), (0, 0), (1, 1), grid=other)
+    _raises(Status.BAD_REQUEST, lambda: protocol.decode_plan(1, frames[1:], 16))
+    # Replies: exactly four frames, kind REPLY, body size, whole path pairs, a known status.
+    reply = [bytes(f) for f in protocol.encode_reply(Reply(3, Status.OK, "", np.array([[1, 2]], np.int32), (1, 2)))]
+    assert protocol.decode_reply(reply).path.tolist() == [[1, 2]]
+    for frames in (reply[:3], reply + [b""], [protocol.envelope(Kind.PING, 3)] + reply[1:],
+                   [protocol.envelope(Kind.STATS, 3)] + reply[1:], reply[:1] + [reply[1][:-1]] + reply[2:],
+                   reply[:1] + [reply[1] + b"\0"] + reply[2:], reply[:3] + [reply[3][:-1]],
+                   reply[:1] + [bytes([99]) + reply[1][1:]] + reply[2:]):
+        _raises(Status.BAD_REQUEST, lambda: protocol.decode_reply(frames))
+
+
+def test_stats_replies_are_checked():
+    ok = protocol.decode_reply([bytes(f) for f in protocol.encode_stats_reply(4, {"requests": 3})])
+    assert protocol.decode_stats(ok) == {"requests": 3}
+    error = _raises(Status.BUSY, lambda: protocol.decode_stats(Reply(4, Status.BUSY, "later")))
+    assert "later" in str(error)
+    for message in ("[1, 2]", "not json", "[" * 5000, "{}" + " " * protocol.MAX_STATS_BYTES):
+        with pytest.raises(ProtocolError):
+            protocol.decode_stats(Reply(4, Status.OK, message))
+    assert protocol.decode_stats(Reply(4, Status.OK, "{}" + " " * (protocol.MAX_STATS_BYTES - 2))) == {}

@@ -134,7 +134,8 @@ def map_hash(metadata: bytes, data) -> bytes:
 
 
 def grid_hash(grid: np.ndarray) -> bytes:
-    return map_hash(map_metadata(grid), _buffer_of(grid))
+    buffer = _buffer_of(grid)   # first: it explains what is wrong with a grid that is not 2-D int8
+    return map_hash(map_metadata(grid), buffer)
 
 
 def _buffer_of(grid: np.ndarray) -> memoryview:
