@@ -30,7 +30,7 @@ help:
 	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
 	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
-	@echo "make fuzz           coverage-guided fuzzing of the protocol and map loaders (FUZZ_SECONDS each)"
+	@echo "make fuzz           coverage-guided fuzzing of the protocol, map loaders and bag reader (FUZZ_SECONDS each)"
 	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
@@ -79,7 +79,11 @@ fuzz: build
 	@mkdir -p build/fuzz && cd build/fuzz && for target in protocol movingai map_yaml map_image; do \
 		echo "== $$target ($(FUZZ_SECONDS) s)"; \
 		$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fuzz $$target -max_total_time=$(FUZZ_SECONDS) -max_len=4096 \
-			2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error' || exit 1; done
+			2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error' || exit 1; done; \
+	echo "== bag reader ($(FUZZ_SECONDS) s)"; \
+	$(ROSENV) $(PY) -m offload_learner_py.devtools.fuzz_bag -max_total_time=$(FUZZ_SECONDS) -max_len=65536 \
+		-rss_limit_mb=2048 2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error'
+
 
 bench-decision: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision

@@ -4,10 +4,10 @@ try:
     from catkin_pkg.python_setup import generate_distutils_setup
     from setuptools import setup
 
-    setup(**generate_distutils_setup(packages=["offload_learner_py", "offload_learner_py.nodes"], package_dir={"": "src"},
+    setup(**generate_distutils_setup(packages=["offload_learner_py", "offload_learner_py.nodes", "offload_learner_py.devtools"], package_dir={"": "src"},
                                      package_data={"offload_learner_py": ["data/*.npz"]}))
 except ImportError:  # no catkin_pkg: plain setuptools install of the core
     from setuptools import setup
 
-    setup(name="offload_learner_py", version="0.1.0", packages=["offload_learner_py", "offload_learner_py.nodes"],
+    setup(name="offload_learner_py", version="0.1.0", packages=["offload_learner_py", "offload_learner_py.nodes", "offload_learner_py.devtools"],
           package_dir={"": "src"}, package_data={"offload_learner_py": ["data/*.npz"]})
