@@ -8,7 +8,6 @@ one the learner had when it answered, every decision and outcome in a bag."""
 import atexit
 import os
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -20,11 +19,7 @@ import xml.etree.ElementTree as ElementTree
 import numpy as np
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
-
+from offload_planner_cpp.devtools.loopback import free_port  # noqa: E402  (ROS-free: before the master is named)
 
 MASTER_PORT = free_port()
 os.environ["ROS_MASTER_URI"] = f"http://127.0.0.1:{MASTER_PORT}"
@@ -32,7 +27,7 @@ os.environ["ROS_IP"] = "127.0.0.1"
 # The master is the test's own (the last fault restarts it), named before rospy reads ROS_MASTER_URI;
 # every node the test starts inherits it.
 sys.path.insert(0, os.path.dirname(os.path.realpath(__file__)))
-from rtest_online_stack import CLOUD_TIMEOUT_S, launch_file, stop  # noqa: E402  (shared helpers)
+from rtest_online_stack import CLOUD_TIMEOUT_S, launch_file, spawn_cloud_server, stop  # noqa: E402  (shared helpers)
 
 import rosbag  # noqa: E402
 import rosgraph  # noqa: E402
@@ -138,12 +133,7 @@ class FaultMatrixTest(unittest.TestCase):
     # --- processes ------------------------------------------------------------------------------
     @classmethod
     def start_server(cls):
-        server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
-                                   f"tcp://127.0.0.1:{cls.server_port}", "--insecure", "--workers", "1",
-                                   "--log-level", "WARNING"], stdout=subprocess.PIPE, text=True)
-        line = server.stdout.readline()
-        assert line.startswith("listening on "), line
-        cls.processes["server"] = server
+        cls.processes["server"], _ = spawn_cloud_server(cls.server_port)
 
     @classmethod
     def start_bridge(cls):

@@ -36,6 +36,17 @@ def launch_file(name):
     raise FileNotFoundError(f"launch/{name} not found from {WORKSPACE}")
 
 
+def spawn_cloud_server(port: int = 0):
+    """The cloud server as its own process, plaintext, one worker, on a loopback port (0: any free one);
+    (process, endpoint) once it listens."""
+    server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
+                               f"tcp://127.0.0.1:{port}", "--insecure", "--workers", "1", "--log-level", "WARNING"],
+                              stdout=subprocess.PIPE, text=True)
+    line = server.stdout.readline()
+    assert line.startswith("listening on "), line
+    return server, line.split()[-1]
+
+
 def stop(process, sig=signal.SIGINT, timeout_s=20):
     if process is None or process.poll() is not None:
         return
@@ -80,13 +91,7 @@ class OnlineStackTest(unittest.TestCase):
 
     @classmethod
     def start_server(cls):
-        server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
-                                   "tcp://127.0.0.1:0", "--insecure", "--workers", "1", "--log-level", "WARNING"],
-                                  stdout=subprocess.PIPE, text=True)
-        line = server.stdout.readline()
-        assert line.startswith("listening on "), line
-        cls.endpoint = line.split()[-1]
-        cls.processes["server"] = server
+        cls.processes["server"], cls.endpoint = spawn_cloud_server()
 
     @classmethod
     def start_learner(cls):

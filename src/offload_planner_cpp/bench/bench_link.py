@@ -22,16 +22,8 @@ import zmq
 from offload_planner_cpp.cloud import keys, protocol
 from offload_planner_cpp.cloud.client import CloudClient
 from offload_planner_cpp.cloud.keys import load_client_keys, load_server_keys
+from offload_planner_cpp.devtools.loopback import LOOPBACK, free_port
 from offload_planner_cpp.devtools.wan_emulator import LinkModel, WanEmulator
-
-LOOPBACK = "127.0.0.1"
-
-
-def free_port() -> int:
-    import socket
-    with socket.socket() as probe:
-        probe.bind((LOOPBACK, 0))
-        return probe.getsockname()[1]
 
 
 def wait_listening(process: subprocess.Popen) -> None:

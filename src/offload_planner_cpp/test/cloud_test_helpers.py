@@ -3,14 +3,16 @@ that can be killed, and maps."""
 import os
 import pathlib
 import select
-import socket
 import subprocess
 import sys
 import time
 
 import numpy as np
+import zmq
 
 from offload_planner_cpp.cloud import keys
+from offload_planner_cpp.cloud.keys import load_client_keys
+from offload_planner_cpp.devtools.loopback import free_port  # noqa: F401  (re-exported for the tests)
 from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
 
 LOOPBACK = "tcp://127.0.0.1"
@@ -29,10 +31,13 @@ def start_server(server_keys=None, **overrides) -> CloudServer:
     return server
 
 
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
+def curve_dealer(context, key_dir, endpoint):
+    """A raw DEALER socket with a robot's CURVE keys, for tests that speak the wire protocol by hand."""
+    dealer = context.socket(zmq.DEALER)
+    dealer.linger = 0
+    dealer.curve_publickey, dealer.curve_secretkey, dealer.curve_serverkey = load_client_keys(key_dir)
+    dealer.connect(endpoint)
+    return dealer
 
 
 def spawn_server(port: int, server_keys, workers: int = 2, timeout_s: float = 20.0, extra_args=(),

@@ -21,20 +21,12 @@ from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Reply, Status
 from offload_planner_cpp.cloud.server import CloudServer, ServerConfig, parse_args
 
-from cloud_test_helpers import (LOOPBACK, free_port, make_keys, random_map, rss_bytes, spawn_server, start_server,
-                                stop_process)
+from cloud_test_helpers import (LOOPBACK, curve_dealer, free_port, make_keys, random_map, rss_bytes, spawn_server,
+                                start_server, stop_process)
 
 pytestmark = pytest.mark.timeout(180)
 FULL = os.environ.get("OFFLOAD_ATTACK_SCALE") == "full"
 MIB = 1 << 20
-
-
-def curve_dealer(context, key_dir, endpoint):
-    socket = context.socket(zmq.DEALER)
-    socket.linger = 0
-    socket.curve_publickey, socket.curve_secretkey, socket.curve_serverkey = load_client_keys(key_dir)
-    socket.connect(endpoint)
-    return socket
 
 
 @pytest.fixture

@@ -16,12 +16,11 @@ import zmq
 import offload_planner_cpp
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.client import CloudClient
-from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.map_cache import ENTRY_OVERHEAD_BYTES, MapCache
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
 from offload_planner_cpp.cloud.server import parse_args
 
-from cloud_test_helpers import make_keys, random_map, start_server
+from cloud_test_helpers import curve_dealer, make_keys, random_map, start_server
 
 pytestmark = pytest.mark.timeout(120)
 
@@ -31,14 +30,6 @@ def key_root(tmp_path_factory):
     root = tmp_path_factory.mktemp("keys")
     make_keys(root, ["robot1", "robot2"])
     return root
-
-
-def curve_dealer(context, key_dir, endpoint):
-    socket = context.socket(zmq.DEALER)
-    socket.linger = 0
-    socket.curve_publickey, socket.curve_secretkey, socket.curve_serverkey = load_client_keys(key_dir)
-    socket.connect(endpoint)
-    return socket
 
 
 # -- protocol --------------------------------------------------------------------------------------------

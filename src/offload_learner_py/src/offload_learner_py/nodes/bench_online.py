@@ -9,7 +9,6 @@ minus the direct time. Both are persistent service connections, as a robot's cal
 import argparse
 import math
 import os
-import socket
 import subprocess
 import sys
 import time
@@ -18,13 +17,8 @@ import numpy as np
 
 from offload_planner_cpp import free_cells
 from offload_planner_cpp._core import check_map
+from offload_planner_cpp.devtools.loopback import free_port
 from offload_learner_py.goals import GoalSampler, default_start_cell
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 def main(argv=None) -> int:

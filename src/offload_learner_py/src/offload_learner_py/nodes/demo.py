@@ -11,13 +11,13 @@ import json
 import os
 import pathlib
 import signal
-import socket
 import subprocess
 import sys
 import time
 
 import numpy as np
 
+from offload_planner_cpp.devtools.loopback import free_port
 from offload_learner_py import plots
 from offload_learner_py.nodes.demo_keys import ensure_demo_keys
 from offload_learner_py.evaluation import confusion_matrix
@@ -27,12 +27,6 @@ from offload_learner_py.summary import format_summary, summarise
 
 CGROUP_ROOT = "/sys/fs/cgroup"
 CGROUP_PERIOD_US = 4000   # the kernel's smallest quota is 1 ms, so 4 ms is the shortest period for 25 %
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return probe.getsockname()[1]
 
 
 class RobotBudget:

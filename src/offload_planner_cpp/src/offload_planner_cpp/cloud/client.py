@@ -301,14 +301,14 @@ def main(argv=None) -> int:
     except (OSError, ValueError, zmq.ZMQError) as error:   # KeyFileError names the file
         print(f"error: {error}", file=sys.stderr)
         return 2
+    unanswered = (f"error: no answer from {args.endpoint} within {args.timeout:g} s: server down, wrong endpoint, "
+                  f"blocked port, or this client's key is not on the server's allowlist")
     with client:
         for _ in range(max(1, args.count) if args.ping else 0):
             try:
                 round_trip_s = client.ping()
             except CloudTimeout:
-                print(f"error: no answer from {args.endpoint} within {args.timeout:g} s: server down, wrong "
-                      f"endpoint, blocked port, or this client's key is not on the server's allowlist",
-                      file=sys.stderr)
+                print(unanswered, file=sys.stderr)
                 return 1
             except (RuntimeError, zmq.ZMQError) as error:
                 print(f"error: {error}", file=sys.stderr)
@@ -318,9 +318,7 @@ def main(argv=None) -> int:
             try:
                 stats = client.stats()
             except CloudTimeout:
-                print(f"error: no answer from {args.endpoint} within {args.timeout:g} s: server down, wrong "
-                      f"endpoint, blocked port, or this client's key is not on the server's allowlist",
-                      file=sys.stderr)
+                print(unanswered, file=sys.stderr)
                 return 1
             except (ProtocolError, zmq.ZMQError) as error:
                 print(f"error: {error}", file=sys.stderr)

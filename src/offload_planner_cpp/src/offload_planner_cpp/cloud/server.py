@@ -865,24 +865,17 @@ def _bounded_int(name: str, low: int, high: int):
     return parse
 
 
-def _bounded_seconds(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected seconds, got {text!r}") from None
-    if not 0 < value <= 3600:   # also refuses NaN
-        raise argparse.ArgumentTypeError(f"--max-wait-s must be in (0, 3600], got {text!r}")
-    return value
-
-
-def _bounded_float(name: str, low: float, high: float):
+def _bounded_float(name: str, low: float, high: float, low_open: bool = False):
+    """A float within [low, high], or (low, high] when low_open."""
     def parse(text: str) -> float:
         try:
             value = float(text)
         except ValueError:
             raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        if not low <= value <= high:   # also refuses NaN
-            raise argparse.ArgumentTypeError(f"{name} must be in {low:g}..{high:g}, got {text!r}")
+        above_low = low < value if low_open else low <= value
+        if not (above_low and value <= high):   # also refuses NaN
+            bounds = f"({low:g}, {high:g}]" if low_open else f"{low:g}..{high:g}"
+            raise argparse.ArgumentTypeError(f"{name} must be in {bounds}, got {text!r}")
         return value
     return parse
 
@@ -910,7 +903,7 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max-queued", type=_bounded_int("--max-queued", 1, 1 << 20), default=64, help="requests waiting for a worker before BUSY (64)")
     parser.add_argument("--max-queued-mib", type=_bounded_int("--max-queued-mib", 1, 1 << 20), default=256,
                         help="bytes of the requests waiting for a worker, in MiB, before BUSY (default 256)")
-    parser.add_argument("--max-wait-s", type=_bounded_seconds, default=1.0,
+    parser.add_argument("--max-wait-s", type=_bounded_float("--max-wait-s", 0, 3600, low_open=True), default=1.0,
                         help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
                              "keep it under the robots' per-attempt timeout")
     parser.add_argument("--rate-per-client", type=_bounded_float("--rate-per-client", 0, 1e6), default=50.0,

@@ -10,11 +10,9 @@ retries included); the run fails (exit 1) on any lost request or wrong answer. A
 STATS of every server still alive (asked directly, not through HAProxy).
 """
 import argparse
-import contextlib
 import os
 import shutil
 import signal
-import socket
 import subprocess
 import sys
 import tempfile
@@ -32,24 +30,7 @@ from offload_planner_cpp.cloud import keys
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
 from offload_planner_cpp.cloud.protocol import ProtocolError, Status, is_planner_status
 from offload_planner_cpp.cloud.server import CloudServer
-
-LOOPBACK = "127.0.0.1"
-
-
-def free_port() -> int:
-    with socket.socket() as probe:
-        probe.bind((LOOPBACK, 0))
-        return probe.getsockname()[1]
-
-
-def wait_for_port(port: int, timeout_s: float) -> bool:
-    deadline = time.monotonic() + timeout_s
-    while time.monotonic() < deadline:
-        with contextlib.suppress(OSError), socket.create_connection((LOOPBACK, port), timeout=0.2):
-            return True
-        time.sleep(0.05)
-    return False
-
+from offload_planner_cpp.devtools.loopback import LOOPBACK, free_port, wait_for_port
 
 def haproxy_config(frontend_port: int, server_ports: List[int], stats_port: Optional[int] = None) -> str:
     """TCP load balancing of ZeroMQ connections. A connection stays on its server; when that server dies
