@@ -228,6 +228,8 @@ class PlannerNodeTest(unittest.TestCase):
             for _ in range(40):
                 res = self.call(self.home, self.away)
                 self.assertEqual(res.status, R.OK, res.message)
+                if not 1000 < res.map_stamp.to_sec() < 5000:
+                    continue   # still the map from before the stream (its stamp names no variant)
                 variant = int(res.map_stamp.to_sec() - 1000) % 2
                 self.assertAlmostEqual(res.cost_m, costs[variant] * self.map.resolution, places=6)
                 seen.add(variant)
