@@ -42,6 +42,7 @@ from zmq.utils import z85
 from zmq.utils.monitor import parse_monitor_message
 
 from offload_planner_cpp import PlanStatus, plan_raw
+from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.keys import load_allowlist, load_server_keys, read_key_file
 from offload_planner_cpp.cloud.map_cache import MapCache
@@ -853,33 +854,6 @@ def _plan_hash(kind: Kind, payload) -> Optional[bytes]:
     return bytes(payload[1].buffer[:protocol.HASH_SIZE])
 
 
-def _bounded_int(name: str, low: int, high: int):
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be an integer, got {text!r}") from None
-        if not low <= value <= high:
-            raise argparse.ArgumentTypeError(f"{name} must be in {low}..{high}, got {value}")
-        return value
-    return parse
-
-
-def _bounded_float(name: str, low: float, high: float, low_open: bool = False):
-    """A float within [low, high], or (low, high] when low_open."""
-    def parse(text: str) -> float:
-        try:
-            value = float(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{name} must be a number, got {text!r}") from None
-        above_low = low < value if low_open else low <= value
-        if not (above_low and value <= high):   # also refuses NaN
-            bounds = f"({low:g}, {high:g}]" if low_open else f"{low:g}..{high:g}"
-            raise argparse.ArgumentTypeError(f"{name} must be in {bounds}, got {text!r}")
-        return value
-    return parse
-
-
 def _endpoint(text: str) -> str:
     """tcp://HOST:PORT with PORT 0..65535 (0: a free one), or ipc:// / inproc://."""
     if text.startswith(("ipc://", "inproc://")):
@@ -894,24 +868,24 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser = argparse.ArgumentParser(description="Cloud path planner (ROS-free).")
     parser.add_argument("--bind", type=_endpoint, default="tcp://0.0.0.0:5555",
                         help="ZeroMQ endpoint to listen on; port 0 picks a free one (default tcp://0.0.0.0:5555)")
-    parser.add_argument("--workers", type=_bounded_int("--workers", 1, 256), default=2, help="planner threads (default 2)")
+    parser.add_argument("--workers", type=bounded_int("--workers", 1, 256), default=2, help="planner threads (default 2)")
     parser.add_argument("--keys-dir", help="server keys dir from offload_planner_cpp.cloud.keys (server.key_secret, clients/)")
     parser.add_argument("--insecure", action="store_true", help="plaintext, no client allowlist (tests, trusted LAN)")
-    parser.add_argument("--cache-mib", type=_bounded_int("--cache-mib", 0, 1 << 20), default=1024,
+    parser.add_argument("--cache-mib", type=bounded_int("--cache-mib", 0, 1 << 20), default=1024,
                         help="map cache memory cap in MiB, cells plus 1 KiB per map (default 1024)")
-    parser.add_argument("--max-message-mib", type=_bounded_int("--max-message-mib", 1, 4096), default=64, help="largest accepted message in MiB (default 64)")
-    parser.add_argument("--max-queued", type=_bounded_int("--max-queued", 1, 1 << 20), default=64, help="requests waiting for a worker before BUSY (64)")
-    parser.add_argument("--max-queued-mib", type=_bounded_int("--max-queued-mib", 1, 1 << 20), default=256,
+    parser.add_argument("--max-message-mib", type=bounded_int("--max-message-mib", 1, 4096), default=64, help="largest accepted message in MiB (default 64)")
+    parser.add_argument("--max-queued", type=bounded_int("--max-queued", 1, 1 << 20), default=64, help="requests waiting for a worker before BUSY (64)")
+    parser.add_argument("--max-queued-mib", type=bounded_int("--max-queued-mib", 1, 1 << 20), default=256,
                         help="bytes of the requests waiting for a worker, in MiB, before BUSY (default 256)")
-    parser.add_argument("--max-wait-s", type=_bounded_float("--max-wait-s", 0, 3600, low_open=True), default=1.0,
+    parser.add_argument("--max-wait-s", type=bounded_float("--max-wait-s", 0, 3600, low_open=True), default=1.0,
                         help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
                              "keep it under the robots' per-attempt timeout")
-    parser.add_argument("--rate-per-client", type=_bounded_float("--rate-per-client", 0, 1e6), default=50.0,
+    parser.add_argument("--rate-per-client", type=bounded_float("--rate-per-client", 0, 1e6), default=50.0,
                         help="plans (and uploads) per second one client (CURVE key; connection if --insecure) may "
                              "have while the server is busy; over it BUSY (default 50; 0: no limit)")
-    parser.add_argument("--burst-per-client", type=_bounded_int("--burst-per-client", 1, 1000000), default=100,
+    parser.add_argument("--burst-per-client", type=bounded_int("--burst-per-client", 1, 1000000), default=100,
                         help="token bucket size of --rate-per-client (default 100)")
-    parser.add_argument("--stats-log-s", type=_bounded_float("--stats-log-s", 0, 86400), default=60.0,
+    parser.add_argument("--stats-log-s", type=bounded_float("--stats-log-s", 0, 86400), default=60.0,
                         help="log a line of the STATS counters every this many seconds (default 60; 0: never)")
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="DEBUG, INFO, WARNING or ERROR (default INFO)")
