@@ -294,7 +294,8 @@ class LearnerNode:
         return GetPlanResponse(plan=response.path if response.status == PlanPathResponse.OK else Path())
 
     # --- records --------------------------------------------------------------------------------
-    def publish_decision(self, request_id, state, decision, probe):
+    def publish_decision(self, routing):
+        request_id, state, decision, probe = routing.request_id, routing.state, routing.decision, routing.probe
         msg = OffloadDecision(request_id=request_id, input_size=state.input_size,
                               cpu_availability=state.cpu_availability, round_trip_s=state.round_trip_s,
                               action=decision.action, action_propensity=decision.propensity,
