@@ -90,13 +90,15 @@ bench-decision: build
 
 STEPS ?= 360
 POLICY ?= dqn
+MODE ?= learning
 SEED ?= 1
 demo: build
 	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need.
 	@if [ -n "$(RVIZ)" ] && ! dpkg-query -W -f='$${Status}' rviz 2>/dev/null | grep -q 'install ok installed'; then \
 		apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q rviz; fi
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
-		--policy $(POLICY) --seed $(SEED) $(if $(MAP),--map $(MAP)) $(if $(RVIZ),--rviz)
+		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ),--rviz) \
+		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL))
 
 bench-online: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online

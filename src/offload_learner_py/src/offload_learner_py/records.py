@@ -14,6 +14,10 @@ OUTCOME_FIELDS = ("request_id", "action", "delivered", "local_measured", "local_
                   "cloud_measured", "cloud_s", "cloud_status", "cloud_timeout", "reward_valid", "reward",
                   "loss_valid", "loss", "delivered_s")
 NO_PATH_DELIVERED = 255
+# Fields added with the two modes and robot cost accounting, and their value in bags recorded before them.
+OPTIONAL_DECISION_FIELDS = {"mode": "", "breaker": "", "deadline_s": float("nan")}
+OPTIONAL_OUTCOME_FIELDS = {"hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED,
+                           "robot_cpu_s": float("nan"), "link_bytes_sent": 0, "link_bytes_received": 0}
 
 
 class RecordMismatchError(ValueError):
@@ -54,14 +58,20 @@ def pair_records(decisions: Iterable, outcomes: Iterable) -> RequestLog:
                                       f"{outcome.action}")
         by_id[request_id] = (decision, outcome)
     ids = sorted(by_id)
-    columns = {name: [] for name in DECISION_FIELDS}
-    columns.update({f"outcome_{name}": [] for name in OUTCOME_FIELDS if name not in ("request_id", "action")})
+    columns = {name: [] for name in (*DECISION_FIELDS, *OPTIONAL_DECISION_FIELDS, "routed")}
+    columns.update({f"outcome_{name}": [] for name in (*OUTCOME_FIELDS, *OPTIONAL_OUTCOME_FIELDS)
+                    if name not in ("request_id", "action")})
     columns["has_outcome"] = []
     for request_id in ids:
         decision, outcome = by_id[request_id]
         for name in DECISION_FIELDS:
             columns[name].append(getattr(decision, name))
+        for name, default in OPTIONAL_DECISION_FIELDS.items():
+            columns[name].append(getattr(decision, name, default))
+        columns["routed"].append(getattr(decision, "routed", decision.action))
         columns["has_outcome"].append(outcome is not None)
+        for name, default in OPTIONAL_OUTCOME_FIELDS.items():
+            columns[f"outcome_{name}"].append(getattr(outcome, name, default) if outcome is not None else default)
         for name in OUTCOME_FIELDS:
             if name in ("request_id", "action"):
                 continue
@@ -70,7 +80,7 @@ def pair_records(decisions: Iterable, outcomes: Iterable) -> RequestLog:
                                                else 0))
     arrays = {}
     for name, values in columns.items():
-        arrays[name] = np.array(values, dtype=object if name == "policy" else None)
+        arrays[name] = np.array(values, dtype=object if name in ("policy", "mode", "breaker") else None)
     if not ids:
         arrays = {name: np.zeros(0) for name in columns}
     return RequestLog(arrays)
