@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
+.PHONY: help deps venv build test demo bench-policies bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -33,6 +33,7 @@ help:
 	@echo "make fuzz           coverage-guided fuzzing of the protocol, map loaders and bag reader (FUZZ_SECONDS each)"
 	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
+	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, STEPS=, SEED=, POLICIES=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
 
@@ -99,6 +100,12 @@ demo: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
 		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ),--rviz) \
 		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL))
+
+# Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
+# STEPS=200, plus a learning run for the DQN and the link-failure scenario).
+bench-policies: build
+	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
+		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
 
 bench-online: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online

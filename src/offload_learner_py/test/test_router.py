@@ -429,6 +429,17 @@ def test_deployed_mode_probes_while_warming_up_then_a_share_and_imputes_the_othe
     assert len(cloud.calls) == sum(probes)       # the cloud was called on probes only
 
 
+def test_a_deployed_fixed_policy_never_probes_beyond_its_rate():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
+    router, recorder = configured_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, mode="deployed",
+                                         probe_rate=0.0)
+    for _ in range(30):
+        router.route("req", STATE)
+    finish(router)
+    assert not any(r.probe for r in recorder.routings) and not cloud.calls
+
+
 def test_deployed_request_before_the_models_are_ready_teaches_nothing():
     clock = VirtualClock()
     policy = LearningRecorder(LOCAL)
@@ -524,7 +535,7 @@ def test_cost_accounting_sums_every_side_called():
     router.route("req", STATE)
     finish(router)
     (outcome,) = outcomes
-    assert outcome.robot_cpu_s == pytest.approx(0.184)
+    assert outcome.robot_cpu_s == pytest.approx(0.18) and outcome.bridge_cpu_s == pytest.approx(0.004)
     assert (outcome.bytes_sent, outcome.bytes_received) == (1200, 800)
 
 

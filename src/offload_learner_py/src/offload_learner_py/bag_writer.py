@@ -43,7 +43,7 @@ def probe_request(request_id: int, input_size: float, cpu_availability: float, r
     """(decision fields, outcome fields) of one request; with probe false only the taken side is measured."""
     decision = dict(request_id=request_id, input_size=input_size, cpu_availability=cpu_availability,
                     round_trip_s=round_trip_s, action=action, action_propensity=propensity, q_local=math.nan,
-                    q_cloud=math.nan, policy="dqn", model_steps=request_id, probe=probe)
+                    q_cloud=math.nan, policy="dqn", model_steps=request_id, probe=probe, routed=action)
     local_measured, cloud_measured = probe or action == LOCAL, probe or action == CLOUD
     outcome = dict(request_id=request_id, action=action, delivered=action, local_measured=local_measured,
                    local_s=local_s if local_measured else 0.0, local_status=0, cloud_measured=cloud_measured,

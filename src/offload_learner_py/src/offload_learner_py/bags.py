@@ -39,11 +39,14 @@ NO_VALUE = object()
 # Per field: the default when a bag's message definition lacks it (None: the field is required).
 DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
                      "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
-                     "policy": "", "model_steps": 0, "probe": NO_VALUE}
+                     "policy": "", "model_steps": 0, "probe": NO_VALUE, "mode": "", "routed": NO_VALUE, "breaker": "",
+                    "deadline_s": math.nan}
 OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH_DELIVERED,
                     "local_measured": NO_VALUE, "local_s": None, "local_status": 0, "cloud_measured": NO_VALUE,
                     "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
-                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan}
+                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan,
+                    "hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED, "robot_cpu_s": math.nan,
+                    "bridge_cpu_s": math.nan, "link_bytes_sent": 0, "link_bytes_received": 0}
 assert tuple(DECISION_DEFAULTS) == DECISION_FIELDS and tuple(OUTCOME_DEFAULTS) == OUTCOME_FIELDS
 
 
@@ -502,6 +505,8 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
     Returns why the pair is invalid, or None."""
     if outcome["action"] is NO_VALUE:
         outcome["action"] = decision["action"]
+    if decision["routed"] is NO_VALUE:
+        decision["routed"] = decision["action"]
     if int(outcome["action"]) != int(decision["action"]):
         return f"decision action {decision['action']}, outcome action {outcome['action']}"
     if decision["action"] not in (LOCAL, CLOUD):
@@ -520,9 +525,14 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
             outcome[f"{side}_measured"] = bool(_finite(value) and value > 0)
     if decision["probe"] is NO_VALUE:
         decision["probe"] = bool(outcome["local_measured"] and outcome["cloud_measured"])
-    taken = "cloud" if decision["action"] == CLOUD else "local"
-    if not outcome[f"{taken}_measured"]:
-        return f"the taken side ({taken}) has no measured latency"
+    # The side the router called first is measured, except on a probe, where the side that lost the race may
+    # have been dropped before it started (a newer request needed it); a probe still measured one side.
+    routed = "cloud" if decision["routed"] == CLOUD else "local"
+    if decision["probe"]:
+        if not (outcome["local_measured"] or outcome["cloud_measured"]):
+            return "a probe with no measured latency"
+    elif not outcome[f"{routed}_measured"]:
+        return f"the routed side ({routed}) has no measured latency"
     for side in ("local", "cloud"):
         value = outcome[f"{side}_s"]
         if outcome[f"{side}_measured"] and not (_finite(value) and value > 0):
@@ -551,7 +561,7 @@ def _columns(rows: List[Tuple[Dict, Dict, int]]) -> Dict[str, np.ndarray]:
             columns[f"outcome_{name}"] = [outcome[name] for _, outcome, _ in rows]
     arrays = {}
     for name, values in columns.items():
-        if name == "policy":
+        if name in ("policy", "mode", "breaker"):
             arrays[name] = np.array([str(v) for v in values], dtype=object)
         elif name in ("request_id", "model_steps"):
             arrays[name] = np.array(values, dtype=np.uint64).astype(np.int64) if values else np.zeros(0, np.int64)

@@ -8,16 +8,19 @@ import numpy as np
 
 from offload_learner_py.dataset import TransitionTable
 
+NO_PATH_DELIVERED = 255
+# Fields added with the two modes and robot cost accounting, and their value in records made before them
+# ("routed" defaults to the decision's action).
+OPTIONAL_DECISION_FIELDS = {"mode": "", "routed": None, "breaker": "", "deadline_s": float("nan")}
+OPTIONAL_OUTCOME_FIELDS = {"hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED,
+                           "robot_cpu_s": float("nan"), "bridge_cpu_s": float("nan"), "link_bytes_sent": 0,
+                           "link_bytes_received": 0}
 DECISION_FIELDS = ("request_id", "input_size", "cpu_availability", "round_trip_s", "action",
-                   "action_propensity", "q_local", "q_cloud", "policy", "model_steps", "probe")
+                   "action_propensity", "q_local", "q_cloud", "policy", "model_steps", "probe",
+                   *OPTIONAL_DECISION_FIELDS)
 OUTCOME_FIELDS = ("request_id", "action", "delivered", "local_measured", "local_s", "local_status",
                   "cloud_measured", "cloud_s", "cloud_status", "cloud_timeout", "reward_valid", "reward",
-                  "loss_valid", "loss", "delivered_s")
-NO_PATH_DELIVERED = 255
-# Fields added with the two modes and robot cost accounting, and their value in bags recorded before them.
-OPTIONAL_DECISION_FIELDS = {"mode": "", "breaker": "", "deadline_s": float("nan")}
-OPTIONAL_OUTCOME_FIELDS = {"hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED,
-                           "robot_cpu_s": float("nan"), "link_bytes_sent": 0, "link_bytes_received": 0}
+                  "loss_valid", "loss", "delivered_s", *OPTIONAL_OUTCOME_FIELDS)
 
 
 class RecordMismatchError(ValueError):
@@ -58,26 +61,22 @@ def pair_records(decisions: Iterable, outcomes: Iterable) -> RequestLog:
                                       f"{outcome.action}")
         by_id[request_id] = (decision, outcome)
     ids = sorted(by_id)
-    columns = {name: [] for name in (*DECISION_FIELDS, *OPTIONAL_DECISION_FIELDS, "routed")}
-    columns.update({f"outcome_{name}": [] for name in (*OUTCOME_FIELDS, *OPTIONAL_OUTCOME_FIELDS)
-                    if name not in ("request_id", "action")})
+    columns = {name: [] for name in DECISION_FIELDS}
+    columns.update({f"outcome_{name}": [] for name in OUTCOME_FIELDS if name not in ("request_id", "action")})
     columns["has_outcome"] = []
     for request_id in ids:
         decision, outcome = by_id[request_id]
         for name in DECISION_FIELDS:
-            columns[name].append(getattr(decision, name))
-        for name, default in OPTIONAL_DECISION_FIELDS.items():
-            columns[name].append(getattr(decision, name, default))
-        columns["routed"].append(getattr(decision, "routed", decision.action))
+            default = decision.action if name == "routed" else OPTIONAL_DECISION_FIELDS.get(name)
+            columns[name].append(getattr(decision, name, default) if name in OPTIONAL_DECISION_FIELDS
+                                 else getattr(decision, name))
         columns["has_outcome"].append(outcome is not None)
-        for name, default in OPTIONAL_OUTCOME_FIELDS.items():
-            columns[f"outcome_{name}"].append(getattr(outcome, name, default) if outcome is not None else default)
         for name in OUTCOME_FIELDS:
             if name in ("request_id", "action"):
                 continue
-            columns[f"outcome_{name}"].append(getattr(outcome, name) if outcome is not None else
-                                              (float("nan") if name.endswith("_s") or name in ("reward", "loss")
-                                               else 0))
+            missing = OPTIONAL_OUTCOME_FIELDS.get(name, float("nan") if name.endswith("_s") or name in ("reward", "loss")
+                                                  else 0)
+            columns[f"outcome_{name}"].append(getattr(outcome, name, missing) if outcome is not None else missing)
     arrays = {}
     for name, values in columns.items():
         arrays[name] = np.array(values, dtype=object if name in ("policy", "mode", "breaker") else None)

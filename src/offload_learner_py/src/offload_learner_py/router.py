@@ -115,7 +115,8 @@ class Outcome:
     imputed: Optional[int] = None   # the side whose latency the reward imputed (LOCAL or CLOUD), None if measured
     hedged: bool = False            # the other side was started after the first missed its deadline
     routing: Optional[Routing] = None
-    robot_cpu_s: float = 0.0        # over every side called for this request
+    robot_cpu_s: float = 0.0        # robot planning CPU: the local planner node's own, for this request
+    bridge_cpu_s: float = 0.0       # the cloud bridge's CPU on the robot for this request (serialising, waiting)
     bytes_sent: int = 0
     bytes_received: int = 0
 
@@ -254,7 +255,8 @@ class RouterConfig:
     probe_rate: float = 0.05
     """deployed: share of requests on which both sides run (learning mode probes every request)."""
     probe_while_warming_up: bool = True
-    """deployed: probe every request until the policy and both latency models have their first samples."""
+    """deployed, a learning policy: probe every request until it and both latency models have their first
+    samples (a fixed policy never probes beyond probe_rate)."""
     cloud_timeout_s: float = 5.0
     """l_cloud of a request the cloud did not answer (the paper's 5 s)."""
     weights: CostWeights = field(default_factory=CostWeights)
@@ -412,7 +414,7 @@ class OffloadRouter:
     def _route_decision(self, request_id: int, state: State, decision: Decision) -> Routing:
         config = self.config
         probe = config.probes_every_request or bool(self.rng.random() < config.probe_rate)
-        if config.mode == DEPLOYED and config.probe_while_warming_up and not probe:
+        if config.mode == DEPLOYED and config.probe_while_warming_up and not probe and self.policy.learns:
             probe = self.policy.warming_up or not all(model.ready for model in self.models.values())
         admitted = self.breaker.admit()
         action = decision.action
@@ -551,7 +553,10 @@ class OffloadRouter:
                 else:
                     outcome.cloud = result
                     self._score_cloud(outcome)
-                outcome.robot_cpu_s += result.cpu_s
+                if side == LOCAL:
+                    outcome.robot_cpu_s += result.cpu_s
+                else:
+                    outcome.bridge_cpu_s += result.cpu_s
                 outcome.bytes_sent += result.bytes_sent
                 outcome.bytes_received += result.bytes_received
             self._learn(outcome)

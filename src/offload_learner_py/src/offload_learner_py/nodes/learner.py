@@ -353,7 +353,7 @@ class LearnerNode:
         msg.imputed = OffloadOutcome.NONE if outcome.imputed is None else outcome.imputed
         msg.transitions = outcome.transitions
         msg.hedged = outcome.hedged
-        msg.robot_cpu_s = outcome.robot_cpu_s
+        msg.robot_cpu_s, msg.bridge_cpu_s = outcome.robot_cpu_s, outcome.bridge_cpu_s
         msg.link_bytes_sent, msg.link_bytes_received = outcome.bytes_sent, outcome.bytes_received
         msg.loss_valid = outcome.loss is not None
         msg.loss = outcome.loss if outcome.loss is not None else float("nan")
