@@ -13,6 +13,8 @@ DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
 DECISION_TOPIC = "/offload_learner/decision"
 OUTCOME_TOPIC = "/offload_learner/outcome"
+CONFIG_TYPE = "offload_msgs/msg/LearnerConfig"
+CONFIG_TOPIC = "/offload_learner/config"
 
 
 def installed_definitions(msg_dir: Optional[str] = None) -> Tuple[str, str]:
@@ -23,6 +25,14 @@ def installed_definitions(msg_dir: Optional[str] = None) -> Tuple[str, str]:
     with open(os.path.join(msg_dir, "OffloadDecision.msg")) as decision, \
             open(os.path.join(msg_dir, "OffloadOutcome.msg")) as outcome:
         return decision.read(), outcome.read()
+
+
+def config_definition(msg_dir: Optional[str] = None) -> str:
+    """LearnerConfig.msg text from the source tree's offload_msgs."""
+    if msg_dir is None:
+        msg_dir = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "offload_msgs", "msg")
+    with open(os.path.join(msg_dir, "LearnerConfig.msg")) as config:
+        return config.read()
 
 
 def typestore_for(decision_msg: str, outcome_msg: str, extra: Dict[str, str] = None):

@@ -31,6 +31,7 @@ from offload_learner_py.reward import CostWeights, reward
 
 DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
+CONFIG_TYPE = "offload_msgs/msg/LearnerConfig"
 BAG_SUFFIXES = (".bag", ".bag.active")
 # A chunk rosbag writes is 768 KiB by default; anything this large is damage or hostility, not data.
 MAX_CHUNK_BYTES = 256 * 1024 * 1024
@@ -48,6 +49,13 @@ OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH
                     "hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED, "robot_cpu_s": math.nan,
                     "bridge_cpu_s": math.nan, "link_bytes_sent": 0, "link_bytes_received": 0}
 assert tuple(DECISION_DEFAULTS) == DECISION_FIELDS and tuple(OUTCOME_DEFAULTS) == OUTCOME_FIELDS
+# The learner's latched settings (offload_msgs/LearnerConfig); every field optional.
+CONFIG_DEFAULTS = {"policy": "", "mode": "", "learn": False, "explore": False, "alpha": math.nan, "beta": math.nan,
+                   "gamma": math.nan, "epsilon": math.nan, "learning_starts": 0, "probe_rate": math.nan,
+                   "cloud_timeout_s": math.nan, "hedge": False, "hedge_deadline_s": math.nan,
+                   "hedge_quantile": math.nan, "hedge_min_s": math.nan, "hedge_max_s": math.nan,
+                   "breaker_failures": 0, "breaker_max_round_trip_s": math.nan, "breaker_retry_s": math.nan,
+                   "seed": 0, "dqn_config_json": ""}
 
 
 class BagReadError(ValueError):
@@ -79,6 +87,7 @@ class BagReport:
     damaged_chunks: int = 0           # chunks that do not decompress (their messages are lost)
     invalid_examples: List[str] = field(default_factory=list)
     definitions: Dict[str, str] = field(default_factory=dict)   # message type -> md5 of the bag's definition
+    configs: List[dict] = field(default_factory=list)   # the learner's latched settings, one per session
 
     def skip(self, why: str) -> None:
         self.invalid += 1
@@ -101,6 +110,15 @@ class ReadReport:
 
     def total(self, name: str) -> int:
         return sum(getattr(bag, name) for bag in self.bags)
+
+    def recorded(self, name: str) -> list:
+        """The distinct values of one LearnerConfig field over every session in the bags."""
+        values = []
+        for bag in self.bags:
+            for config in bag.configs:
+                if config.get(name) not in values:
+                    values.append(config.get(name))
+        return values
 
     def to_dict(self) -> dict:
         return {"bags": [asdict(bag) for bag in self.bags], "duplicates_across_bags": self.duplicates_across_bags,
@@ -614,7 +632,7 @@ def _read_bag(path: str, report: BagReport, weights: CostWeights) -> Dict[str, n
 
 
 def _is_ours(msgtype: str) -> bool:
-    return msgtype in (DECISION_TYPE, OUTCOME_TYPE)
+    return msgtype in (DECISION_TYPE, OUTCOME_TYPE, CONFIG_TYPE)
 
 
 def _select(connections, report: BagReport) -> List:
@@ -644,9 +662,10 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
         key = (connection.msgtype, connection.md5sum, connection.msgdef)
         decoder = decoders.get(key)
         if decoder is None:
-            is_decision = connection.msgtype == DECISION_TYPE
+            defaults = {DECISION_TYPE: DECISION_DEFAULTS, CONFIG_TYPE: CONFIG_DEFAULTS}.get(connection.msgtype,
+                                                                                          OUTCOME_DEFAULTS)
             try:
-                decoder = _Decoder(connection, DECISION_DEFAULTS if is_decision else OUTCOME_DEFAULTS)
+                decoder = _Decoder(connection, defaults)
             except ValueError as error:
                 raise BagReadError(f"{path}: {error}") from None
             decoders[key] = decoder
@@ -658,6 +677,9 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
             report.note(f"undecodable {connection.msgtype}: {type(error).__name__}: {error}")
             continue
         report.topics[connection.topic] = report.topics.get(connection.topic, 0) + 1
+        if connection.msgtype == CONFIG_TYPE:
+            report.configs.append(values)
+            continue
         request_id = int(values["request_id"])
         if connection.msgtype == DECISION_TYPE:
             report.decisions += 1
