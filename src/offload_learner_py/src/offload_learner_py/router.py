@@ -373,6 +373,7 @@ class OffloadRouter:
         self.models = {LOCAL: LatencyModel(config.latency_model), CLOUD: LatencyModel(config.latency_model)}
         self._lanes = {LOCAL: _Lane(), CLOUD: _Lane()}
         self._ids = threading.Lock()
+        self._deciding = threading.Lock()   # policy and probe draws share random generators across callers
         self._idle = threading.Condition()
         self._in_flight = 0
         self.next_request_id = 0
@@ -400,8 +401,9 @@ class OffloadRouter:
             if state is None:
                 outcome = Outcome(request_id, None, Decision(LOCAL, 1.0), False, NO_PATH_DELIVERED, 0.0)
                 return self._run(_Request(outcome, began), (LOCAL,), None, request)
-            decision = self.policy.decide(state)
-            routing = self._route_decision(request_id, state, decision)
+            with self._deciding:
+                decision = self.policy.decide(state)
+                routing = self._route_decision(request_id, state, decision)
             self.on_decision(routing)
             outcome = Outcome(request_id, state, decision, routing.probe, NO_PATH_DELIVERED, 0.0, routing=routing)
             first = (LOCAL, CLOUD) if routing.probe else (routing.action,)
