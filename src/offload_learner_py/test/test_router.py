@@ -469,6 +469,26 @@ def test_hedge_starts_the_other_side_when_the_chosen_one_misses_its_deadline():
     assert outcome.transitions == 2 and outcome.imputed is None
 
 
+def test_hedge_starts_the_other_side_at_once_when_the_chosen_one_is_still_busy():
+    """The planner cannot be interrupted: a request whose side is still planning an earlier request's path
+    would wait for it, so the hedge does not wait for a deadline."""
+    clock = VirtualClock()
+    gate = threading.Event()
+    local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.05)
+    router, recorder = configured_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=0.0,
+                                         probe_while_warming_up=False, hedge=True, hedge_deadline_s=10.0)
+    first = threading.Thread(target=router.route, args=("first", STATE))
+    first.start()
+    while not router._lanes[LOCAL].busy():
+        threading.Event().wait(0.001)
+    second = router.route("second", STATE)      # the local planner is still on the first request
+    assert second.response["side"] is cloud and recorder.routings[1].deadline_s == 0.0
+    gate.set()
+    first.join(10)
+    finish(router)
+    assert recorder.routings[0].deadline_s == 10.0
+
+
 def test_no_hedge_when_the_chosen_side_answers_in_time():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.15), FakePlanner(clock, 0.05)

@@ -325,6 +325,9 @@ class _Lane:
         with self.newest_lock:
             return self.newest > request_id
 
+    def busy(self) -> bool:
+        return self.lock.locked()
+
 
 class _Request:
     """The state of one routed request, shared by the caller and its side threads."""
@@ -424,7 +427,11 @@ class OffloadRouter:
             probe, action = False, LOCAL      # a link known to be down is not offloaded into
         elif admitted == TRIAL:
             probe = True                      # both sides: the caller gets local at worst, the link is tested
-        deadline_s = self._deadline_s(action, state) if config.hedge and not probe else float("nan")
+        deadline_s = float("nan")
+        if config.hedge and not probe:
+            # A side still busy with an earlier request's call (the planner cannot be interrupted) would make
+            # this one wait for it: the hedge then starts the other side at once.
+            deadline_s = 0.0 if self._lanes[action].busy() else self._deadline_s(action, state)
         return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s)
 
     def _deadline_s(self, side: int, state: State) -> float:
