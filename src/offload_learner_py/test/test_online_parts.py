@@ -12,7 +12,7 @@ from offload_learner_py.cpu import CgroupBudgetReader, CpuAvailability, LatestCp
 from offload_learner_py.dataset import TransitionTable
 from offload_planner_cpp import free_cells
 from offload_learner_py.goals import GoalSampler, default_start_cell
-from offload_learner_py.records import RecordMismatchError, pair_records, transition_table
+from offload_learner_py.records import NO_PATH_DELIVERED, RecordMismatchError, pair_records, transition_table
 from offload_learner_py.reward import reward
 from offload_learner_py.summary import format_summary, learned_offload_input_size, oracle_share_by_tercile, \
     summarise
@@ -244,3 +244,27 @@ def test_latest_availability_never_waits_and_keeps_the_last_measured_window():
     assert cpu.sample() == 0.5 and cpu.sample() == 0.5   # 1 and 2 ticks later: too short, last value kept
     assert cpu.sample() == pytest.approx(60 / 200)       # 200 ticks since the last measured reading
     assert len(slept) == 1
+
+
+def test_delivered_figures_are_what_the_caller_saw_and_the_robot_paid():
+    from offload_learner_py.summary import delivered_figures
+    decisions, outcomes = [], []
+    for k in range(10):
+        decisions.append(SimpleNamespace(**vars(decision(k)), mode="deployed", routed=LOCAL,
+                                         breaker="open" if k >= 8 else "closed", deadline_s=float("nan")))
+        done = outcome(k, local_s=0.1, cloud_s=0.3)
+        done.delivered_s = 6.0 if k == 9 else 0.1 * (k + 1)
+        done.cloud_timeout = k == 9
+        done.delivered = NO_PATH_DELIVERED if k == 0 else LOCAL
+        outcomes.append(SimpleNamespace(**vars(done), hedged=k == 5, transitions=2, imputed=NO_PATH_DELIVERED,
+                                        robot_cpu_s=0.02 * k, bridge_cpu_s=0.001, link_bytes_sent=1000,
+                                        link_bytes_received=3000))
+    figures = delivered_figures(pair_records(decisions, outcomes), cloud_timeout_s=5.0)
+    assert figures["requests"] == 10 and figures["paths_delivered"] == 9
+    assert figures["mean_s"] == pytest.approx((sum(0.1 * (k + 1) for k in range(9)) + 6.0) / 10)
+    assert figures["p50_s"] == pytest.approx(0.55) and figures["max_s"] == 6.0
+    assert figures["robot_cpu_s_per_request"] == pytest.approx(0.09)
+    assert figures["bridge_cpu_s_per_request"] == pytest.approx(0.001)
+    assert figures["link_bytes_per_request"] == 4000
+    assert (figures["cloud_timeouts"], figures["waited_the_timeout"]) == (1, 1)
+    assert (figures["hedged"], figures["breaker_open"], figures["probes"]) == (1, 2, 10)

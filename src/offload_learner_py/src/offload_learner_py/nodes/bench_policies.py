@@ -68,8 +68,18 @@ def measure(run_dir: pathlib.Path, cloud_timeout_s: float) -> dict:
     if len(table):
         figures["probe_oracle_mean_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
         figures["probe_steps"] = len(table)
-    figures["delivered_s"] = np.asarray(data.log["outcome_delivered_s"], dtype=np.float64)[
-        np.asarray(data.log["has_outcome"], dtype=bool)].tolist()
+    log = data.log
+    answered = np.asarray(log["has_outcome"], dtype=bool)
+    delivered_s = np.asarray(log["outcome_delivered_s"], dtype=np.float64)
+    figures["delivered_s"] = delivered_s[answered].tolist()
+    # Once the breaker has opened, what a request waited beyond its own local plan (the bar: at most the
+    # hedge deadline, and nothing at all for a request the open breaker routed locally).
+    opened = np.nonzero(np.asarray(log["breaker"], dtype=object) == "open")[0]
+    if len(opened):
+        after = answered & (np.arange(len(log)) >= opened[0]) & (np.asarray(log["outcome_delivered"]) == 0)
+        excess = delivered_s[after] - np.asarray(log["outcome_local_s"], dtype=np.float64)[after]
+        figures["worst_wait_beyond_local_after_trip_s"] = float(np.nanmax(excess)) if len(excess) else 0.0
+        figures["max_deadline_s"] = float(np.nanmax(np.asarray(log["deadline_s"], dtype=np.float64)))
     figures["run_dir"] = str(run_dir)
     return figures
 
@@ -167,7 +177,7 @@ def main(argv=None) -> int:
         figures.pop("delivered_s")
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
-            "hedged", "breaker_open", "run_dir")}
+            "hedged", "breaker_open", "worst_wait_beyond_local_after_trip_s", "max_deadline_s", "run_dir")}
     with open(out / "results.json", "w") as stream:
         json.dump({key: value for key, value in results.items() if key != "delivered_s"}, stream, indent=2)
     if results["policies"]:
@@ -177,7 +187,9 @@ def main(argv=None) -> int:
     for name, f in results["outage"].items():
         print(f"link down {args.outage_s:g} s mid-run, {name}: {f['paths_delivered']}/{f['requests']} paths, worst "
               f"wait {1e3 * f['max_s']:.0f} ms, {f['waited_the_timeout']} waited the {args.cloud_timeout_s:g} s "
-              f"timeout, {f['breaker_open']} routed locally by the open breaker, {f['hedged']} hedged")
+              f"timeout, {f['breaker_open']} routed locally by the open breaker, {f['hedged']} hedged; after the "
+              f"breaker opened, the worst wait beyond the request's own local plan was "
+              f"{1e3 * (f['worst_wait_beyond_local_after_trip_s'] or 0.0):.0f} ms")
     print(f"\nresults: {out / 'results.json'}")
     return 0
 
