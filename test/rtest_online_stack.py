@@ -13,7 +13,7 @@ import unittest
 import rosbag
 import rospy
 import rostest
-from offload_msgs.msg import OffloadDecision, OffloadOutcome, TrainingStats
+from offload_msgs.msg import OffloadDecision, OffloadOutcome, RequestRejected, TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py.checkpoint import load_checkpoint
@@ -22,7 +22,7 @@ from offload_learner_py.records import NO_PATH_DELIVERED, pair_records, transiti
 WORKSPACE = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
 CLOUD_TIMEOUT_S = 1.0
 FIRST_RUN = 24
-RECORDED_TOPICS = ("/offload_learner/decision", "/offload_learner/outcome", "/offload_learner/stats",
+RECORDED_TOPICS = ("/offload_learner/decision", "/offload_learner/outcome", "/offload_learner/stats", "/offload_learner/config",
                    "/offload_learner/goal", "/cloud_bridge/latency", "/cloud_bridge/timing", "/planner/timing",
                    "/goal_generator/goal", "/map_metadata")
 
@@ -73,11 +73,12 @@ class OnlineStackTest(unittest.TestCase):
              f"_endpoint:={cls.endpoint}", "_insecure:=true", f"_timeout_s:={CLOUD_TIMEOUT_S}", "_retries:=0",
              "_heartbeat_period_s:=0.2", "_heartbeat_timeout_s:=0.5"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        cls.decisions, cls.outcomes, cls.stats = [], [], []
+        cls.decisions, cls.outcomes, cls.stats, cls.rejected = [], [], [], []
         cls.lock = threading.Lock()
         rospy.Subscriber("/offload_learner/decision", OffloadDecision, cls.keep(cls.decisions))
         rospy.Subscriber("/offload_learner/outcome", OffloadOutcome, cls.keep(cls.outcomes))
         rospy.Subscriber("/offload_learner/stats", TrainingStats, cls.keep(cls.stats))
+        rospy.Subscriber("/offload_learner/rejected", RequestRejected, cls.keep(cls.rejected))
         cls.processes["record"] = subprocess.Popen(["roslaunch", launch_file("record.launch"), f"bag:={cls.bag}"],
                                                    stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         cls.start_learner()
@@ -162,6 +163,21 @@ class OnlineStackTest(unittest.TestCase):
         by_id = {o.request_id: o for o in bag_outcomes}
         for row in range(len(table)):
             self.assertAlmostEqual(table.reward[row], by_id[int(table.t[row])].reward)
+
+    def test_1b_refused_input_is_answered_but_not_a_decision(self):
+        """A goal off the map or a non-finite goal gets the planners' status at once; neither planner is called
+        (no timing), nothing is decided or learned, and the refusal is recorded."""
+        with self.lock:
+            decisions, rejected = len(self.decisions), len(self.rejected)
+        self.assertEqual(self.call((1e15, 0.5)).status, PlanPathResponse.GOAL_OFF_MAP)
+        self.assertEqual(self.call((float("nan"), 0.5)).status, PlanPathResponse.INVALID_REQUEST)
+        self.wait_for(lambda: len(self.rejected) >= rejected + 2, what="the refusals")
+        self.assertEqual(self.call(self.GOALS[0]).status, PlanPathResponse.OK)
+        self.wait_for(lambda: len(self.decisions) > decisions, what="the next decision")
+        with self.lock:
+            self.assertEqual(len(self.decisions), decisions + 1)   # only the plannable request was decided
+            self.assertEqual([r.status for r in self.rejected[rejected:]],
+                             [PlanPathResponse.GOAL_OFF_MAP, PlanPathResponse.INVALID_REQUEST])
 
     def test_2_learner_restarts_from_its_checkpoint(self):
         self.wait_for(lambda: os.path.exists(self.checkpoint), what="a checkpoint")

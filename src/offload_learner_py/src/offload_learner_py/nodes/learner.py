@@ -15,7 +15,8 @@ import rospy
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
-from offload_msgs.msg import LearnerConfig, LinkLatency, OffloadDecision, OffloadOutcome, TrainingStats
+from offload_msgs.msg import LearnerConfig, LinkLatency, OffloadDecision, OffloadOutcome, RequestRejected, \
+    TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py import CLOUD, LOCAL
@@ -25,6 +26,7 @@ from offload_learner_py.config import DQNConfig
 from offload_learner_py.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
     read_proc_stat_cores
 from offload_learner_py.dqn import DQNAgent
+from offload_learner_py.request_check import check_request
 from offload_learner_py.reward import CostWeights
 from offload_learner_py.router import LEARNING, NO_PATH_DELIVERED, DQNDecision, FixedPolicy, \
     InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
@@ -169,6 +171,7 @@ class LearnerNode:
                           CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
         self.config_pub = rospy.Publisher("~config", LearnerConfig, queue_size=1, latch=True)
+        self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
         self.publish_config(seed, alpha)
         recorder = str(p("recorder_node", "offload_record"))
         self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)),
@@ -301,8 +304,25 @@ class LearnerNode:
             return None
 
     # --- serving --------------------------------------------------------------------------------
+    def rejection(self, request):
+        """The planners' verdict on a request refused for its input (no planner is called), or None."""
+        info = self.map_info
+        if info is None:
+            return None
+        a, b, q = request.start, request.goal, info.origin.orientation
+        return check_request(info.width, info.height, info.resolution, (info.origin.position.x, info.origin.position.y),
+                             (q.x, q.y, q.z, q.w), a.header.frame_id, (a.pose.position.x, a.pose.position.y),
+                             b.header.frame_id, (b.pose.position.x, b.pose.position.y), request.tolerance)
+
     def serve(self, request) -> PlanPathResponse:
         arrived = time.perf_counter()    # the router's clock: the caller's latency starts here
+        refused = self.rejection(request)
+        if refused is not None:
+            msg = RequestRejected(status=refused.status, message=refused.message)
+            msg.header.stamp = rospy.Time.now()
+            self.rejected_pub.publish(msg)
+            rospy.logwarn_throttle(10.0, "request refused (status %d): %s", refused.status, refused.message)
+            return PlanPathResponse(status=refused.status, message=refused.message)
         self.goal_pub.publish(request.goal)
         result = self.router.route(request, self.build_state(request), arrived)
         if result.response is None:
