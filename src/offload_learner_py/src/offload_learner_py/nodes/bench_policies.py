@@ -64,6 +64,8 @@ def measure(run_dir: pathlib.Path, cloud_timeout_s: float) -> dict:
     if data.report.failed:
         raise RuntimeError(data.report.failed[0].error)
     figures = delivered_figures(data.log, cloud_timeout_s)
+    if "mean_s" not in figures:
+        raise RuntimeError(f"no request was answered in {run_dir}: see demo.log beside it")
     table = data.transition_table({})
     if len(table):
         figures["probe_oracle_mean_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
