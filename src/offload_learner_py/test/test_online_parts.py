@@ -268,3 +268,19 @@ def test_delivered_figures_are_what_the_caller_saw_and_the_robot_paid():
     assert figures["link_bytes_per_request"] == 4000
     assert (figures["cloud_timeouts"], figures["waited_the_timeout"]) == (1, 1)
     assert (figures["hedged"], figures["breaker_open"], figures["probes"]) == (1, 2, 10)
+
+
+@pytest.mark.parametrize("second_half_action, beats", [(CLOUD, False), (LOCAL, False), (None, True)])
+def test_beating_both_fixed_policies_means_both(second_half_action, beats):
+    """Always cloud in the second half beats always-local there but only ties always-cloud; only the oracle
+    rule beats both (a max in place of the min would say yes to the first)."""
+    decisions, outcomes = [], []
+    for k in range(40):
+        d = 0.2 + 1.6 * (k % 10) / 9
+        best = CLOUD if d > 1 else LOCAL
+        action = best if second_half_action is None or k < 20 else second_half_action
+        local_s, cloud_s = 0.1 * d + 0.02, 0.10     # always cloud (0.10 s) beats always local (0.12 s)
+        decisions.append(decision(k, action, d=d))
+        outcomes.append(outcome(k, action, local_s, cloud_s))
+    log = pair_records(decisions, outcomes)
+    assert summarise(log, transition_table(log))["second_half_beats_both"] is beats
