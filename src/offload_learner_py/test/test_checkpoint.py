@@ -4,7 +4,8 @@ import numpy as np
 import pytest
 import torch
 
-from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
+from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
+    save_checkpoint
 from offload_learner_py.config import DQNConfig
 from offload_learner_py.dqn import DQNAgent
 
@@ -135,3 +136,32 @@ def test_config_and_normalisation_values_are_type_checked():
             DQNConfig.from_dict({**DQNConfig().to_dict(), **bad})
     with pytest.raises(ValueError, match="positive finite scales"):
         StateNormalisation.from_dict({"mean": [0, 0, 0], "scale": [1, 0, 1], "log_input_size": True})
+
+
+def test_non_finite_weights_are_refused_at_save_and_at_load(tmp_path):
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    good = open(path, "rb").read()
+    with torch.no_grad():
+        agent.q_network.layers[0].weight[0, 0] = float("nan")
+    with pytest.raises(ValueError, match="non-finite"):
+        save_checkpoint(agent, path)
+    assert open(path, "rb").read() == good and os.listdir(tmp_path) == ["dqn.pt"]
+    payload = torch.load(path, weights_only=False)
+    payload["target_network"]["layers.0.bias"][0] = float("inf")
+    torch.save(payload, path)
+    with pytest.raises(IncompatibleCheckpointError, match="non-finite"):
+        load_checkpoint(path)
+
+
+def test_orphaned_temp_files_of_killed_saves_are_removed(tmp_path):
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "dqn.pt")
+    save_checkpoint(agent, path)
+    for name in (".checkpoint-abc.tmp", ".checkpoint-def.tmp"):
+        (tmp_path / name).write_bytes(b"half a checkpoint")
+    (tmp_path / "notes.tmp").write_text("not ours")
+    assert sorted(remove_orphaned_temps(path)) == [".checkpoint-abc.tmp", ".checkpoint-def.tmp"]
+    assert sorted(os.listdir(tmp_path)) == ["dqn.pt", "notes.tmp"]
+    load_checkpoint(path)

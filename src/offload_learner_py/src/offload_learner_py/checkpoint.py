@@ -24,7 +24,38 @@ class IncompatibleCheckpointError(ValueError):
     """The file is not a checkpoint this code can load (other format, version or architecture)."""
 
 
+TEMP_PREFIX, TEMP_SUFFIX = ".checkpoint-", ".tmp"
+
+
+def _finite(state_dict) -> bool:
+    return all(bool(torch.isfinite(tensor).all()) for tensor in state_dict.values() if torch.is_tensor(tensor))
+
+
+def remove_orphaned_temps(path: str) -> list:
+    """Delete the temp files that saves killed mid-write left beside `path` (call before this process
+    saves there: a live save of another process would lose its temp file). Returns what was removed."""
+    directory = os.path.dirname(os.path.abspath(path))
+    removed = []
+    try:
+        names = os.listdir(directory)
+    except OSError:
+        return removed
+    for name in names:
+        if name.startswith(TEMP_PREFIX) and name.endswith(TEMP_SUFFIX):
+            try:
+                os.unlink(os.path.join(directory, name))
+                removed.append(name)
+            except OSError:
+                pass
+    return removed
+
+
 def save_checkpoint(agent: DQNAgent, path: str) -> None:
+    """Atomic: a temp file in the same directory, fsync, rename. Refuses non-finite weights (a diverged
+    network must not replace a good checkpoint); on any failure the temp file is removed and the error raised."""
+    for name, network in (("q_network", agent.q_network), ("target_network", agent.target_network)):
+        if not _finite(network.state_dict()):
+            raise ValueError(f"{name} has non-finite weights: checkpoint {path} not written")
     payload = {
         "format": CHECKPOINT_FORMAT,
         "version": CHECKPOINT_VERSION,
@@ -38,7 +69,7 @@ def save_checkpoint(agent: DQNAgent, path: str) -> None:
         "optimizer": agent.optimizer.state_dict(),
     }
     directory = os.path.dirname(os.path.abspath(path))
-    descriptor, temp_path = tempfile.mkstemp(prefix=".checkpoint-", suffix=".tmp", dir=directory)
+    descriptor, temp_path = tempfile.mkstemp(prefix=TEMP_PREFIX, suffix=TEMP_SUFFIX, dir=directory)
     try:
         with os.fdopen(descriptor, "wb") as temp_file:
             torch.save(payload, temp_file)
@@ -96,6 +127,8 @@ def load_checkpoint(path: str, expected_config: DQNConfig = None,
         raise IncompatibleCheckpointError(f"{path} has no valid step counters: {error}") from error
     for name in ("q_network", "target_network"):
         _check_shapes(payload.get(name), config, path, name)
+        if not _finite(payload[name]):
+            raise IncompatibleCheckpointError(f"{path}: {name} holds non-finite weights (a diverged network)")
     agent = DQNAgent(config, normalisation if payload.get("normalisation_frozen", True) else None)
     try:
         agent.q_network.load_state_dict(payload["q_network"])

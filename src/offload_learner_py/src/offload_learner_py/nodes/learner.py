@@ -21,7 +21,8 @@ from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.breaker import BreakerConfig
-from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
+from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
+    save_checkpoint
 from offload_learner_py.config import DQNConfig
 from offload_learner_py.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
     read_proc_stat_cores
@@ -112,6 +113,10 @@ class LearnerNode:
             raise ValueError(f"~policy must be one of {', '.join(POLICIES)}, got {self.policy_name!r}")
         self.checkpoint_path = os.path.expanduser(str(p("checkpoint", "")))
         self.checkpoint_every = int(p("checkpoint_every", 50))
+        self.checkpoint_failures = 0
+        if self.checkpoint_path:
+            for name in remove_orphaned_temps(self.checkpoint_path):
+                rospy.logwarn("removed %s, left by a checkpoint save that was killed mid-write", name)
         self.learn = bool(p("learn", True))
         seed = int(p("seed", 1))
         dqn_overrides = p("dqn", {}) or {}
@@ -429,30 +434,36 @@ class LearnerNode:
                             gradient_steps=stats["gradient_steps"], replay_size=stats["replay_size"],
                             epsilon=stats["epsilon"], recent_window=len(recent),
                             recent_loss=float(finite(0).mean()) if len(finite(0)) else float("nan"),
-                            recent_accuracy=float(finite(1).mean()) if len(finite(1)) else float("nan"))
+                            recent_accuracy=float(finite(1).mean()) if len(finite(1)) else float("nan"),
+                            checkpoint_failures=self.checkpoint_failures)
         msg.header.stamp = rospy.Time.now()
         self.stats_pub.publish(msg)
 
-    def save(self):
+    def save(self) -> bool:
+        """Write the checkpoint; a failure (a full disk, a diverged network) is logged at error level every
+        time, counted in ~stats, and the next learned step tries again."""
         if not self.checkpoint_path or self.agent is None or not self.policy.learns:
-            return
-        with self.policy._lock:
-            save_checkpoint(self.agent, self.checkpoint_path)
+            return False
+        try:
+            with self.policy._lock:
+                save_checkpoint(self.agent, self.checkpoint_path)
+        except (OSError, ValueError) as error:
+            self.checkpoint_failures += 1
+            rospy.logerr("checkpoint %s not written (%d failures so far): %s", self.checkpoint_path,
+                         self.checkpoint_failures, error)
+            return False
         with self._lock:
             self._learned_since_checkpoint = 0
         rospy.logdebug("checkpoint %s at %d steps", self.checkpoint_path, self.agent.steps)
+        return True
 
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
         if isinstance(self.policy, DQNDecision):
             self.policy.flush()
-        try:
-            self.save()
-            if self.checkpoint_path and self.agent is not None and self.policy.learns:
-                rospy.loginfo("checkpoint %s: %d steps", self.checkpoint_path, self.agent.steps)
-        except OSError as error:
-            rospy.logerr("could not write checkpoint %s: %s", self.checkpoint_path, error)
+        if self.save():
+            rospy.loginfo("checkpoint %s: %d steps", self.checkpoint_path, self.agent.steps)
         for side in self.sides:
             side.close()
 
