@@ -93,6 +93,7 @@ def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, 
         rospy.loginfo("loaded %s: %d steps, %d gradient steps", source, agent.steps, agent.gradient_steps)
     else:
         agent = DQNAgent(config)
+        rospy.logwarn("no checkpoint at %r and no ~model: the DQN starts untrained", checkpoint)
     return DQNDecision(agent, learn=learn, seed=seed + agent.steps, explore=explore), agent
 
 
