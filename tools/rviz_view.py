@@ -22,6 +22,9 @@ from pathlib import Path
 
 import numpy as np
 import yaml
+from PIL import ImageGrab
+
+from offload_planner_cpp.maps import MapFormatError, load_map
 
 WORKSPACE = Path(__file__).resolve().parents[1]
 DEFAULT_CONFIG = WORKSPACE / "launch" / "config" / "offload.rviz"
@@ -92,7 +95,6 @@ def shown_extent_m(config):
 
 
 def fit(args) -> int:
-    from offload_planner_cpp.maps import MapFormatError, load_map
     try:
         extent = known_extent_m(load_map(args.map))
     except (MapFormatError, OSError, ValueError) as error:
@@ -109,10 +111,12 @@ def fit(args) -> int:
 
 # --- headless -----------------------------------------------------------------------------------------
 def start_xvfb(width_px: int, height_px: int, log):
-    """A private Xvfb on a display number it picks itself (-displayfd): (process, ":N")."""
+    """A private Xvfb on a display number it picks itself (-displayfd): (process, ":N"). In a session of its
+    own, so a Ctrl-C meant for the demo does not take the screen away before the last screenshot."""
     read_fd, write_fd = os.pipe()
     xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", f"{width_px}x{height_px}x24",
-                             "-nolisten", "tcp", "-br", "-noreset"], pass_fds=(write_fd,), stdout=log, stderr=log)
+                             "-nolisten", "tcp", "-br", "-noreset"], pass_fds=(write_fd,), stdout=log, stderr=log,
+                            start_new_session=True)
     os.close(write_fd)
     ready, _, _ = select.select([read_fd], [], [], 20.0)
     number = os.read(read_fd, 32).decode().strip() if ready else ""
@@ -126,7 +130,6 @@ def start_xvfb(width_px: int, height_px: int, log):
 
 def rviz_frame(display: str):
     """The screen, or None while it is one colour (Xvfb's black root: no RViz window up)."""
-    from PIL import ImageGrab
     try:
         image = ImageGrab.grab(xdisplay=display)
     except OSError:
