@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
+.PHONY: help deps venv build test demo bench-policies bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -34,6 +34,7 @@ help:
 	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=, RVIZ=1,"
 	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
+	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, STEPS=, SEED=, POLICIES=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
 
@@ -91,6 +92,7 @@ bench-decision: build
 
 STEPS ?= 360
 POLICY ?= dqn
+MODE ?= learning
 SEED ?= 1
 demo: build
 	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need. HEADLESS=1
@@ -102,7 +104,14 @@ demo: build
 		--out .ros/offload.rviz; export OFFLOAD_RVIZ_CONFIG=$(ROOT)/.ros/offload.rviz;) \
 		$(if $(HEADLESS),$(PY) tools/rviz_view.py headless --runs-dir runs --) \
 		$(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
-		--policy $(POLICY) --seed $(SEED) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz)
+		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
+		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL))
+
+# Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
+# STEPS=200, plus a learning run for the DQN and the link-failure scenario).
+bench-policies: build
+	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
+		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
 
 bench-online: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online

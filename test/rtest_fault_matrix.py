@@ -161,7 +161,8 @@ class FaultMatrixTest(unittest.TestCase):
         cls.processes["learner"] = subprocess.Popen(
             [sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
              f"_checkpoint:={cls.checkpoint}", "_checkpoint_every:=5", f"_cloud_timeout_s:={CLOUD_TIMEOUT_S}",
-             "_probe_rate:=1.0", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}",
+             "_mode:=learning", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}",
+             "_breaker_failures:=0",
              "_map_wait_s:=10"],   # generous: the grid follows its metadata 1 s later in test_1
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         rospy.wait_for_service("/offload_learner/plan", timeout=90)
@@ -252,16 +253,24 @@ class FaultMatrixTest(unittest.TestCase):
         deadline = time.monotonic() + timeout_s
         while time.monotonic() < deadline:
             ids = self.serve_all(GOALS[:1])
-            if self.outcomes_of(ids)[0].cloud_status == PlanPathResponse.OK:
+            outcome = self.outcomes_of(ids)[0]
+            if outcome.cloud_measured and outcome.cloud_status == PlanPathResponse.OK:
                 return
         self.fail("the cloud never planned again")
 
     def assert_cloud_failed_locally_served(self, outcomes):
-        """Each request got the local path; the cloud side of it is a recorded failure costing the timeout."""
+        """Each request got the local path; the cloud side of it is a recorded failure costing the timeout, or
+        was dropped before it started because a newer request needed the link (the breaker is off here, so
+        every request reaches the failing link; test_router and make bench-policies cover the breaker)."""
         for o in outcomes:
             self.assertEqual(o.delivered, OffloadOutcome.LOCAL)
             self.assertEqual(o.local_status, PlanPathResponse.OK)
-            self.assertTrue(o.cloud_measured and o.reward_valid)
+            with self.lock:
+                decision = self.decisions[o.request_id]
+            if not o.cloud_measured:
+                self.assertTrue(decision.probe, "the cloud side of a request was skipped")
+                continue
+            self.assertTrue(o.reward_valid)
             if o.cloud_status != PlanPathResponse.OK:
                 self.assertEqual(o.cloud_s, CLOUD_TIMEOUT_S)
                 self.assertIn(o.cloud_status, (PlanPathResponse.CLOUD_TIMEOUT, PlanPathResponse.CLOUD_ERROR))
@@ -328,7 +337,7 @@ class FaultMatrixTest(unittest.TestCase):
         self.processes["server"].wait(10)
         down = self.outcomes_of(self.serve_all())
         self.assert_cloud_failed_locally_served(down)
-        self.assertTrue(all(o.cloud_status != PlanPathResponse.OK for o in down))
+        self.assertFalse(any(o.cloud_measured and o.cloud_status == PlanPathResponse.OK for o in down))
         self.start_server()   # same port, empty map cache: the bridge uploads the map again
         self.cloud_back()
 
@@ -373,7 +382,7 @@ class FaultMatrixTest(unittest.TestCase):
         self.assert_cloud_failed_locally_served(down)
         # the call in flight died with the bridge (CLOUD_ERROR) unless the bridge had timed out first
         self.assertIn(down[0].cloud_status, (PlanPathResponse.CLOUD_ERROR, PlanPathResponse.CLOUD_TIMEOUT))
-        self.assertTrue(all(o.cloud_status == PlanPathResponse.CLOUD_ERROR for o in down[1:]))
+        self.assertTrue(all(o.cloud_status == PlanPathResponse.CLOUD_ERROR for o in down[1:] if o.cloud_measured))
         self.start_bridge()
         self.cloud_back()
 

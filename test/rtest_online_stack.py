@@ -98,7 +98,7 @@ class OnlineStackTest(unittest.TestCase):
         cls.processes["learner"] = subprocess.Popen(
             [sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
              f"_checkpoint:={cls.checkpoint}", "_checkpoint_every:=5", f"_cloud_timeout_s:={CLOUD_TIMEOUT_S}",
-             "_probe_rate:=1.0", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}"],
+             "_mode:=learning", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         rospy.wait_for_service("/offload_learner/plan", timeout=90)
 
@@ -180,9 +180,11 @@ class OnlineStackTest(unittest.TestCase):
         self.wait_for(lambda: len(self.stats) >= seen + len(self.GOALS), what="stats after the restart")
         with self.lock:
             resumed = [s.steps for s in self.stats[seen:]]
-        # The pending transition is stored when the next one arrives, so steps trail requests by one.
-        self.assertEqual(resumed[0], saved_steps)
-        self.assertEqual(resumed[-1], saved_steps + len(self.GOALS) - 1)
+        # Every probe teaches both actions (two transitions); the pending transition is stored when the
+        # next one arrives, so steps trail by one. Outcomes may finish out of order (a probe's slower side
+        # runs on while the next request is served), so the counts are compared as a set.
+        self.assertGreaterEqual(min(resumed), saved_steps + 1)
+        self.assertEqual(max(resumed), saved_steps + 2 * len(self.GOALS) - 1)
 
     def test_3_cloud_killed_mid_run(self):
         with self.lock:

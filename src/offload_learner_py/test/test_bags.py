@@ -272,3 +272,21 @@ def test_writer_roundtrip_of_raw_messages_with_installed_types(tmp_path):
         bag.write(OUTCOME_TOPIC, OUTCOME_TYPE, outcome, 20)
     columns, report = bags.read_bag(path)
     assert report.requests == 1 and columns["request_id"][0] == decision["request_id"]
+
+
+def test_requests_the_router_routed_otherwise_are_kept(tmp_path):
+    """A probe whose decided side was dropped before it started (a newer request needed it) and a cloud
+    decision the open breaker kept local are requests like any other; a non-probe whose routed side has no
+    latency is not."""
+    from offload_learner_py.bag_writer import probe_request
+    cancelled = probe_request(1, 1.0, 0.5, 0.05, 0.2, 0.05, 0, 1.0, math.nan, probe=True)
+    cancelled[1].update(local_measured=False, local_s=0.0, reward_valid=False, delivered=1)
+    kept_local = probe_request(2, 1.0, 0.5, 0.05, 0.2, 0.05, 0, 1.0, math.nan, probe=False)
+    kept_local[0].update(action=1, breaker="open")
+    kept_local[1].update(action=1)
+    broken = probe_request(3, 1.0, 0.5, 0.05, 0.2, 0.05, 1, 1.0, math.nan, probe=False)
+    broken[1].update(cloud_measured=False, cloud_s=0.0)
+    data = bags.read_bags([write(tmp_path / "run.bag", [cancelled, kept_local, broken])])
+    assert list(data.log["request_id"]) == [1, 2]
+    assert list(data.log["routed"]) == [0, 0] and list(data.log["breaker"]) == ["", "open"]
+    assert "routed side (cloud)" in data.report.bags[0].invalid_examples[0]

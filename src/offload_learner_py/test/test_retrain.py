@@ -123,3 +123,30 @@ def test_a_reward_logged_with_another_alpha_is_caught(run_bag):
     table = bags.read_bags([run_bag]).transition_table()
     assert retrain.logged_reward_mismatch(table, CostWeights()) < 1e-12
     assert retrain.logged_reward_mismatch(table, CostWeights(0.7, 0.3)) > 0.01
+
+
+def _bag_with_configs(path, alphas):
+    """A bag of requests and, per session, the learner's latched config with that alpha."""
+    from offload_learner_py.bag_writer import CONFIG_TOPIC, CONFIG_TYPE, config_definition, installed_definitions, \
+        typestore_for
+
+    store = typestore_for(*installed_definitions(), extra={CONFIG_TYPE: config_definition()})
+    sessions = iter(alphas)
+
+    def extra(bag, index, time_ns):
+        if index % 20 == 0:
+            alpha = next(sessions, None)
+            if alpha is not None:
+                bag.write(CONFIG_TOPIC, CONFIG_TYPE, {"mode": "learning", "alpha": alpha, "beta": 1 - alpha,
+                                                      "cloud_timeout_s": 5.0}, time_ns)
+    return write(path, make_requests(40, probe_every=1), store=store, extra=extra)
+
+
+def test_retraining_takes_alpha_from_the_learner_config_in_the_bag(tmp_path):
+    data = bags.read_bags([_bag_with_configs(tmp_path / "a.bag", [0.7])])
+    assert data.report.recorded("mode") == ["learning"]
+    assert retrain.recorded_weights(data).alpha == pytest.approx(0.7)
+    assert retrain.recorded_weights(bags.read_bags([write(tmp_path / "old.bag", make_requests(10))])).alpha == 0.5
+    mixed = bags.read_bags([_bag_with_configs(tmp_path / "b.bag", [0.7, 0.3])])
+    with pytest.raises(ValueError, match="different alphas"):
+        retrain.recorded_weights(mixed)

@@ -47,10 +47,11 @@ class FakePlanner:
 
 class Recorder:
     def __init__(self):
-        self.decisions, self.outcomes = [], []
+        self.decisions, self.outcomes, self.routings = [], [], []
 
-    def decision(self, request_id, state, decision, probe):
-        self.decisions.append((request_id, state, decision, probe))
+    def decision(self, routing):
+        self.decisions.append((routing.request_id, routing.state, routing.decision, routing.probe))
+        self.routings.append(routing)
 
     def outcome(self, outcome):
         self.outcomes.append(outcome)
@@ -58,7 +59,8 @@ class Recorder:
 
 def make_router(policy, local, cloud, clock, probe_rate=0.0, timeout_s=5.0):
     recorder = Recorder()
-    router = OffloadRouter(policy, local, cloud, STATUSES, RouterConfig(probe_rate=probe_rate, cloud_timeout_s=timeout_s),
+    router = OffloadRouter(policy, local, cloud, STATUSES, RouterConfig(probe_rate=probe_rate, cloud_timeout_s=timeout_s,
+                                                                            probe_while_warming_up=False),
                            on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock)
     return router, recorder
 
@@ -110,20 +112,35 @@ def test_probe_delivers_the_first_good_path_while_the_other_side_still_runs():
     assert outcome.reward == pytest.approx(reward(LOCAL, 0.300, 0.090))
 
 
-def test_next_request_waits_for_the_previous_probe_to_finish():
+def test_the_slower_side_of_a_probe_does_not_hold_up_the_next_request():
     clock = VirtualClock()
     gate = threading.Event()
     local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.1)
     router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
-    router.route("first", STATE)
-    second = threading.Thread(target=router.route, args=("second", STATE))
-    second.start()
-    second.join(0.2)
-    assert second.is_alive() and len(cloud.calls) == 1   # blocked behind the first probe's local side
+    first = router.route("first", STATE)
+    second = router.route("second", STATE)     # the first probe's local side is still running
+    assert first.response["side"] is cloud and second.response["side"] is cloud
+    assert len(cloud.calls) == 2 and not recorder.outcomes
     gate.set()
-    second.join(10)
     finish(router)
-    assert [o.request_id for o in recorder.outcomes] == [0, 1]
+    assert sorted(o.request_id for o in recorder.outcomes) == [0, 1]
+
+
+def test_a_background_call_not_yet_started_is_cancelled_by_a_newer_request():
+    """The local planner serves one call at a time: of two probes queued behind a running local call, the
+    older one's local call is dropped (its caller already has the cloud path), so work never piles up."""
+    clock = VirtualClock()
+    gate = threading.Event()
+    local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.1)
+    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
+    for name in ("first", "second", "third"):
+        assert router.route(name, STATE).response["side"] is cloud
+    gate.set()
+    finish(router)
+    assert [c for c in local.calls] == ["first", "third"]
+    by_id = {o.request_id: o for o in recorder.outcomes}
+    assert by_id[1].local is None and by_id[1].local_s is None      # cancelled: not measured
+    assert by_id[0].local_s == pytest.approx(0.3) and by_id[2].local_s == pytest.approx(0.3)
 
 
 @pytest.mark.parametrize("failure", ["timeout", "error", "raises"])
@@ -200,8 +217,8 @@ def test_dqn_learns_on_probe_steps_and_prefers_the_faster_side():
         router.route(d, State(d, 0.5, 0.05))
     finish(router)
     policy.flush()
-    assert policy.steps == len(sizes)
-    assert all(o.learned for o in recorder.outcomes)
+    assert policy.steps == 2 * len(sizes)     # full information: both actions' rewards from every probe
+    assert all(o.learned and o.transitions == 2 for o in recorder.outcomes)
     assert any(o.loss is not None for o in recorder.outcomes)
     assert policy.decide(State(0.45, 0.5, 0.05)).q_cloud > policy.decide(State(0.45, 0.5, 0.05)).q_local
     assert policy.agent.greedy_action(State(0.02, 0.5, 0.05).as_array()) == LOCAL
@@ -349,3 +366,205 @@ def test_probe_with_both_sides_on_the_old_map_delivers_the_local_last_good_map()
     assert result.status == OK and result.response["side"] is local and result.note
     (outcome,) = recorder.outcomes
     assert outcome.delivered == LOCAL and outcome.cloud.status == ERROR and outcome.reward is None
+
+
+# --- modes, hedge, breaker, accounting ------------------------------------------------------------
+class LearningRecorder(FixedPolicy):
+    """A fixed policy that records what it is taught."""
+    learns = True
+
+    def __init__(self, action):
+        super().__init__(action, "recorder")
+        self.taught = []
+
+    def learn(self, state, action, reward_value):
+        self.taught.append((action, reward_value))
+        return None
+
+
+def configured_router(policy, local, cloud, clock, **config):
+    recorder = Recorder()
+    router = OffloadRouter(policy, local, cloud, STATUSES, RouterConfig(**config), on_decision=recorder.decision,
+                           on_outcome=recorder.outcome, clock=clock)
+    return router, recorder
+
+
+def test_learning_mode_probes_every_request_and_teaches_both_actions():
+    clock = VirtualClock()
+    policy = LearningRecorder(CLOUD)
+    router, recorder = configured_router(policy, FakePlanner(clock, 0.2), FakePlanner(clock, 0.08), clock,
+                                         mode="learning", probe_rate=0.0)
+    for _ in range(3):
+        router.route("req", STATE)
+    finish(router)
+    assert all(routing.probe for routing in recorder.routings)
+    assert policy.taught == [(LOCAL, reward(LOCAL, 0.2, 0.08)), (CLOUD, reward(CLOUD, 0.2, 0.08))] * 3
+    assert all(o.transitions == 2 and o.imputed is None for o in recorder.outcomes)
+
+
+def test_learning_mode_dqn_acts_greedily():
+    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=100)), explore=False)
+    decisions = [policy.decide(STATE) for _ in range(50)]
+    assert {d.propensity for d in decisions} == {1.0} and len({d.action for d in decisions}) == 1
+
+
+def test_deployed_mode_probes_while_warming_up_then_a_share_and_imputes_the_other_side():
+    clock = VirtualClock()
+    policy = LearningRecorder(LOCAL)
+    local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
+    router, recorder = configured_router(policy, local, cloud, clock, mode="deployed", probe_rate=0.1)
+    for _ in range(400):
+        router.route("req", STATE)
+    finish(router)
+    probes = [r.probe for r in recorder.routings]
+    min_samples = router.config.latency_model.min_samples
+    assert all(probes[:min_samples])             # both latency models need their first samples
+    later = probes[min_samples:]
+    assert 0.05 < sum(later) / len(later) < 0.2  # then about probe_rate
+    single = [o for o in recorder.outcomes if not o.probe]
+    assert single and all(o.cloud is None and o.imputed == CLOUD and o.transitions == 2 for o in single)
+    # the imputed cloud latency is the model's (the fake is deterministic, so it learned 0.05 s)
+    imputed = [r for a, r in policy.taught if a == CLOUD]
+    assert imputed == pytest.approx([reward(CLOUD, 0.2, 0.05)] * len(imputed), abs=1e-3)
+    assert len(cloud.calls) == sum(probes)       # the cloud was called on probes only
+
+
+def test_a_deployed_fixed_policy_never_probes_beyond_its_rate():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
+    router, recorder = configured_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, mode="deployed",
+                                         probe_rate=0.0)
+    for _ in range(30):
+        router.route("req", STATE)
+    finish(router)
+    assert not any(r.probe for r in recorder.routings) and not cloud.calls
+
+
+def test_deployed_request_before_the_models_are_ready_teaches_nothing():
+    clock = VirtualClock()
+    policy = LearningRecorder(LOCAL)
+    router, recorder = configured_router(policy, FakePlanner(clock, 0.2), FakePlanner(clock, 0.05), clock,
+                                         mode="deployed", probe_rate=0.0, probe_while_warming_up=False)
+    router.route("req", STATE)
+    finish(router)
+    (outcome,) = recorder.outcomes
+    assert outcome.reward is None and not outcome.learned and policy.taught == []
+
+
+def test_hedge_starts_the_other_side_when_the_chosen_one_misses_its_deadline():
+    clock = VirtualClock()
+    gate = threading.Event()
+    local, cloud = FakePlanner(clock, 0.15), FakePlanner(clock, 0.4, gate=gate)
+    policy = LearningRecorder(CLOUD)
+    router, recorder = configured_router(policy, local, cloud, clock, probe_rate=0.0, probe_while_warming_up=False,
+                                         hedge=True, hedge_deadline_s=0.01)
+    result = router.route("req", STATE)          # the cloud never answers until the gate opens
+    assert result.response["side"] is local
+    gate.set()
+    finish(router)
+    (outcome,) = recorder.outcomes
+    assert outcome.hedged and outcome.delivered == LOCAL and recorder.routings[0].deadline_s == 0.01
+    # both sides ran in the end, so both latencies are measured and both actions are taught
+    assert outcome.local_s == pytest.approx(0.15) and outcome.cloud_s == pytest.approx(0.4)
+    assert outcome.transitions == 2 and outcome.imputed is None
+
+
+def test_no_hedge_when_the_chosen_side_answers_in_time():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.15), FakePlanner(clock, 0.05)
+    router, recorder = configured_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=0.0,
+                                         probe_while_warming_up=False, hedge=True, hedge_deadline_s=5.0)
+    router.route("req", STATE)
+    finish(router)
+    assert not recorder.outcomes[0].hedged and not local.calls
+
+
+def test_hedge_deadline_follows_the_latency_model_within_its_bounds():
+    clock = VirtualClock()
+    router, _ = configured_router(FixedPolicy(CLOUD, "cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
+                                  clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
+    assert router._deadline_s(CLOUD, STATE) == 0.9          # no model yet: the upper bound
+    for k in range(60):
+        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.1 * (1.0 + 0.05 * (k % 3 - 1)))
+    assert 0.1 < router._deadline_s(CLOUD, STATE) < 0.3      # a high quantile of about 0.1 s
+
+
+def test_breaker_opens_after_cloud_failures_and_routes_locally_without_calling_the_cloud():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.1), FakePlanner(clock, 5.0, status=TIMEOUT)
+    router, recorder = configured_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=0.0,
+                                         probe_while_warming_up=False)
+    router.breaker.clock = lambda: 0.0          # no trial falls due
+    for _ in range(6):
+        assert router.route("req", STATE).response["side"] is local
+    finish(router)
+    failures = router.config.breaker.failures_to_open
+    assert len(cloud.calls) == failures
+    assert [r.breaker for r in recorder.routings] == ["closed"] * failures + ["open"] * (6 - failures)
+    assert all(r.action == LOCAL and r.decision.action == CLOUD for r in recorder.routings[failures:])
+    router.breaker.record_heartbeat(True, 0.05)  # a ping says the link is back
+    router.route("req", STATE)
+    finish(router)
+    assert recorder.routings[-1].breaker == "closed" and len(cloud.calls) == failures + 1
+
+
+def test_breaker_trial_is_a_probe_and_a_cloud_answer_closes_it():
+    clock = VirtualClock()
+    now = [0.0]
+    local, cloud = FakePlanner(clock, 0.1), FakePlanner(clock, 0.05)
+    router, recorder = configured_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=0.0,
+                                         probe_while_warming_up=False)
+    router.breaker.clock = lambda: now[0]
+    router.breaker.record_heartbeat(False, 5.0)
+    router.route("req", STATE)
+    now[0] = 100.0
+    router.route("req", STATE)
+    router.route("req", STATE)
+    finish(router)
+    assert [(r.breaker, r.probe) for r in recorder.routings] == [("open", False), ("trial", True), ("closed", False)]
+
+
+def test_cost_accounting_sums_every_side_called():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
+    costs = {id(local): (0.18, 0, 0), id(cloud): (0.004, 1200, 800)}
+    router = OffloadRouter(FixedPolicy(LOCAL, "local"), local, cloud, STATUSES, RouterConfig(mode="learning"),
+                           clock=clock, account=lambda response: costs[id(response["side"])])
+    outcomes = []
+    router.on_outcome = outcomes.append
+    router.route("req", STATE)
+    finish(router)
+    (outcome,) = outcomes
+    assert outcome.robot_cpu_s == pytest.approx(0.18) and outcome.bridge_cpu_s == pytest.approx(0.004)
+    assert (outcome.bytes_sent, outcome.bytes_received) == (1200, 800)
+
+
+class SharedClock:
+    """One time for every thread (a single side runs here, so it stays deterministic)."""
+
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+    def advance(self, seconds):
+        self.now += seconds
+
+
+def test_delivered_latency_runs_from_the_arrival_of_the_request():
+    clock = SharedClock()
+    router, recorder = make_router(FixedPolicy(LOCAL, "local"), FakePlanner(clock, 0.2), FakePlanner(clock, 0.1),
+                                   clock)
+    clock.advance(1.0)
+    router.route("req", STATE, arrived=0.25)     # it waited 0.75 s before routing
+    finish(router)
+    (outcome,) = recorder.outcomes
+    assert outcome.delivered_s == pytest.approx(0.75 + 0.2) and outcome.local_s == pytest.approx(0.2)
+
+
+def test_router_config_rejects_bad_modes_and_hedges():
+    for kwargs, message in (({"mode": "greedy"}, "mode"), ({"hedge_quantile": 1.0}, "hedge_quantile"),
+                            ({"hedge_min_s": 0.0}, "hedge_min_s"), ({"hedge_deadline_s": -1.0}, "hedge_deadline_s")):
+        with pytest.raises(ValueError, match=message):
+            RouterConfig(**kwargs)

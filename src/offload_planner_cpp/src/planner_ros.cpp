@@ -1,5 +1,7 @@
 #include "offload_planner_cpp/planner_ros.h"
 
+#include <time.h>
+
 #include <chrono>
 #include <stdexcept>
 
@@ -174,9 +176,20 @@ void PlannerNode::onMap(const nav_msgs::OccupancyGrid::ConstPtr& map) {
            map->header.frame_id.c_str());
 }
 
+namespace {
+// CPU time of the calling thread: what this request cost the robot's CPU, whatever else runs beside it.
+double threadCpuSeconds() {
+  timespec now{};
+  clock_gettime(CLOCK_THREAD_CPUTIME_ID, &now);
+  return static_cast<double>(now.tv_sec) + 1e-9 * static_cast<double>(now.tv_nsec);
+}
+}  // namespace
+
 void PlannerNode::serve(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res) {
   const auto started = std::chrono::steady_clock::now();
+  const double cpu_started = threadCpuSeconds();
   handler_->handle(req, res);
+  res->cpu_s = threadCpuSeconds() - cpu_started;
   offload_msgs::PlanTiming timing;
   timing.header.stamp = ros::Time::now();
   timing.planner = planner_name_;

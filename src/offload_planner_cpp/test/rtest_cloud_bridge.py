@@ -120,6 +120,20 @@ class CloudBridgeTest(unittest.TestCase):
         self.assertIn(R.OK, statuses)
         self.assertGreater(len(statuses), 1)
 
+    def test_1d_link_bytes_and_cpu_are_reported(self):
+        """The bridge says what a plan cost the link and its own CPU; a request refused on the robot
+        never touches the link."""
+        free = np.argwhere(self.map.grid == 0)[:, ::-1]
+        world = lambda cell: (self.map.origin_x + (cell[0] + 0.5) * self.map.resolution,  # noqa: E731
+                              self.map.origin_y + (cell[1] + 0.5) * self.map.resolution)
+        answer = self.cloud(self.request(world(free[0]), world(free[-1])))
+        self.assertIn(answer.status, (R.OK, R.NO_PATH), answer.message)
+        self.assertGreater(answer.bytes_sent, 0)
+        self.assertGreater(answer.bytes_received, 0)
+        self.assertGreater(answer.cpu_s, 0.0)
+        refused = self.cloud(self.request((0, 0), (1, 1), frame="odom"))
+        self.assertEqual((refused.status, refused.bytes_sent, refused.bytes_received), (R.BAD_FRAME, 0, 0))
+
     def free_cell_pairs(self, rng, count, local_service, cloud_service, **options):
         """Same answers on random pairs of free cells, and the cost is the scipy oracle's (in metres)."""
         grid_map = self.map

@@ -96,6 +96,9 @@ class PlannerNodeTest(unittest.TestCase):
             self.assertGreater(res.expansions, 0)
             self.assertGreater(res.planning_time_s, 0.0)
             self.assertGreater(res.map_stamp.to_sec(), 0.0)
+            # The node's own CPU for the request: at least the core's planning, never the link's bytes.
+            self.assertGreater(res.cpu_s, 0.0)
+            self.assertEqual((res.bytes_sent, res.bytes_received), (0, 0))
 
     def test_make_plan_honours_tolerance(self):
         wall = self.wall

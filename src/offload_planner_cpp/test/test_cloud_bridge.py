@@ -262,3 +262,28 @@ def test_link_model_trace_and_outages(tmp_path):
     bad.write_text("zero twenty\n")
     with pytest.raises(ValueError):
         read_trace(str(bad))
+
+
+def test_link_bytes_are_counted_per_request(key_dirs):
+    """What a request cost the link: an upload carries the grid, a plan on a cached map only the
+    request, and the reply carries the path."""
+    server = start_server(key_dirs[0], workers=1)
+    bridge = make_bridge(server.endpoint, key_dirs[1])
+    client = CloudClient(server.endpoint, keys_dir=str(key_dirs[1]))
+    try:
+        grid = random_map(200, 150, 0.1, seed=3)
+        client.upload(grid)
+        assert client.bytes_sent >= grid.nbytes and client.bytes_received > 0
+        assert give_map(bridge, grid) == ""
+        first = bridge.plan(point((0, 0)), point((199, 149)), 0.0)
+        assert first.status == PlanStatus.OK and first.bytes_sent >= grid.nbytes   # no heartbeat yet: it carries the map
+        result = bridge.plan(point((0, 0)), point((199, 149)), 0.0)
+        assert result.status == PlanStatus.OK
+        assert 0 < result.bytes_sent < 1024              # the map is cached: start, goal and hash only
+        assert result.bytes_received >= 8 * len(result.poses)   # the path's cells came back
+        refused = bridge.plan(point((0, 0)), point((5, 5)), -1.0)
+        assert refused.bytes_sent == refused.bytes_received == 0   # refused on the robot: the link is untouched
+    finally:
+        client.close()
+        bridge.close()
+        server.stop()

@@ -13,6 +13,8 @@ DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
 DECISION_TOPIC = "/offload_learner/decision"
 OUTCOME_TOPIC = "/offload_learner/outcome"
+CONFIG_TYPE = "offload_msgs/msg/LearnerConfig"
+CONFIG_TOPIC = "/offload_learner/config"
 
 
 def installed_definitions(msg_dir: Optional[str] = None) -> Tuple[str, str]:
@@ -23,6 +25,14 @@ def installed_definitions(msg_dir: Optional[str] = None) -> Tuple[str, str]:
     with open(os.path.join(msg_dir, "OffloadDecision.msg")) as decision, \
             open(os.path.join(msg_dir, "OffloadOutcome.msg")) as outcome:
         return decision.read(), outcome.read()
+
+
+def config_definition(msg_dir: Optional[str] = None) -> str:
+    """LearnerConfig.msg text from the source tree's offload_msgs."""
+    if msg_dir is None:
+        msg_dir = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "offload_msgs", "msg")
+    with open(os.path.join(msg_dir, "LearnerConfig.msg")) as config:
+        return config.read()
 
 
 def typestore_for(decision_msg: str, outcome_msg: str, extra: Dict[str, str] = None):
@@ -43,7 +53,7 @@ def probe_request(request_id: int, input_size: float, cpu_availability: float, r
     """(decision fields, outcome fields) of one request; with probe false only the taken side is measured."""
     decision = dict(request_id=request_id, input_size=input_size, cpu_availability=cpu_availability,
                     round_trip_s=round_trip_s, action=action, action_propensity=propensity, q_local=math.nan,
-                    q_cloud=math.nan, policy="dqn", model_steps=request_id, probe=probe)
+                    q_cloud=math.nan, policy="dqn", model_steps=request_id, probe=probe, routed=action)
     local_measured, cloud_measured = probe or action == LOCAL, probe or action == CLOUD
     outcome = dict(request_id=request_id, action=action, delivered=action, local_measured=local_measured,
                    local_s=local_s if local_measured else 0.0, local_status=0, cloud_measured=cloud_measured,

@@ -31,6 +31,7 @@ from offload_learner_py.reward import CostWeights, reward
 
 DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
+CONFIG_TYPE = "offload_msgs/msg/LearnerConfig"
 BAG_SUFFIXES = (".bag", ".bag.active")
 # A chunk rosbag writes is 768 KiB by default; anything this large is damage or hostility, not data.
 MAX_CHUNK_BYTES = 256 * 1024 * 1024
@@ -39,12 +40,22 @@ NO_VALUE = object()
 # Per field: the default when a bag's message definition lacks it (None: the field is required).
 DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
                      "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
-                     "policy": "", "model_steps": 0, "probe": NO_VALUE}
+                     "policy": "", "model_steps": 0, "probe": NO_VALUE, "mode": "", "routed": NO_VALUE, "breaker": "",
+                    "deadline_s": math.nan}
 OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH_DELIVERED,
                     "local_measured": NO_VALUE, "local_s": None, "local_status": 0, "cloud_measured": NO_VALUE,
                     "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
-                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan}
+                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan,
+                    "hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED, "robot_cpu_s": math.nan,
+                    "bridge_cpu_s": math.nan, "link_bytes_sent": 0, "link_bytes_received": 0}
 assert tuple(DECISION_DEFAULTS) == DECISION_FIELDS and tuple(OUTCOME_DEFAULTS) == OUTCOME_FIELDS
+# The learner's latched settings (offload_msgs/LearnerConfig); every field optional.
+CONFIG_DEFAULTS = {"policy": "", "mode": "", "learn": False, "explore": False, "alpha": math.nan, "beta": math.nan,
+                   "gamma": math.nan, "epsilon": math.nan, "learning_starts": 0, "probe_rate": math.nan,
+                   "cloud_timeout_s": math.nan, "hedge": False, "hedge_deadline_s": math.nan,
+                   "hedge_quantile": math.nan, "hedge_min_s": math.nan, "hedge_max_s": math.nan,
+                   "breaker_failures": 0, "breaker_max_round_trip_s": math.nan, "breaker_retry_s": math.nan,
+                   "seed": 0, "dqn_config_json": ""}
 
 
 class BagReadError(ValueError):
@@ -76,6 +87,7 @@ class BagReport:
     damaged_chunks: int = 0           # chunks that do not decompress (their messages are lost)
     invalid_examples: List[str] = field(default_factory=list)
     definitions: Dict[str, str] = field(default_factory=dict)   # message type -> md5 of the bag's definition
+    configs: List[dict] = field(default_factory=list)   # the learner's latched settings, one per session
 
     def skip(self, why: str) -> None:
         self.invalid += 1
@@ -98,6 +110,15 @@ class ReadReport:
 
     def total(self, name: str) -> int:
         return sum(getattr(bag, name) for bag in self.bags)
+
+    def recorded(self, name: str) -> list:
+        """The distinct values of one LearnerConfig field over every session in the bags."""
+        values = []
+        for bag in self.bags:
+            for config in bag.configs:
+                if config.get(name) not in values:
+                    values.append(config.get(name))
+        return values
 
     def to_dict(self) -> dict:
         return {"bags": [asdict(bag) for bag in self.bags], "duplicates_across_bags": self.duplicates_across_bags,
@@ -502,6 +523,8 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
     Returns why the pair is invalid, or None."""
     if outcome["action"] is NO_VALUE:
         outcome["action"] = decision["action"]
+    if decision["routed"] is NO_VALUE:
+        decision["routed"] = decision["action"]
     if int(outcome["action"]) != int(decision["action"]):
         return f"decision action {decision['action']}, outcome action {outcome['action']}"
     if decision["action"] not in (LOCAL, CLOUD):
@@ -520,9 +543,14 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
             outcome[f"{side}_measured"] = bool(_finite(value) and value > 0)
     if decision["probe"] is NO_VALUE:
         decision["probe"] = bool(outcome["local_measured"] and outcome["cloud_measured"])
-    taken = "cloud" if decision["action"] == CLOUD else "local"
-    if not outcome[f"{taken}_measured"]:
-        return f"the taken side ({taken}) has no measured latency"
+    # The side the router called first is measured, except on a probe, where the side that lost the race may
+    # have been dropped before it started (a newer request needed it); a probe still measured one side.
+    routed = "cloud" if decision["routed"] == CLOUD else "local"
+    if decision["probe"]:
+        if not (outcome["local_measured"] or outcome["cloud_measured"]):
+            return "a probe with no measured latency"
+    elif not outcome[f"{routed}_measured"]:
+        return f"the routed side ({routed}) has no measured latency"
     for side in ("local", "cloud"):
         value = outcome[f"{side}_s"]
         if outcome[f"{side}_measured"] and not (_finite(value) and value > 0):
@@ -551,7 +579,7 @@ def _columns(rows: List[Tuple[Dict, Dict, int]]) -> Dict[str, np.ndarray]:
             columns[f"outcome_{name}"] = [outcome[name] for _, outcome, _ in rows]
     arrays = {}
     for name, values in columns.items():
-        if name == "policy":
+        if name in ("policy", "mode", "breaker"):
             arrays[name] = np.array([str(v) for v in values], dtype=object)
         elif name in ("request_id", "model_steps"):
             arrays[name] = np.array(values, dtype=np.uint64).astype(np.int64) if values else np.zeros(0, np.int64)
@@ -604,7 +632,7 @@ def _read_bag(path: str, report: BagReport, weights: CostWeights) -> Dict[str, n
 
 
 def _is_ours(msgtype: str) -> bool:
-    return msgtype in (DECISION_TYPE, OUTCOME_TYPE)
+    return msgtype in (DECISION_TYPE, OUTCOME_TYPE, CONFIG_TYPE)
 
 
 def _select(connections, report: BagReport) -> List:
@@ -634,9 +662,10 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
         key = (connection.msgtype, connection.md5sum, connection.msgdef)
         decoder = decoders.get(key)
         if decoder is None:
-            is_decision = connection.msgtype == DECISION_TYPE
+            defaults = {DECISION_TYPE: DECISION_DEFAULTS, CONFIG_TYPE: CONFIG_DEFAULTS}.get(connection.msgtype,
+                                                                                          OUTCOME_DEFAULTS)
             try:
-                decoder = _Decoder(connection, DECISION_DEFAULTS if is_decision else OUTCOME_DEFAULTS)
+                decoder = _Decoder(connection, defaults)
             except ValueError as error:
                 raise BagReadError(f"{path}: {error}") from None
             decoders[key] = decoder
@@ -648,6 +677,9 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
             report.note(f"undecodable {connection.msgtype}: {type(error).__name__}: {error}")
             continue
         report.topics[connection.topic] = report.topics.get(connection.topic, 0) + 1
+        if connection.msgtype == CONFIG_TYPE:
+            report.configs.append(values)
+            continue
         request_id = int(values["request_id"])
         if connection.msgtype == DECISION_TYPE:
             report.decisions += 1

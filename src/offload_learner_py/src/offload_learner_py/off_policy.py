@@ -166,7 +166,9 @@ class LoggedSteps:
     @classmethod
     def from_log(cls, log: RequestLog, rows: Optional[np.ndarray] = None) -> "LoggedSteps":
         pick = (lambda name: np.asarray(log[name])) if rows is None else (lambda name: np.asarray(log[name])[rows])
-        action = pick("action").astype(np.int64)
+        # The behaviour is what the router did: the side it called first (the decided action unless the circuit
+        # breaker kept a cloud decision local).
+        action = pick("routed" if "routed" in log.columns else "action").astype(np.int64)
         local_s, cloud_s = pick("outcome_local_s").astype(np.float64), pick("outcome_cloud_s").astype(np.float64)
         both = np.isfinite(local_s) & np.isfinite(cloud_s) & (local_s > 0) & (cloud_s > 0)
         probe = pick("probe").astype(bool) & both

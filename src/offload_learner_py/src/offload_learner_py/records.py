@@ -8,12 +8,19 @@ import numpy as np
 
 from offload_learner_py.dataset import TransitionTable
 
+NO_PATH_DELIVERED = 255
+# Fields added with the two modes and robot cost accounting, and their value in records made before them
+# ("routed" defaults to the decision's action).
+OPTIONAL_DECISION_FIELDS = {"mode": "", "routed": None, "breaker": "", "deadline_s": float("nan")}
+OPTIONAL_OUTCOME_FIELDS = {"hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED,
+                           "robot_cpu_s": float("nan"), "bridge_cpu_s": float("nan"), "link_bytes_sent": 0,
+                           "link_bytes_received": 0}
 DECISION_FIELDS = ("request_id", "input_size", "cpu_availability", "round_trip_s", "action",
-                   "action_propensity", "q_local", "q_cloud", "policy", "model_steps", "probe")
+                   "action_propensity", "q_local", "q_cloud", "policy", "model_steps", "probe",
+                   *OPTIONAL_DECISION_FIELDS)
 OUTCOME_FIELDS = ("request_id", "action", "delivered", "local_measured", "local_s", "local_status",
                   "cloud_measured", "cloud_s", "cloud_status", "cloud_timeout", "reward_valid", "reward",
-                  "loss_valid", "loss", "delivered_s")
-NO_PATH_DELIVERED = 255
+                  "loss_valid", "loss", "delivered_s", *OPTIONAL_OUTCOME_FIELDS)
 
 
 class RecordMismatchError(ValueError):
@@ -60,17 +67,19 @@ def pair_records(decisions: Iterable, outcomes: Iterable) -> RequestLog:
     for request_id in ids:
         decision, outcome = by_id[request_id]
         for name in DECISION_FIELDS:
-            columns[name].append(getattr(decision, name))
+            default = decision.action if name == "routed" else OPTIONAL_DECISION_FIELDS.get(name)
+            columns[name].append(getattr(decision, name, default) if name in OPTIONAL_DECISION_FIELDS
+                                 else getattr(decision, name))
         columns["has_outcome"].append(outcome is not None)
         for name in OUTCOME_FIELDS:
             if name in ("request_id", "action"):
                 continue
-            columns[f"outcome_{name}"].append(getattr(outcome, name) if outcome is not None else
-                                              (float("nan") if name.endswith("_s") or name in ("reward", "loss")
-                                               else 0))
+            missing = OPTIONAL_OUTCOME_FIELDS.get(name, float("nan") if name.endswith("_s") or name in ("reward", "loss")
+                                                  else 0)
+            columns[f"outcome_{name}"].append(getattr(outcome, name, missing) if outcome is not None else missing)
     arrays = {}
     for name, values in columns.items():
-        arrays[name] = np.array(values, dtype=object if name == "policy" else None)
+        arrays[name] = np.array(values, dtype=object if name in ("policy", "mode", "breaker") else None)
     if not ids:
         arrays = {name: np.zeros(0) for name in columns}
     return RequestLog(arrays)

@@ -134,6 +134,17 @@ def logged_reward_mismatch(table: TransitionTable, weights: CostWeights) -> floa
     return float(np.max(np.abs(rewards(table.action, table.local_s, table.cloud_s, weights) - table.reward)))
 
 
+def recorded_weights(data: BagData) -> CostWeights:
+    """alpha and beta as the learner recorded them in the bags (its latched config); the paper's 0.5 for
+    bags from before the config was recorded. Sessions with different weights cannot share one reward."""
+    recorded = [alpha for alpha in data.report.recorded("alpha") if alpha is not None and math.isfinite(alpha)]
+    if len(recorded) > 1:
+        raise ValueError(f"the bags were recorded with different alphas {sorted(recorded)}: pass --alpha, or "
+                         "retrain from bags of one setting")
+    alpha = recorded[0] if recorded else 0.5
+    return CostWeights(alpha, 1.0 - alpha)
+
+
 def greedy_actions(agent: DQNAgent, states: np.ndarray) -> np.ndarray:
     if len(states) == 0:
         return np.zeros(0, dtype=np.int64)
@@ -263,7 +274,9 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--test-fraction", type=float, default=0.2)
     parser.add_argument("--baselines", action="store_true", help="also fit and score every baseline policy")
     parser.add_argument("--taken-only", action="store_true", help="learn from the logged action only")
-    parser.add_argument("--alpha", type=float, default=0.5, help="weight of local time in eq. 10 (beta = 1 - alpha)")
+    parser.add_argument("--alpha", type=float, default=None,
+                        help="weight of local time in eq. 10 (beta = 1 - alpha); default: the alpha the bags' "
+                             "learner config recorded, else 0.5")
     parser.add_argument("--gamma", type=float, default=None)
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="any DQNConfig field")
     parser.add_argument("--workers", type=int, default=None, help="bag reader processes (default: CPU count)")
@@ -274,7 +287,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         if args.gamma is not None:
             overrides["gamma"] = args.gamma
         config = DQNConfig.from_dict({"seed": args.seed, **overrides})
-        weights = CostWeights(args.alpha, 1.0 - args.alpha)
+        weights = CostWeights(args.alpha, 1.0 - args.alpha) if args.alpha is not None else None
         if args.steps is not None and args.steps < 1:
             raise ValueError(f"--steps must be at least 1, got {args.steps}")
         chronological_split(2, args.test_fraction)
@@ -284,6 +297,12 @@ def main(argv: Optional[List[str]] = None) -> int:
     torch.set_num_threads(1)   # tiny network: one thread is fastest, and the result does not depend on cores
     data = read_bags(args.bags, workers=args.workers)
     print(data.report.format(), file=sys.stderr)
+    if weights is None:
+        try:
+            weights = recorded_weights(data)
+        except ValueError as error:
+            print(f"error: {error}", file=sys.stderr)
+            return 2
     try:
         evaluation = retrain(data, args.out, config, args.steps, args.test_fraction, args.baselines, weights,
                              args.taken_only, progress=not args.quiet)

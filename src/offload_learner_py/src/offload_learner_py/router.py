@@ -5,11 +5,24 @@ then measure, reward (eq. 10) and learn (Algorithm 1) off the caller's path.
 The ROS node injects the two planners as callables `plan(request) -> (status, response)` and the
 PlanPath status codes, so this module never imports a message type; tests drive it with fakes.
 
-Probe steps run both sides at once, not one after the other: the caller gets whichever good path
-arrives first (a probe never makes a request slower than its faster side), and both latencies are
-measured over the same moment of CPU load and link state, which is what the oracle compares. The
-slower side finishes in the background; the next request waits for it before it starts, so no two
-requests ever share the robot's CPU or the link.
+Two modes. `learning`: every request is a probe, both sides run at once and the caller gets the first
+good path; both latencies are measured over the same moment of CPU load and link state, so both actions'
+eq. 10 rewards are known and both are learned (full information), and the taken action is the greedy one
+(exploring would change nothing the caller gets). `deployed`: the chosen side alone, so the robot saves its
+CPU or the link; a `probe_rate` share of requests (drawn independently of the state, so they are an
+unbiased sample for off-policy evaluation) are probes. A deployed request measures one side; the other is
+imputed by that side's latency model (latency_model.py) so eq. 10 still teaches the DQN.
+
+Each side is a lane that serves one call at a time (the planner node is single-threaded); a request never
+waits for a side it does not call, so the slower side of a probe finishes in the background without holding
+up the next request, and a background call that has not started yet is cancelled when a newer request
+needs that side. `delivered_s` runs from the request's arrival (any wait for a busy side included) to
+the path the caller gets.
+
+Deadline hedge: when the chosen side has not answered within a deadline (a quantile of its latency model
+for this state, clamped, or a fixed bound), the other side starts and the first good path is delivered.
+Circuit breaker (breaker.py): after repeated cloud failures or a heartbeat that says the link is down or
+too slow, requests are planned locally without touching the link until the link is healthy again.
 """
 import math
 import threading
@@ -21,8 +34,14 @@ from typing import Any, Callable, Optional, Tuple
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
+from offload_learner_py.latency_model import LatencyModel, LatencyModelConfig
 from offload_learner_py.reward import CostWeights, cloud_latency_s, reward
 from offload_learner_py.state import State
+
+LEARNING, DEPLOYED = "learning", "deployed"
+MODES = (LEARNING, DEPLOYED)
+OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 
 NO_PATH_DELIVERED = 255   # `delivered` when neither side produced a path
 
@@ -49,12 +68,31 @@ class Decision:
 
 @dataclass
 class SideResult:
-    """One planner call as the learner saw it: status, response, request-to-reply seconds."""
+    """One planner call as the learner saw it: status, response, call-to-reply seconds."""
     status: int
     response: Any
     seconds: float
     raised: Optional[str] = None    # no usable answer (planner node down, a stale map): why
     note: Optional[str] = None      # a usable answer with a caveat (planned on the last map the planner took)
+    link_failed: bool = False       # the call itself failed (timeout, link error, planner node gone), not a stale map
+    cpu_s: float = 0.0              # robot CPU-seconds the serving node spent on it (the response says)
+    bytes_sent: int = 0             # link bytes robot -> cloud for it (cloud side)
+    bytes_received: int = 0
+    cancelled: bool = False         # a background call dropped before it started (a newer request took the side)
+    started_after_s: float = 0.0    # from the request's arrival to the call (a busy side, or a hedge)
+
+
+@dataclass(frozen=True)
+class Routing:
+    """What the router did with a decision, published before any side is called."""
+    request_id: int
+    state: State
+    decision: "Decision"
+    probe: bool
+    action: int                     # side called first: the policy's action unless the breaker overrode it
+    mode: str
+    breaker: str = CLOSED           # CLOSED, OPEN (cloud skipped) or TRIAL (a probe to test the link)
+    deadline_s: float = float("nan")   # hedge deadline of the first side; NaN when not hedged
 
 
 @dataclass
@@ -64,15 +102,23 @@ class Outcome:
     decision: Decision
     probe: bool
     delivered: int                  # LOCAL, CLOUD or NO_PATH_DELIVERED
-    delivered_s: float              # request to path as the caller saw it
+    delivered_s: float              # arrival of the request to its path, as the caller saw it
     local: Optional[SideResult] = None
     cloud: Optional[SideResult] = None
     local_s: Optional[float] = None     # l_local when measured
     cloud_s: Optional[float] = None     # l_cloud when measured (timeout when the cloud failed)
     cloud_timeout: bool = False
-    reward: Optional[float] = None
+    reward: Optional[float] = None  # eq. 10 of the decided action, from measured (or imputed) latencies
     loss: Optional[float] = None
     learned: bool = False           # a transition went to the learner
+    transitions: int = 0            # how many: 2 with both latencies (full information), else 0
+    imputed: Optional[int] = None   # the side whose latency the reward imputed (LOCAL or CLOUD), None if measured
+    hedged: bool = False            # the other side was started after the first missed its deadline
+    routing: Optional[Routing] = None
+    robot_cpu_s: float = 0.0        # robot planning CPU: the local planner node's own, for this request
+    bridge_cpu_s: float = 0.0       # the cloud bridge's CPU on the robot for this request (serialising, waiting)
+    bytes_sent: int = 0
+    bytes_received: int = 0
 
 
 class DecisionPolicy:
@@ -85,6 +131,11 @@ class DecisionPolicy:
 
     def learn(self, state: State, action: int, reward_value: float) -> Optional[float]:
         return None
+
+    @property
+    def warming_up(self) -> bool:
+        """Still collecting its first transitions: a deployed router probes every request meanwhile."""
+        return False
 
     @property
     def steps(self) -> int:
@@ -128,21 +179,28 @@ class InputSizeThresholdDecision(DecisionPolicy):
 class DQNDecision(DecisionPolicy):
     """Algorithm 1 online. Decisions read a numpy snapshot of the Q-network (FastDecision), rebuilt
     after each gradient step, so deciding never waits for training or takes the torch path. With
-    learn false the greedy policy of the loaded model is used and nothing is trained."""
+    learn false the greedy policy of the loaded model is used and nothing is trained. With explore false
+    (learning mode, where both sides run anyway, and deployed mode, where probes explore) the action is
+    always the greedy one: epsilon-greedy would only cost the robot time."""
     name = "dqn"
 
-    def __init__(self, agent, learn: bool = True, seed: Optional[int] = None):
+    def __init__(self, agent, learn: bool = True, seed: Optional[int] = None, explore: bool = True):
         self.agent = agent
         self.learns = learn
+        self.explore = explore
         self.rng = np.random.default_rng(agent.config.seed if seed is None else seed)
         self._lock = threading.Lock()
         self._pending: Optional[Tuple[np.ndarray, int, float]] = None
         self._snapshot = agent.fast_decision()
 
     def epsilon(self) -> float:
-        if not self.learns:
+        if not (self.learns and self.explore):
             return 0.0
         return 1.0 if self.agent.in_warm_up() else self.agent.config.epsilon
+
+    @property
+    def warming_up(self) -> bool:
+        return self.learns and self.agent.in_warm_up()
 
     def decide(self, state):
         greedy, q_local, q_cloud = self._snapshot.decide(state.input_size, state.cpu_availability,
@@ -192,8 +250,13 @@ class DQNDecision(DecisionPolicy):
 
 @dataclass
 class RouterConfig:
-    probe_rate: float = 1.0
-    """share of requests on which both sides run (1.0 while learning, as the paper; small deployed)."""
+    mode: str = DEPLOYED
+    """learning (probe every request, full-information learning) or deployed (the chosen side alone)."""
+    probe_rate: float = 0.05
+    """deployed: share of requests on which both sides run (learning mode probes every request)."""
+    probe_while_warming_up: bool = True
+    """deployed, a learning policy: probe every request until it and both latency models have their first
+    samples (a fixed policy never probes beyond probe_rate)."""
     cloud_timeout_s: float = 5.0
     """l_cloud of a request the cloud did not answer (the paper's 5 s)."""
     weights: CostWeights = field(default_factory=CostWeights)
@@ -204,8 +267,20 @@ class RouterConfig:
     answer counts as a failure (a planner gets a new map a moment after the learner hears of it)."""
     map_retry_s: float = 0.02
     """pause between those calls."""
+    hedge: bool = False
+    """start the other side when the chosen one has not answered by the deadline."""
+    hedge_deadline_s: float = 0.0
+    """a fixed deadline; 0: the hedge_quantile of the chosen side's latency model for the state."""
+    hedge_quantile: float = 0.95
+    hedge_min_s: float = 0.05
+    hedge_max_s: float = 1.0
+    """the model's deadline is clamped to [min, max]; max also serves while the model is not ready."""
+    breaker: BreakerConfig = field(default_factory=BreakerConfig)
+    latency_model: LatencyModelConfig = field(default_factory=LatencyModelConfig)
 
     def __post_init__(self):
+        if self.mode not in MODES:
+            raise ValueError(f"mode must be one of {', '.join(MODES)}, got {self.mode!r}")
         if not 0.0 <= self.probe_rate <= 1.0:
             raise ValueError(f"probe_rate must be in [0, 1], got {self.probe_rate}")
         if not (self.cloud_timeout_s > 0 and math.isfinite(self.cloud_timeout_s)):
@@ -214,70 +289,223 @@ class RouterConfig:
             raise ValueError(f"map_wait_s must be finite and >= 0, got {self.map_wait_s}")
         if not (self.map_retry_s > 0 and math.isfinite(self.map_retry_s)):
             raise ValueError(f"map_retry_s must be positive, got {self.map_retry_s}")
+        if not (self.hedge_deadline_s >= 0 and math.isfinite(self.hedge_deadline_s)):
+            raise ValueError(f"hedge_deadline_s must be finite and >= 0, got {self.hedge_deadline_s}")
+        if not 0.5 <= self.hedge_quantile < 1.0:
+            raise ValueError(f"hedge_quantile must be in [0.5, 1), got {self.hedge_quantile}")
+        if not (0 < self.hedge_min_s <= self.hedge_max_s and math.isfinite(self.hedge_max_s)):
+            raise ValueError(f"need 0 < hedge_min_s <= hedge_max_s < inf, got {self.hedge_min_s}, {self.hedge_max_s}")
+
+    @property
+    def probes_every_request(self) -> bool:
+        return self.mode == LEARNING or self.probe_rate >= 1.0
+
+
+def _features(state: State) -> Tuple[float, float, float]:
+    return state.input_size, state.cpu_availability, state.round_trip_s
 
 
 PlanCall = Callable[[Any], Tuple[int, Any]]
+Accounting = Callable[[Any], Tuple[float, int, int]]
+
+
+class _Lane:
+    """One planner side: one call at a time, newest request first for calls nobody waits for."""
+
+    def __init__(self):
+        self.lock = threading.Lock()
+        self.newest_lock = threading.Lock()
+        self.newest = -1
+
+    def want(self, request_id: int) -> None:
+        with self.newest_lock:
+            self.newest = max(self.newest, request_id)
+
+    def superseded(self, request_id: int) -> bool:
+        with self.newest_lock:
+            return self.newest > request_id
+
+
+class _Request:
+    """The state of one routed request, shared by the caller and its side threads."""
+
+    def __init__(self, outcome: Outcome, began: float):
+        self.outcome = outcome
+        self.began = began
+        self.lock = threading.Lock()
+        self.delivered = threading.Event()
+        self.delivered_result: Optional[SideResult] = None
+        self.started = set()
+        self.results = {}
 
 
 class OffloadRouter:
     """Routes requests between `local` and `cloud` planners. `route()` returns the response the caller
-    gets; `on_outcome(outcome)` is called once per request when everything about it is known (after
-    learning), from a background thread on probe steps.
+    gets; `on_decision(routing)` is called before any side is called, `on_outcome(outcome)` once per request
+    when everything about it is known (after learning), from a side thread.
 
     `stale(response)` (optional) says why a good answer was planned on a map older than the one in
     force, or None. The side is asked again until it answers from the current map or `config.map_wait_s`
     has passed. Then the cloud counts as failed (CLOUD_ERROR, so the robot plans locally), while the
     local planner's answer is delivered with a note: it planned on the last map it accepted, so the
     announced map never reached it in a usable form (a malformed grid it refused, a lost message), and
-    the last good map keeps serving rather than leaving a robot without a path."""
+    the last good map keeps serving rather than leaving a robot without a path.
+
+    `account(response)` (optional) gives (robot CPU-seconds, link bytes sent, link bytes received) that
+    the serving node reported for one call."""
 
     def __init__(self, policy: DecisionPolicy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
                  on_outcome: Callable = None, clock: Callable[[], float] = time.perf_counter,
-                 stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep):
-        self.policy, self.local, self.cloud, self.statuses = policy, local, cloud, statuses
+                 stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep,
+                 account: Accounting = None, breaker: LinkBreaker = None):
+        self.policy, self.statuses = policy, statuses
+        self.sides = {LOCAL: local, CLOUD: cloud}
         self.config = config
         self.stale = stale
         self.sleep = sleep
-        self.on_decision = on_decision or (lambda request_id, state, decision, probe: None)
+        self.account = account
+        self.on_decision = on_decision or (lambda routing: None)
         self.on_outcome = on_outcome or (lambda outcome: None)
         self.clock = clock
         self.rng = np.random.default_rng(config.seed)
-        self._pool = ThreadPoolExecutor(max_workers=3, thread_name_prefix="offload-side")
-        self._previous_done = threading.Event()
-        self._previous_done.set()
-        self._serial = threading.Lock()
+        self.breaker = breaker or LinkBreaker(config.breaker)
+        self.models = {LOCAL: LatencyModel(config.latency_model), CLOUD: LatencyModel(config.latency_model)}
+        self._lanes = {LOCAL: _Lane(), CLOUD: _Lane()}
+        self._ids = threading.Lock()
+        self._deciding = threading.Lock()   # policy and probe draws share random generators across callers
+        self._idle = threading.Condition()
+        self._in_flight = 0
         self.next_request_id = 0
 
     def close(self) -> None:
-        self._previous_done.wait()
-        self._pool.shutdown(wait=True)
+        self.wait_idle()
 
     def wait_idle(self, timeout_s: Optional[float] = None) -> bool:
-        """True once the last request's outcome was handed over."""
-        return self._previous_done.wait(timeout_s)
+        """True once every request's outcome was handed over."""
+        with self._idle:
+            return self._idle.wait_for(lambda: self._in_flight == 0, timeout_s)
 
     # --- one request ----------------------------------------------------------------------------
-    def route(self, request, state: Optional[State]):
-        """The caller's response. state None (no map yet, a malformed pose): the request goes to the
+    def route(self, request, state: Optional[State], arrived: Optional[float] = None):
+        """The caller's response. `arrived`: when the request reached the node (clock time), so waits before
+        routing count; default now. state None (no map yet, a malformed pose): the request goes to the
         local planner, which reports the exact status, and nothing is learned from it."""
-        with self._serial:
-            self._previous_done.wait()   # the previous probe's slower side has finished
-            self._previous_done.clear()
+        began = self.clock() if arrived is None else arrived
+        with self._ids:
             request_id = self.next_request_id
             self.next_request_id += 1
+        with self._idle:
+            self._in_flight += 1
         try:
             if state is None:
-                return self._unlearnable(request_id, request)
-            decision = self.policy.decide(state)
-            probe = bool(self.config.probe_rate >= 1.0 or self.rng.random() < self.config.probe_rate)
-            self.on_decision(request_id, state, decision, probe)
-            if probe:
-                return self._probe(request_id, request, state, decision)
-            return self._single(request_id, request, state, decision)
+                outcome = Outcome(request_id, None, Decision(LOCAL, 1.0), False, NO_PATH_DELIVERED, 0.0)
+                return self._run(_Request(outcome, began), (LOCAL,), None, request)
+            with self._deciding:
+                decision = self.policy.decide(state)
+                routing = self._route_decision(request_id, state, decision)
+            self.on_decision(routing)
+            outcome = Outcome(request_id, state, decision, routing.probe, NO_PATH_DELIVERED, 0.0, routing=routing)
+            first = (LOCAL, CLOUD) if routing.probe else (routing.action,)
+            deadline = None if math.isnan(routing.deadline_s) else routing.deadline_s
+            return self._run(_Request(outcome, began), first, deadline, request)
         except BaseException:
-            self._previous_done.set()
+            self._done()
             raise
+
+    def _route_decision(self, request_id: int, state: State, decision: Decision) -> Routing:
+        config = self.config
+        probe = config.probes_every_request or bool(self.rng.random() < config.probe_rate)
+        if config.mode == DEPLOYED and config.probe_while_warming_up and not probe and self.policy.learns:
+            probe = self.policy.warming_up or not all(model.ready for model in self.models.values())
+        admitted = self.breaker.admit()
+        action = decision.action
+        if admitted == OPEN:
+            probe, action = False, LOCAL      # a link known to be down is not offloaded into
+        elif admitted == TRIAL:
+            probe = True                      # both sides: the caller gets local at worst, the link is tested
+        deadline_s = self._deadline_s(action, state) if config.hedge and not probe else float("nan")
+        return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s)
+
+    def _deadline_s(self, side: int, state: State) -> float:
+        config = self.config
+        if config.hedge_deadline_s > 0:
+            return config.hedge_deadline_s
+        quantile = self.models[side].quantile_s(_features(state), config.hedge_quantile)
+        if quantile is None:
+            return config.hedge_max_s
+        return min(max(quantile, config.hedge_min_s), config.hedge_max_s)
+
+    def _run(self, req: _Request, first, deadline_s: Optional[float], request=None):
+        self._start(req, first, request)
+        if deadline_s is not None and not req.delivered.wait(deadline_s):
+            other = OTHER[first[0]]
+            with req.lock:
+                late = not req.delivered.is_set() and other not in req.started
+            if late and (other == LOCAL or self.breaker.admit() != OPEN):
+                req.outcome.hedged = True
+                self._start(req, (other,), request)
+        req.delivered.wait()
+        return req.delivered_result
+
+    def _start(self, req: _Request, sides, request) -> None:
+        """All of `sides` count as started before any runs, so the first to finish cannot finish the request."""
+        with req.lock:
+            sides = [side for side in sides if side not in req.started]
+            req.started.update(sides)
+        for side in sides:
+            self._lanes[side].want(req.outcome.request_id)
+        for side in sides:
+            threading.Thread(target=self._side, args=(req, side, request), daemon=True,
+                             name=f"offload-{'cloud' if side == CLOUD else 'local'}").start()
+
+    def _side(self, req: _Request, side: int, request) -> None:
+        lane = self._lanes[side]
+        with lane.lock:
+            if req.delivered.is_set() and lane.superseded(req.outcome.request_id):
+                result = SideResult(self.statuses.cloud_error, None, 0.0, raised="cancelled: a newer request needed "
+                                    "this side first", cancelled=True)
+            else:
+                started_after_s = self.clock() - req.began
+                try:
+                    result = self._call_local(request) if side == LOCAL else self._call_cloud(request)
+                except Exception as error:   # a broken stale() or account(): a failed side, never a lost request
+                    result = SideResult(self.statuses.cloud_error, None, self.clock() - req.began - started_after_s,
+                                        raised=f"{type(error).__name__}: {error}", link_failed=True)
+                result.started_after_s = started_after_s
+        if side == CLOUD and not result.cancelled and req.outcome.state is not None:
+            self.breaker.record_call(not result.link_failed)
+        self._settle(req, side, result, request)
+
+    def _settle(self, req: _Request, side: int, result: SideResult, request) -> None:
+        """Record one side's result; deliver the first good path; when no side is left running, finish."""
+        fallback = False
+        with req.lock:
+            req.results[side] = result
+            good = result.status == self.statuses.ok and result.note is None and not result.cancelled
+            if good and not req.delivered.is_set():
+                self._deliver(req, side, result)
+            all_done = req.started <= set(req.results)
+            if all_done and not req.delivered.is_set():
+                if LOCAL not in req.started and self.statuses.cloud_failed(result.status):
+                    fallback = True           # the cloud failed: the robot still gets its path
+                elif LOCAL in req.results:
+                    self._deliver(req, LOCAL, req.results[LOCAL])
+                else:
+                    self._deliver(req, side, result)   # the planner's own verdict on the request (NO_PATH, ...)
+            finish = all_done and not fallback
+        if fallback:
+            self._start(req, (LOCAL,), request)
+        elif finish:
+            self._finish(req)
+
+    def _deliver(self, req: _Request, side: int, result: SideResult) -> None:
+        """Under req.lock."""
+        req.outcome.delivered_s = self.clock() - req.began
+        if result.status == self.statuses.ok and not result.cancelled:
+            req.outcome.delivered = side
+        req.delivered_result = result
+        req.delivered.set()
 
     def _call(self, side: PlanCall, request, failure_status: int, stale_status: Optional[int]) -> SideResult:
         """stale_status None: after the wait, an answer from the older map is delivered with a note."""
@@ -286,106 +514,62 @@ class OffloadRouter:
             try:
                 status, response = side(request)
             except Exception as error:   # the planner node is gone or broke: a failed side, never a lost request
-                return SideResult(failure_status, None, self.clock() - began,
+                return SideResult(failure_status, None, self.clock() - began, link_failed=True,
                                   raised=f"planner call failed: {type(error).__name__}: {error}")
             why = self.stale(response) if self.stale is not None and status == self.statuses.ok else None
             if why is None:
-                return SideResult(int(status), response, self.clock() - began)
+                result = SideResult(int(status), response, self.clock() - began,
+                                    link_failed=self.statuses.cloud_failed(int(status)))
+                break
             if self.clock() - began >= self.config.map_wait_s:
                 if stale_status is None:
-                    return SideResult(int(status), response, self.clock() - began,
-                                      note=f"planned on the last map the planner accepted: {why} (still not "
-                                           f"taken after {self.config.map_wait_s:g} s)")
-                return SideResult(stale_status, None, self.clock() - began,
-                                  raised=f"no path on the map in force within {self.config.map_wait_s:g} s: {why}")
+                    result = SideResult(int(status), response, self.clock() - began,
+                                        note=f"planned on the last map the planner accepted: {why} (still not "
+                                             f"taken after {self.config.map_wait_s:g} s)")
+                else:
+                    result = SideResult(stale_status, None, self.clock() - began,
+                                        raised=f"no path on the map in force within {self.config.map_wait_s:g} s: {why}")
+                break
             self.sleep(self.config.map_retry_s)
+        if self.account is not None and response is not None:
+            result.cpu_s, result.bytes_sent, result.bytes_received = self.account(response)
+        return result
 
     def _call_local(self, request) -> SideResult:
         # A local planner that cannot be called at all is reported as a cloud-style error status so
         # the caller still learns why; there is nobody else to plan.
-        return self._call(self.local, request, self.statuses.cloud_error, None)
+        return self._call(self.sides[LOCAL], request, self.statuses.cloud_error, None)
 
     def _call_cloud(self, request) -> SideResult:
-        return self._call(self.cloud, request, self.statuses.cloud_error, self.statuses.cloud_error)
+        return self._call(self.sides[CLOUD], request, self.statuses.cloud_error, self.statuses.cloud_error)
 
-    def _unlearnable(self, request_id, request):
-        began = self.clock()
-        local = self._call_local(request)
-        outcome = Outcome(request_id, None, Decision(LOCAL, 1.0), False,
-                          LOCAL if local.status == self.statuses.ok else NO_PATH_DELIVERED,
-                          self.clock() - began, local=local, local_s=local.seconds)
-        self._pool.submit(self._finish, outcome)
-        return local
+    # --- after the caller has its path ------------------------------------------------------------
+    def _finish(self, req: _Request) -> None:
+        outcome = req.outcome
+        try:
+            for side, result in req.results.items():
+                if result.cancelled:
+                    continue
+                if side == LOCAL:
+                    outcome.local, outcome.local_s = result, result.seconds
+                else:
+                    outcome.cloud = result
+                    self._score_cloud(outcome)
+                if side == LOCAL:
+                    outcome.robot_cpu_s += result.cpu_s
+                else:
+                    outcome.bridge_cpu_s += result.cpu_s
+                outcome.bytes_sent += result.bytes_sent
+                outcome.bytes_received += result.bytes_received
+            self._learn(outcome)
+            self.on_outcome(outcome)
+        finally:
+            self._done()
 
-    def _single(self, request_id, request, state, decision):
-        began = self.clock()
-        outcome = Outcome(request_id, state, decision, False, NO_PATH_DELIVERED, 0.0)
-        if decision.action == CLOUD:
-            outcome.cloud = self._call_cloud(request)
-            self._score_cloud(outcome)
-            delivered = outcome.cloud
-            if self.statuses.cloud_failed(outcome.cloud.status):
-                outcome.local = self._call_local(request)   # fallback: the robot still gets its path
-                outcome.local_s = outcome.local.seconds
-                delivered = outcome.local
-                outcome.delivered = LOCAL if delivered.status == self.statuses.ok else NO_PATH_DELIVERED
-            else:
-                outcome.delivered = CLOUD if delivered.status == self.statuses.ok else NO_PATH_DELIVERED
-        else:
-            outcome.local = delivered = self._call_local(request)
-            outcome.local_s = outcome.local.seconds
-            outcome.delivered = LOCAL if delivered.status == self.statuses.ok else NO_PATH_DELIVERED
-        outcome.delivered_s = self.clock() - began
-        self._pool.submit(self._finish, outcome)   # learning happens after the caller has its path
-        return delivered
-
-    def _probe(self, request_id, request, state, decision):
-        began = self.clock()
-        outcome = Outcome(request_id, state, decision, True, NO_PATH_DELIVERED, 0.0)
-        first_good = threading.Event()
-        results = {}
-        lock = threading.Lock()
-
-        def run(side, call):
-            result = call(request)
-            with lock:
-                results[side] = result
-                # A noted answer (the last good map) only when the other side has nothing fresher.
-                if result.status == self.statuses.ok and result.note is None and "delivered" not in results:
-                    results["delivered"] = side
-                    outcome.delivered_s = self.clock() - began
-                    first_good.set()
-                if LOCAL in results and CLOUD in results:
-                    first_good.set()   # neither succeeded: the caller gets the local answer
-            return result
-
-        local_future = self._pool.submit(run, LOCAL, self._call_local)
-        cloud_future = self._pool.submit(run, CLOUD, self._call_cloud)
-        first_good.wait()
-        with lock:
-            side = results.get("delivered")
-        if side is None:
-            local_future.result()
-            delivered = results[LOCAL]
-            outcome.delivered_s = self.clock() - began
-            if delivered.status == self.statuses.ok:
-                outcome.delivered = LOCAL
-        else:
-            delivered = results[side]
-            outcome.delivered = side
-
-        def complete():
-            try:
-                outcome.local, outcome.cloud = local_future.result(), cloud_future.result()
-                outcome.local_s = outcome.local.seconds
-                self._score_cloud(outcome)
-                self._finish(outcome)
-            except BaseException:
-                self._previous_done.set()
-                raise
-
-        self._pool.submit(complete)
-        return delivered
+    def _done(self) -> None:
+        with self._idle:
+            self._in_flight -= 1
+            self._idle.notify_all()
 
     def _score_cloud(self, outcome: Outcome) -> None:
         cloud = outcome.cloud
@@ -394,18 +578,41 @@ class OffloadRouter:
         # A cloud that failed or answered after the deadline costs the full timeout (the paper's rule).
         outcome.cloud_s = cloud_latency_s(None if failed else cloud.seconds, self.config.cloud_timeout_s)
 
-    def _finish(self, outcome: Outcome) -> None:
-        """Reward and learn where both latencies are known and the request itself was plannable."""
-        try:
-            # A local answer that waited for a map the planner never took measures the wait, not planning.
-            local_ok = outcome.local is not None and outcome.local.status == self.statuses.ok \
-                and outcome.local.note is None
-            if outcome.state is not None and outcome.local_s is not None and outcome.cloud_s is not None and local_ok:
-                local_s = max(outcome.local_s, 1e-9)
-                outcome.reward = reward(outcome.decision.action, local_s, outcome.cloud_s, self.config.weights)
-                if self.policy.learns:
-                    outcome.loss = self.policy.learn(outcome.state, outcome.decision.action, outcome.reward)
-                    outcome.learned = True
-            self.on_outcome(outcome)
-        finally:
-            self._previous_done.set()
+    def _learn(self, outcome: Outcome) -> None:
+        """Reward and learn where the request itself was plannable: from both measured latencies (a probe,
+        a hedge that ran both, a cloud failure that cost the timeout), else from the measured one and the
+        other side's imputed latency (deployed)."""
+        if outcome.state is None:
+            return
+        state = _features(outcome.state)
+        # A local answer that waited for a map the planner never took measures the wait, not planning.
+        local_ok = outcome.local is not None and outcome.local.status == self.statuses.ok and outcome.local.note is None
+        cloud_ok = outcome.cloud is not None and outcome.cloud.status == self.statuses.ok
+        if local_ok:
+            self.models[LOCAL].observe(state, outcome.local_s)
+        if cloud_ok:
+            self.models[CLOUD].observe(state, outcome.cloud_s)
+        local_s = outcome.local_s if local_ok else None
+        # A cloud that failed (or never answered from the map in force) cost the timeout: that is measured too.
+        cloud_s = outcome.cloud_s if outcome.cloud is not None and (cloud_ok or self.statuses.cloud_failed(outcome.cloud.status)) else None
+        if local_s is None and cloud_s is None:
+            return     # nothing measured about planning (a refused request, a stale map, a dead local planner)
+        if local_s is None and outcome.local is not None:
+            return     # the local planner answered but not with a plannable path: nothing to impute against
+        if local_s is None:
+            local_s, outcome.imputed = self.models[LOCAL].impute_s(state), LOCAL
+        elif cloud_s is None:
+            cloud_s, outcome.imputed = self.models[CLOUD].impute_s(state), CLOUD
+        if local_s is None or cloud_s is None:
+            return     # the model of the side not run has too few samples yet
+        local_s = max(local_s, 1e-9)
+        cloud_s = max(cloud_s, 1e-9)
+        weights = self.config.weights
+        outcome.reward = reward(outcome.decision.action, local_s, cloud_s, weights)
+        if self.policy.learns:
+            # Both actions' rewards are known: two transitions (full information, or one side imputed).
+            for action in (LOCAL, CLOUD):
+                loss = self.policy.learn(outcome.state, action, reward(action, local_s, cloud_s, weights))
+                outcome.loss = loss if loss is not None else outcome.loss
+            outcome.learned = True
+            outcome.transitions = 2

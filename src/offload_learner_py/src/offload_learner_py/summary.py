@@ -54,6 +54,37 @@ def oracle_share_by_tercile(table: TransitionTable) -> dict:
     return shares
 
 
+def delivered_figures(log: RequestLog, cloud_timeout_s: float = 5.0) -> dict:
+    """What the robot got and paid, request by request, with the decisions acting: latency from arrival
+    to path as the caller saw it (mean and tail), paths delivered, robot planning CPU-seconds and link
+    bytes per request, cloud timeouts and the requests that waited at least the cloud timeout."""
+    requests = len(log)
+    answered = log["has_outcome"].astype(bool) if requests else np.zeros(0, bool)
+    figures = {"requests": requests, "answered": int(answered.sum())}
+    if not answered.any():
+        return figures
+    pick = lambda name: np.asarray(log[name], dtype=np.float64)[answered]  # noqa: E731
+    delivered_s = pick("outcome_delivered_s")
+    cpu_s = pick("outcome_robot_cpu_s")
+    bridge_s = pick("outcome_bridge_cpu_s")
+    figures.update({
+        "paths_delivered": int(np.sum(pick("outcome_delivered") != NO_PATH_DELIVERED)),
+        "mean_s": float(np.mean(delivered_s)), "p50_s": float(np.percentile(delivered_s, 50)),
+        "p95_s": float(np.percentile(delivered_s, 95)), "p99_s": float(np.percentile(delivered_s, 99)),
+        "max_s": float(np.max(delivered_s)),
+        # NaN in bags from before robot cost accounting
+        "robot_cpu_s_per_request": float(np.mean(cpu_s)) if np.all(np.isfinite(cpu_s)) else float("nan"),
+        "bridge_cpu_s_per_request": float(np.mean(bridge_s)) if np.all(np.isfinite(bridge_s)) else float("nan"),
+        "link_bytes_per_request": float(np.mean(pick("outcome_link_bytes_sent") + pick("outcome_link_bytes_received"))),
+        "cloud_timeouts": int(np.sum(pick("outcome_cloud_timeout") > 0)),
+        "waited_the_timeout": int(np.sum(delivered_s >= cloud_timeout_s)),
+        "hedged": int(np.sum(pick("outcome_hedged") > 0)),
+        "probes": int(np.sum(np.asarray(log["probe"], dtype=bool)[answered])),
+        "breaker_open": int(np.sum(np.asarray(log["breaker"], dtype=object)[answered] == "open")),
+    })
+    return figures
+
+
 def summarise(log: RequestLog, table: TransitionTable, q_values: Optional[Callable] = None) -> dict:
     """Everything the demo prints, as plain JSON-able numbers."""
     requests = len(log)
@@ -65,8 +96,8 @@ def summarise(log: RequestLog, table: TransitionTable, q_values: Optional[Callab
               "probe_steps": len(table), "cloud_timeouts": timeouts, "cloud_calls": cloud_calls,
               "policy": str(log["policy"][0]) if requests else ""}
     if requests:
-        delivered_s = log["outcome_delivered_s"][answered].astype(np.float64)
-        result["mean_delivered_s"] = float(np.mean(delivered_s)) if len(delivered_s) else float("nan")
+        result["delivered"] = delivered_figures(log)
+        result["mean_delivered_s"] = result["delivered"].get("mean_s", float("nan"))
     if len(table) == 0:
         return result
     result["whole_run"] = evaluate(table.action, table)
@@ -101,6 +132,13 @@ def format_summary(summary: dict) -> str:
     lines = [f"requests {summary['requests']}, paths delivered {summary['paths_delivered']}/"
              f"{summary['requests']}, probe steps {summary['probe_steps']}, cloud timeouts "
              f"{summary['cloud_timeouts']}/{summary['cloud_calls']} cloud calls, policy {summary['policy']}"]
+    delivered = summary.get("delivered", {})
+    if "mean_s" in delivered:
+        lines.append(f"as the caller saw it: mean {_ms(delivered['mean_s']).strip()} ms, p95 "
+                     f"{_ms(delivered['p95_s']).strip()} ms, p99 {_ms(delivered['p99_s']).strip()} ms; per request: robot "
+                     f"planning CPU {1000 * delivered['robot_cpu_s_per_request']:.1f} ms, cloud bridge CPU "
+                     f"{1000 * delivered['bridge_cpu_s_per_request']:.1f} ms, link "
+                     f"{delivered['link_bytes_per_request'] / 1024:.1f} KiB")
     unfinished = summary["requests"] - summary["answered"]
     if unfinished:
         lines.append(f"({unfinished} request(s) still in flight when the run stopped: no outcome recorded)")

@@ -17,6 +17,7 @@ import time
 
 import numpy as np
 
+from offload_planner_cpp.cli_args import bounded_float
 from offload_planner_cpp.devtools.loopback import free_port
 from offload_learner_py import plots
 from offload_learner_py.nodes.demo_keys import ensure_demo_keys
@@ -106,6 +107,15 @@ def main(argv=None) -> int:
     parser.add_argument("--steps", type=int, default=300)
     parser.add_argument("--map", default="", help="map_server YAML (default: the bundled Husky playpen)")
     parser.add_argument("--policy", default="dqn")
+    parser.add_argument("--mode", choices=("learning", "deployed"), default="learning",
+                        help="learning: both sides on every request (the paper); deployed: the chosen side alone")
+    parser.add_argument("--probe-rate", type=bounded_float("--probe-rate", 0.0, 1.0), default=0.05,
+                        help="deployed: share of requests run on both sides")
+    parser.add_argument("--hedge", action="store_true", help="deadline hedge (deployed)")
+    parser.add_argument("--model", default="", help="checkpoint to start the DQN from")
+    parser.add_argument("--learn", choices=("true", "false"), default="true")
+    parser.add_argument("--wan-args", default="", help="extra WAN emulator options, e.g. '--outage 40:30'")
+    parser.add_argument("--no-report", action="store_true", help="skip the HTML report (benchmarks)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--runs-dir", default="runs")
     parser.add_argument("--budget-cores", type=float, default=0.5,
@@ -139,16 +149,20 @@ def main(argv=None) -> int:
     robot_prefix = f"{os.path.abspath(confine)} {args.robot_core} {cgroup if budget else '-'}"
     master_port = free_port()
     launch_args = [f"steps:={args.steps}", f"policy:={args.policy}", f"seed:={args.seed}", f"out_dir:={out_dir}",
+                   f"mode:={args.mode}", f"probe_rate:={args.probe_rate}", f"hedge:={str(args.hedge).lower()}",
+                   f"learn:={args.learn}", f"wan_args:={args.wan_args}",
                    f"keys_root:={keys_root}", f"server_port:={free_port()}", f"wan_port:={free_port()}",
                    f"robot_prefix:={robot_prefix}", f"cloud_prefix:=taskset -c {args.cloud_core}",
                    f"cpu_cgroup:={cgroup if budget else ''}", f"cpu_cores:={args.robot_core}",
                    f"budget_cores:={args.budget_cores if budget else 1.0}", f"rviz:={str(args.rviz).lower()}"]
     if args.map:
         launch_args.append(f"map:={os.path.abspath(args.map)}")
+    if args.model:
+        launch_args.append(f"model:={os.path.abspath(args.model)}")
     if args.rtt_profile:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
     env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home)
-    print(f"demo: {args.steps} requests, policy {args.policy}, robot on core {args.robot_core} with "
+    print(f"demo: {args.steps} requests, policy {args.policy}, {args.mode} mode, robot on core {args.robot_core} with "
           f"{args.budget_cores if budget else 'no'} core budget, cloud on core {args.cloud_core}; output {out_dir}",
           flush=True)
     launch = subprocess.Popen(["roslaunch", "-p", str(master_port), args.launch]
@@ -178,6 +192,9 @@ def main(argv=None) -> int:
     except (FileNotFoundError, ValueError) as error:
         print(f"error: cannot summarise the run: {error}", file=sys.stderr)
         return 1
+    if args.no_report:
+        print(f"\nrun directory: {out_dir}")
+        return 130 if interrupted else 0
     try:
         report = report_run(str(out_dir))
         print(f"report (the paper's section V from this run's bag): {report}")

@@ -2,10 +2,12 @@
 two planners it routes to (the local planner node and the cloud bridge), decides per request with
 offload_learner_py.router, and publishes every decision, outcome and training statistic so a bag
 rebuilds the transition table. Thin: all logic lives in the ROS-free router."""
+import json
 import math
 import os
 import threading
 import time
+from dataclasses import asdict
 from collections import deque
 
 import numpy as np
@@ -13,18 +15,19 @@ import rospy
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
-from offload_msgs.msg import LinkLatency, OffloadDecision, OffloadOutcome, TrainingStats
+from offload_msgs.msg import LearnerConfig, LinkLatency, OffloadDecision, OffloadOutcome, TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.breaker import BreakerConfig
 from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
 from offload_learner_py.config import DQNConfig
 from offload_learner_py.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
     read_proc_stat_cores
 from offload_learner_py.dqn import DQNAgent
 from offload_learner_py.reward import CostWeights
-from offload_learner_py.router import NO_PATH_DELIVERED, DQNDecision, FixedPolicy, InputSizeThresholdDecision, \
-    OffloadRouter, RandomDecision, RouterConfig, Statuses
+from offload_learner_py.router import LEARNING, NO_PATH_DELIVERED, DQNDecision, FixedPolicy, \
+    InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
 from offload_learner_py.state import State, input_size
 
 POLICIES = ("dqn", "local", "cloud", "random", "threshold")
@@ -67,7 +70,7 @@ def make_cpu_sampler(cores: str, cgroup: str) -> LatestCpuAvailability:
 
 
 def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, dqn_overrides: dict,
-                threshold: float):
+                threshold: float, explore: bool = True):
     if name == "local":
         return FixedPolicy(LOCAL, "local"), None
     if name == "cloud":
@@ -87,7 +90,7 @@ def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, 
         rospy.loginfo("loaded %s: %d steps, %d gradient steps", source, agent.steps, agent.gradient_steps)
     else:
         agent = DQNAgent(config)
-    return DQNDecision(agent, learn=learn, seed=seed + agent.steps), agent
+    return DQNDecision(agent, learn=learn, seed=seed + agent.steps, explore=explore), agent
 
 
 def recorder_connected(publisher, recorder: str) -> bool:
@@ -113,12 +116,23 @@ class LearnerNode:
         if not isinstance(dqn_overrides, dict):
             raise ValueError(f"~dqn must be a dictionary of DQNConfig fields, got {dqn_overrides!r}")
         alpha = float(p("alpha", 0.5))
-        self.router_config = RouterConfig(probe_rate=float(p("probe_rate", 1.0)),
+        breaker = BreakerConfig(failures_to_open=int(p("breaker_failures", 3)),
+                                max_round_trip_s=float(p("breaker_max_round_trip_s", 1.0)),
+                                retry_after_s=float(p("breaker_retry_s", 5.0)))
+        self.router_config = RouterConfig(mode=str(p("mode", "deployed")), probe_rate=float(p("probe_rate", 0.05)),
                                           cloud_timeout_s=float(p("cloud_timeout_s", 5.0)),
                                           weights=CostWeights(alpha, 1.0 - alpha), seed=seed,
-                                          map_wait_s=float(p("map_wait_s", 2.0)))
+                                          map_wait_s=float(p("map_wait_s", 2.0)), hedge=bool(p("hedge", False)),
+                                          hedge_deadline_s=float(p("hedge_deadline_s", 0.0)),
+                                          hedge_quantile=float(p("hedge_quantile", 0.95)),
+                                          hedge_min_s=float(p("hedge_min_s", 0.05)),
+                                          hedge_max_s=float(p("hedge_max_s", 1.0)), breaker=breaker)
+        # Learning mode runs both sides anyway and deployed mode explores with its probes: epsilon-greedy
+        # exploration would only cost the robot time, so it is off unless asked for.
+        self.explore = bool(p("explore", False))
         self.policy, self.agent = make_policy(self.policy_name, self.checkpoint_path, os.path.expanduser(
-            str(p("model", ""))), self.learn, seed, dqn_overrides, float(p("threshold_input_size", 1.1)))
+            str(p("model", ""))), self.learn, seed, dqn_overrides, float(p("threshold_input_size", 1.1)),
+            explore=self.explore)
         self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
         # With a cgroup budget (nanosecond counters) u_t covers the time since the last request ended,
         # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
@@ -154,12 +168,14 @@ class LearnerNode:
         self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
                           CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
+        self.config_pub = rospy.Publisher("~config", LearnerConfig, queue_size=1, latch=True)
+        self.publish_config(seed, alpha)
         recorder = str(p("recorder_node", "offload_record"))
         self._wait_for_recorder(float(p("wait_for_recorder_s", 0.0)),
                                 rospy.names.resolve_name(recorder) if recorder else "")
         self.router = OffloadRouter(self.policy, local, cloud, statuses, self.router_config,
                                     on_decision=self.publish_decision, on_outcome=self.on_outcome,
-                                    stale=self.stale_map)
+                                    stale=self.stale_map, account=self.account)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = str(p("latency_topic", "/cloud_bridge/latency"))
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
@@ -179,9 +195,10 @@ class LearnerNode:
         # the epoch at start, then one per request.
         self.router.next_request_id = time.time_ns() // 1000
         rospy.on_shutdown(self.shutdown)
-        rospy.loginfo("offload learner ready: policy %s, learn %s, probe rate %.2f, routing between %s and %s",
-                      self.policy_name, self.learn and self.policy.learns, self.router_config.probe_rate,
-                      local.service, cloud.service)
+        rospy.loginfo("offload learner ready: %s mode, policy %s, learn %s, probe rate %.2f, hedge %s, routing "
+                      "between %s and %s", self.router_config.mode, self.policy_name, self.learn and self.policy.learns,
+                      1.0 if self.router_config.probes_every_request else self.router_config.probe_rate,
+                      self.router_config.hedge, local.service, cloud.service)
 
     def _wait_for_recorder(self, timeout_s: float, recorder: str) -> None:
         """Before serving, wait until the recorder (the node `recorder`, or with "" any subscriber) is
@@ -224,6 +241,13 @@ class LearnerNode:
 
     def on_latency(self, msg):
         self.round_trip_s = msg.round_trip_s
+        if msg.source == LinkLatency.HEARTBEAT:
+            self.router.breaker.record_heartbeat(msg.reachable, msg.round_trip_s)
+
+    @staticmethod
+    def account(response):
+        """(robot CPU-seconds, link bytes sent, received) the serving node reported for one call."""
+        return response.cpu_s, response.bytes_sent, response.bytes_received
 
     def on_initial_pose(self, msg):
         self.start_xy = (msg.pose.pose.position.x, msg.pose.pose.position.y)
@@ -278,8 +302,9 @@ class LearnerNode:
 
     # --- serving --------------------------------------------------------------------------------
     def serve(self, request) -> PlanPathResponse:
+        arrived = time.perf_counter()    # the router's clock: the caller's latency starts here
         self.goal_pub.publish(request.goal)
-        result = self.router.route(request, self.build_state(request))
+        result = self.router.route(request, self.build_state(request), arrived)
         if result.response is None:
             return PlanPathResponse(status=result.status, message=result.raised)
         if result.note:
@@ -294,12 +319,14 @@ class LearnerNode:
         return GetPlanResponse(plan=response.path if response.status == PlanPathResponse.OK else Path())
 
     # --- records --------------------------------------------------------------------------------
-    def publish_decision(self, request_id, state, decision, probe):
+    def publish_decision(self, routing):
+        request_id, state, decision, probe = routing.request_id, routing.state, routing.decision, routing.probe
         msg = OffloadDecision(request_id=request_id, input_size=state.input_size,
                               cpu_availability=state.cpu_availability, round_trip_s=state.round_trip_s,
                               action=decision.action, action_propensity=decision.propensity,
                               q_local=decision.q_local, q_cloud=decision.q_cloud, policy=self.policy_name,
-                              model_steps=self.policy.steps, probe=probe)
+                              model_steps=self.policy.steps, probe=probe, mode=routing.mode, routed=routing.action,
+                              breaker=routing.breaker, deadline_s=routing.deadline_s)
         msg.header.stamp = rospy.Time.now()
         self.decision_pub.publish(msg)
 
@@ -319,8 +346,15 @@ class LearnerNode:
         if outcome.cloud is not None:
             msg.cloud_measured, msg.cloud_s, msg.cloud_status = True, outcome.cloud_s, outcome.cloud.status
             msg.cloud_timeout = outcome.cloud_timeout
-        msg.reward_valid = outcome.reward is not None
+        # reward_valid marks a reward from two measured latencies (a transition-table row); an imputed one is
+        # recorded too, with the side it imputed.
+        msg.reward_valid = outcome.reward is not None and outcome.imputed is None
         msg.reward = outcome.reward if outcome.reward is not None else float("nan")
+        msg.imputed = OffloadOutcome.NONE if outcome.imputed is None else outcome.imputed
+        msg.transitions = outcome.transitions
+        msg.hedged = outcome.hedged
+        msg.robot_cpu_s, msg.bridge_cpu_s = outcome.robot_cpu_s, outcome.bridge_cpu_s
+        msg.link_bytes_sent, msg.link_bytes_received = outcome.bytes_sent, outcome.bytes_received
         msg.loss_valid = outcome.loss is not None
         msg.loss = outcome.loss if outcome.loss is not None else float("nan")
         self.outcome_pub.publish(msg)
@@ -328,7 +362,7 @@ class LearnerNode:
             side = outcome.local if outcome.delivered == LOCAL else outcome.cloud
             self.path_pubs[outcome.delivered].publish(side.response.path)
         correct = float("nan")
-        if outcome.reward is not None:
+        if outcome.reward is not None and outcome.imputed is None:
             best = CLOUD if outcome.cloud_s < outcome.local_s else LOCAL
             correct = float(outcome.decision.action == best or outcome.cloud_s == outcome.local_s)
         with self._lock:
@@ -348,6 +382,23 @@ class LearnerNode:
             accuracy = np.nanmean(recent[:, 1]) if np.any(np.isfinite(recent[:, 1])) else float("nan")
             rospy.loginfo("request %d: last %d mean %.1f ms to path, accuracy %.0f%% vs oracle, model steps %d",
                           self._count, len(recent), delivered, 100 * accuracy, self.policy.steps)
+
+    def publish_config(self, seed: int, alpha: float):
+        config, dqn = self.router_config, getattr(self.agent, "config", None)
+        msg = LearnerConfig(policy=self.policy_name, mode=config.mode, learn=bool(self.learn and self.policy.learns),
+                            explore=self.explore, alpha=alpha, beta=1.0 - alpha,
+                            gamma=dqn.gamma if dqn else float("nan"), epsilon=dqn.epsilon if dqn else float("nan"),
+                            learning_starts=dqn.learning_starts if dqn else 0,
+                            probe_rate=1.0 if config.probes_every_request else config.probe_rate,
+                            cloud_timeout_s=config.cloud_timeout_s, hedge=config.hedge,
+                            hedge_deadline_s=config.hedge_deadline_s, hedge_quantile=config.hedge_quantile,
+                            hedge_min_s=config.hedge_min_s, hedge_max_s=config.hedge_max_s,
+                            breaker_failures=config.breaker.failures_to_open,
+                            breaker_max_round_trip_s=config.breaker.max_round_trip_s,
+                            breaker_retry_s=config.breaker.retry_after_s, seed=seed,
+                            dqn_config_json=json.dumps(asdict(dqn), default=list) if dqn else "")
+        msg.header.stamp = rospy.Time.now()
+        self.config_pub.publish(msg)
 
     def publish_stats(self):
         stats = self.policy.stats()
@@ -396,7 +447,16 @@ def main():
                                          shutdown; loaded at start when it exists (resume)
       ~checkpoint_every (int, 50)
       ~learn (bool, true)                false freezes the model (greedy, no training)
-      ~probe_rate (float, 1.0)           share of requests planned on both sides
+      ~mode (str, deployed)              learning: every request a probe (both sides, both actions learned);
+                                         deployed: the chosen side alone, ~probe_rate of requests probed
+      ~probe_rate (float, 0.05)          deployed: share of requests planned on both sides
+      ~explore (bool, false)             epsilon-greedy actions (DQNConfig epsilon); off: greedy
+      ~hedge (bool, false)               start the other side when the chosen one misses its deadline
+      ~hedge_deadline_s (float, 0)       fixed deadline; 0: ~hedge_quantile of the side's latency model,
+      ~hedge_quantile (float, 0.95)      clamped to [~hedge_min_s (0.05), ~hedge_max_s (1.0)]
+      ~breaker_failures (int, 3)         cloud failures in a row that stop offloading (0: no breaker)
+      ~breaker_max_round_trip_s (float, 1.0)  a heartbeat round trip above this stops offloading too
+      ~breaker_retry_s (float, 5.0)      while stopped, one request this often is a probe that tests the link
       ~cloud_timeout_s (float, 5.0)      l_cloud of a cloud timeout or error
       ~alpha (float, 0.5)                weight of local time in the cost (beta = 1 - alpha)
       ~seed (int, 1)                     exploration and probe draws, network initialisation

@@ -59,6 +59,8 @@ class BridgeResult:
     frame_id: str = ""
     link_round_trip_s: Optional[float] = None   # None when the cloud was not asked
     reachable: bool = True
+    bytes_sent: int = 0              # link payload bytes of this request, map re-uploads included
+    bytes_received: int = 0
 
 
 @dataclass(frozen=True)
@@ -233,6 +235,7 @@ class CloudBridge:
                               lethal_threshold=self.config.lethal_threshold,
                               unknown_is_obstacle=self.config.unknown_is_obstacle)
         client = self._borrow_client()
+        sent_before, received_before = client.bytes_sent, client.bytes_received
         try:
             outcome = client.plan(snapshot.grid, request.start, request.goal, options, snapshot.map_hash)
         except CloudTimeout:
@@ -243,6 +246,8 @@ class CloudBridge:
             result.reachable = False
             return result
         finally:
+            result.bytes_sent = client.bytes_sent - sent_before
+            result.bytes_received = client.bytes_received - received_before
             self._return_client(client)
         reply = outcome.reply
         # The link's share of the round trip: what the learner's b_t measures.

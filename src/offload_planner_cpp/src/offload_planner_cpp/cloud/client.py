@@ -99,6 +99,10 @@ class CloudClient:
         # Ids start at a random point so a reply meant for an earlier process is never taken as ours.
         self._ids = itertools.count(int.from_bytes(os.urandom(6), "little"))
         self._socket = None
+        # Payload bytes this client put on and took off the link (ZMTP framing and CURVE add a few dozen
+        # bytes a message), for the robot's per-request link accounting.
+        self.bytes_sent = 0
+        self.bytes_received = 0
 
     def _open(self) -> zmq.Socket:
         socket = self._context.socket(zmq.DEALER)
@@ -143,11 +147,13 @@ class CloudClient:
             if self._socket is None:
                 self._socket = self._open()
             request_id = next(self._ids) & 0xFFFFFFFFFFFFFFFF
+            frames = build_frames(request_id)
             try:
-                self._socket.send_multipart(build_frames(request_id), copy=False, flags=zmq.NOBLOCK)
+                self._socket.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
             except zmq.Again:
                 self._reset()
                 continue
+            self.bytes_sent += sum(memoryview(frame).nbytes for frame in frames)
             reply = self._await(request_id, attempt_deadline)
             if reply is not None:
                 return reply
@@ -162,6 +168,7 @@ class CloudClient:
                     return None
                 continue
             frames = self._socket.recv_multipart(copy=False)
+            self.bytes_received += sum(len(frame) for frame in frames)
             try:
                 reply = protocol.decode_reply([frame.buffer for frame in frames])
             except ProtocolError:

@@ -1,6 +1,7 @@
 """rospy node around bridge.CloudBridge: the robot's door to the cloud planner. It serves the same
 offload_msgs/PlanPath service as the local planner node, so a caller can use either."""
 import threading
+import time
 
 import rospy
 import zmq
@@ -103,16 +104,19 @@ class CloudBridgeNode:
 
     def serve(self, req) -> PlanPathResponse:
         started = rospy.get_time()
+        cpu_started = time.thread_time()   # this service thread's CPU: the robot's cost of offloading
         result = self.bridge.plan(stamped_pose(req.start), stamped_pose(req.goal), req.tolerance)
         res = PlanPathResponse(status=int(result.status), message=result.message,
                                planning_time_s=result.planning_time_s, expansions=result.expansions,
-                               cost_m=result.cost_m)
+                               cost_m=result.cost_m, bytes_sent=result.bytes_sent,
+                               bytes_received=result.bytes_received)
         if result.map_stamp is not None:
             res.map_stamp = result.map_stamp
         if res.status == PlanPathResponse.OK:
             res.path.header.frame_id = result.frame_id
             res.path.header.stamp = rospy.Time.now()
             res.path.poses = [pose_stamped(res.path.header, row) for row in result.poses.tolist()]
+        res.cpu_s = time.thread_time() - cpu_started
         if result.link_round_trip_s is not None:
             self.publish_latency(LinkLatency.REQUEST, result.reachable, result.link_round_trip_s)
         timing = PlanTiming(planner=self.planner_name, status=res.status, planning_time_s=res.planning_time_s,

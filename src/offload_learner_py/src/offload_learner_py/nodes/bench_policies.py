@@ -1,0 +1,186 @@
+"""`make bench-policies`: every routing policy live, its decisions acting, on the same seeded conditions.
+
+Each policy runs the demo's whole stack (`make demo`: the robot's processes on one core inside a CPU budget
+with the seeded workload schedule, the cloud server on the other core behind the WAN emulator and its RTT
+trace, the same seeded goal sequence) for STEPS requests:
+
+- local, cloud: always plan on the robot / always offload (deployed, no probes);
+- hedge: both sides on every request, the caller gets the first good path (learning mode, frozen policy);
+- threshold: offload above the paper's input-size threshold;
+- dqn: the DQN deployed (probe rate 0.05), warm-started from a learning run's checkpoint on the same map,
+  learning on from every request;
+- dqn_hedge: the same with the deadline hedge.
+
+It reports, per policy, latency as the caller saw it (mean, p50, p95, p99), robot planning CPU-seconds and
+link bytes per request, paths delivered and cloud timeouts, with the oracle measured on the hedge run's
+probes (both sides every request). A second scenario stops the cloud link for 30 s mid-run (the WAN
+emulator drops everything) while the RTT trace jumps, and reports the worst wait and how many requests
+waited the cloud timeout. Results go to runs/bench-policies-<time>/results.json, a figure and a table.
+"""
+import argparse
+import json
+import os
+import pathlib
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+from offload_planner_cpp.cli_args import bounded_float, bounded_int
+from offload_learner_py.bags import read_bags
+from offload_learner_py.summary import delivered_figures
+
+POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
+RUNS = {
+    "local": ["--policy", "local", "--mode", "deployed", "--probe-rate", "0"],
+    "cloud": ["--policy", "cloud", "--mode", "deployed", "--probe-rate", "0"],
+    "hedge": ["--policy", "local", "--mode", "learning", "--learn", "false"],
+    "threshold": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],
+    "dqn": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05"],
+    "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--hedge"],
+}
+FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
+          "bridge_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts")
+
+
+def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra) -> pathlib.Path:
+    """One live run of the demo stack; the run directory it wrote."""
+    command = [sys.executable, "-m", "offload_learner_py.nodes.demo", "--launch", launch, "--steps", str(steps),
+               "--seed", str(seed), "--runs-dir", str(runs_dir), "--no-report", *extra]
+    if map_yaml:
+        command += ["--map", map_yaml]
+    print("bench-policies:", " ".join(command[3:]), flush=True)
+    completed = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
+    (runs_dir / "demo.log").write_text(completed.stdout)
+    runs = sorted(path for path in runs_dir.iterdir() if path.is_dir())
+    if completed.returncode != 0 or not runs:
+        raise RuntimeError(f"demo run failed (exit {completed.returncode}); see {runs_dir / 'demo.log'}")
+    return runs[-1]
+
+
+def measure(run_dir: pathlib.Path, cloud_timeout_s: float) -> dict:
+    data = read_bags([str(run_dir / "offload.bag")], workers=1)
+    if data.report.failed:
+        raise RuntimeError(data.report.failed[0].error)
+    figures = delivered_figures(data.log, cloud_timeout_s)
+    table = data.transition_table({})
+    if len(table):
+        figures["probe_oracle_mean_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
+        figures["probe_steps"] = len(table)
+    figures["delivered_s"] = np.asarray(data.log["outcome_delivered_s"], dtype=np.float64)[
+        np.asarray(data.log["has_outcome"], dtype=bool)].tolist()
+    figures["run_dir"] = str(run_dir)
+    return figures
+
+
+def format_table(results: dict) -> str:
+    header = (f"{'policy':<11}{'requests':>9}{'paths':>7}{'mean ms':>9}{'p50':>8}{'p95':>8}{'p99':>8}"
+              f"{'plan CPU':>9}{'bridge':>8}{'KiB/req':>9}{'timeouts':>9}   (CPU: robot ms per request)")
+    lines = [header]
+    for name, f in results["policies"].items():
+        lines.append(f"{name:<11}{f['requests']:>9}{f['paths_delivered']:>7}{1e3 * f['mean_s']:>9.1f}"
+                     f"{1e3 * f['p50_s']:>8.1f}{1e3 * f['p95_s']:>8.1f}{1e3 * f['p99_s']:>8.1f}"
+                     f"{1e3 * f['robot_cpu_s_per_request']:>9.1f}{1e3 * f['bridge_cpu_s_per_request']:>8.1f}"
+                     f"{f['link_bytes_per_request'] / 1024:>9.1f}"
+                     f"{f['cloud_timeouts']:>9}")
+    if results.get("oracle_mean_s") is not None:
+        lines.append(f"{'oracle':<11}{'':>9}{'':>7}{1e3 * results['oracle_mean_s']:>9.1f}   (the hedge run's probes: "
+                     "the faster side of every request)")
+    return "\n".join(lines)
+
+
+def plot(results: dict, path: pathlib.Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (cdf, cpu) = plt.subplots(1, 2, figsize=(12, 4.5))
+    names = list(results["policies"])
+    for name in names:
+        values = np.sort(np.asarray(results["delivered_s"][name])) * 1e3
+        cdf.plot(values, np.arange(1, len(values) + 1) / len(values), label=name)
+    cdf.set_xscale("log")
+    cdf.set_xlabel("latency as the caller saw it (ms)")
+    cdf.set_ylabel("share of requests")
+    cdf.set_title(f"delivered latency, {results['map_name']}")
+    cdf.legend()
+    cpu.bar(names, [1e3 * results["policies"][n]["robot_cpu_s_per_request"] for n in names])
+    cpu.set_ylabel("robot planning CPU per request (ms)")
+    cpu.set_title("robot CPU per request")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--launch", default="launch/offload_demo.launch")
+    parser.add_argument("--map", default="", help="map_server YAML (default: the demo's, the Husky playpen)")
+    parser.add_argument("--steps", type=bounded_int("--steps", 10, 100000), default=200)
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--policies", default=",".join(POLICIES), help="comma list of " + ",".join(POLICIES))
+    parser.add_argument("--checkpoint", default="", help="DQN checkpoint to deploy (default: a learning run first)")
+    parser.add_argument("--learning-steps", type=bounded_int("--learning-steps", 10, 100000), default=300)
+    parser.add_argument("--outage-policies", default="dqn_hedge",
+                        help="policies run again with the link down for --outage-s mid-run ('' to skip)")
+    parser.add_argument("--outage-at-s", type=bounded_float("--outage-at-s", 0.0), default=45.0,
+                        help="seconds after the WAN emulator starts (requests begin about 15 s after it)")
+    parser.add_argument("--outage-s", type=bounded_float("--outage-s", 0.0, low_open=True), default=30.0)
+    parser.add_argument("--jump-trace", default="launch/config/rtt_jump.txt")
+    parser.add_argument("--cloud-timeout-s", type=float, default=5.0)
+    parser.add_argument("--runs-dir", default="runs")
+    args = parser.parse_args(argv)
+    policies = [name for name in args.policies.split(",") if name]
+    unknown = sorted(set(policies) - set(POLICIES))
+    outage = [name for name in args.outage_policies.split(",") if name]
+    if unknown or set(outage) - set(POLICIES):
+        parser.error(f"unknown policies {unknown or sorted(set(outage) - set(POLICIES))}; choose from {','.join(POLICIES)}")
+    out = pathlib.Path(args.runs_dir).resolve() / time.strftime("bench-policies-%Y%m%d-%H%M%S")
+    out.mkdir(parents=True)
+    map_yaml = os.path.abspath(args.map) if args.map else ""
+    checkpoint = os.path.abspath(args.checkpoint) if args.checkpoint else ""
+    if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
+        learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
+                            ["--policy", "dqn", "--mode", "learning"])
+        checkpoint = str(learning / "checkpoint.pt")
+    results = {"map": map_yaml or "husky_playpen (bundled)", "map_name": pathlib.Path(map_yaml).stem or "husky_playpen",
+               "steps": args.steps, "seed": args.seed, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
+               "oracle_mean_s": None}
+    model = ["--model", checkpoint] if checkpoint else []
+    for name in policies:
+        extra = RUNS[name] + (model if name.startswith("dqn") else [])
+        figures = measure(run_demo(args.launch, out / name, args.steps, args.seed, map_yaml, extra),
+                          args.cloud_timeout_s)
+        results["delivered_s"][name] = figures.pop("delivered_s")
+        results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
+                                     "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
+                                     "hedged": figures.get("hedged", 0)}
+        if name == "hedge":
+            results["oracle_mean_s"] = figures.get("probe_oracle_mean_s")
+        print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
+    results["outage"] = {}
+    for name in outage:
+        extra = RUNS[name] + (model if name.startswith("dqn") else []) + [
+            "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
+        figures = measure(run_demo(args.launch, out / f"outage-{name}", args.steps, args.seed, map_yaml, extra),
+                          args.cloud_timeout_s)
+        figures.pop("delivered_s")
+        results["outage"][name] = {key: figures.get(key) for key in (
+            "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
+            "hedged", "breaker_open", "run_dir")}
+    with open(out / "results.json", "w") as stream:
+        json.dump({key: value for key, value in results.items() if key != "delivered_s"}, stream, indent=2)
+    if results["policies"]:
+        plot(results, out / "policies.png")
+    print()
+    print(format_table(results))
+    for name, f in results["outage"].items():
+        print(f"link down {args.outage_s:g} s mid-run, {name}: {f['paths_delivered']}/{f['requests']} paths, worst "
+              f"wait {1e3 * f['max_s']:.0f} ms, {f['waited_the_timeout']} waited the {args.cloud_timeout_s:g} s "
+              f"timeout, {f['breaker_open']} routed locally by the open breaker, {f['hedged']} hedged")
+    print(f"\nresults: {out / 'results.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,61 @@
+"""The link breaker: opens on consecutive failures or a bad heartbeat, trials while open, closes on health."""
+import pytest
+
+from offload_learner_py.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
+
+
+class Clock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def test_opens_after_consecutive_failures_only():
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=3), clock=Clock())
+    for succeeded in (False, False, True, False, False):
+        breaker.record_call(succeeded)
+    assert breaker.admit() == CLOSED            # a success in between resets the count
+    breaker.record_call(False)
+    assert breaker.admit() == OPEN and breaker.trips == 1 and "3 cloud failures" in breaker.reason
+
+
+def test_heartbeat_opens_when_unreachable_or_too_slow_and_closes_when_healthy():
+    breaker = LinkBreaker(BreakerConfig(max_round_trip_s=0.5), clock=Clock())
+    breaker.record_heartbeat(True, 0.6)
+    assert breaker.admit() == OPEN and "round trip" in breaker.reason
+    breaker.record_heartbeat(True, 0.4)
+    assert breaker.admit() == CLOSED
+    breaker.record_heartbeat(False, 5.0)
+    assert breaker.admit() == OPEN and "unreachable" in breaker.reason
+    breaker.record_heartbeat(True, float("nan"))   # a NaN round trip is not healthy
+    assert breaker.is_open
+
+
+def test_one_trial_per_retry_period_while_open():
+    clock = Clock()
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=1, retry_after_s=2.0), clock=clock)
+    breaker.record_call(False)
+    assert breaker.admit() == OPEN
+    clock.now = 1.9
+    assert breaker.admit() == OPEN
+    clock.now = 2.0
+    assert breaker.admit() == TRIAL and breaker.admit() == OPEN   # one trial, then open again
+    breaker.record_call(True)
+    assert breaker.admit() == CLOSED
+
+
+def test_disabled_breaker_never_opens():
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=0))
+    for _ in range(10):
+        breaker.record_call(False)
+    breaker.record_heartbeat(False, 5.0)
+    assert breaker.admit() == CLOSED
+
+
+@pytest.mark.parametrize("kwargs", [{"failures_to_open": -1}, {"max_round_trip_s": 0.0},
+                                    {"retry_after_s": float("inf")}])
+def test_config_rejects_bad_values(kwargs):
+    with pytest.raises(ValueError):
+        BreakerConfig(**kwargs)
