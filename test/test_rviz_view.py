@@ -85,12 +85,16 @@ def test_fit_rewrites_a_config_and_refuses_an_unknown_map(tmp_path):
 
 
 @pytest.mark.skipif(shutil.which("Xvfb") is None, reason="Xvfb not installed (make demo HEADLESS=1 installs it)")
-def test_headless_without_an_rviz_window_fails_and_stops_its_xvfb(tmp_path):
+def test_headless_gives_the_command_a_screen_and_fails_when_no_rviz_window_shows(tmp_path):
     runs = tmp_path / "runs"
-    command = [sys.executable, "-c", f"import pathlib, time; pathlib.Path({str(runs / 'run1')!r}).mkdir(parents=True);"
-                                     f" time.sleep(1.5)"]
+    # The command sees a working X display of the config's window size (RViz would draw there), but shows
+    # no window: the screen stays one colour, so there is no frame to keep.
+    probe = (f"import os, pathlib, time; from PIL import ImageGrab; pathlib.Path({str(runs / 'run1')!r}).mkdir(parents=True);"
+             f" print('screen', ImageGrab.grab(xdisplay=os.environ['DISPLAY']).size, flush=True); time.sleep(1.5)")
     done = subprocess.run([sys.executable, str(WORKSPACE / "tools" / "rviz_view.py"), "headless", "--runs-dir",
-                           str(runs), "--period-s", "0.5", "--", *command], capture_output=True, text=True, timeout=60)
+                           str(runs), "--period-s", "0.5", "--", sys.executable, "-c", probe],
+                          capture_output=True, text=True, timeout=60)
+    assert "screen (1400, 900)" in done.stdout, done.stderr
     assert done.returncode == 1, done.stderr
     assert "RViz never showed a window" in done.stderr
     display = re.search(r"display (:\d+)", done.stdout).group(1)

@@ -111,21 +111,29 @@ def fit(args) -> int:
 
 # --- headless -----------------------------------------------------------------------------------------
 def start_xvfb(width_px: int, height_px: int, log):
-    """A private Xvfb on a display number it picks itself (-displayfd): (process, ":N"). In a session of its
-    own, so a Ctrl-C meant for the demo does not take the screen away before the last screenshot."""
+    """A private Xvfb on a display number it picks itself (-displayfd): (process, ":N", pipe). In a session of
+    its own, so a Ctrl-C meant for the demo does not take the screen away before the last screenshot. The
+    caller closes `pipe` after stopping Xvfb: Xvfb may write the number again and dies when it cannot."""
     read_fd, write_fd = os.pipe()
     xvfb = subprocess.Popen(["Xvfb", "-displayfd", str(write_fd), "-screen", "0", f"{width_px}x{height_px}x24",
                              "-nolisten", "tcp", "-br", "-noreset"], pass_fds=(write_fd,), stdout=log, stderr=log,
                             start_new_session=True)
     os.close(write_fd)
     ready, _, _ = select.select([read_fd], [], [], 20.0)
-    number = os.read(read_fd, 32).decode().strip() if ready else ""
-    os.close(read_fd)
-    if not number:
+    number = os.read(read_fd, 32).decode().split()[:1] if ready else []
+    display = f":{number[0]}" if number else ""
+    deadline = time.monotonic() + 20.0
+    while display and xvfb.poll() is None and time.monotonic() < deadline:
+        try:
+            ImageGrab.grab(xdisplay=display)
+            return xvfb, display, read_fd
+        except OSError:
+            time.sleep(0.2)
+    if xvfb.poll() is None:
         xvfb.kill()
-        xvfb.wait()
-        raise RuntimeError("Xvfb did not start (is the Debian package xvfb installed?)")
-    return xvfb, f":{number}"
+    xvfb.wait()
+    os.close(read_fd)
+    raise RuntimeError("Xvfb did not start or does not answer (is the Debian package xvfb installed?)")
 
 
 def rviz_frame(display: str):
@@ -153,7 +161,8 @@ def headless(args) -> int:
     started = time.time()
     with open(os.devnull, "wb") as log:
         try:
-            xvfb, display = start_xvfb(config["Window Geometry"]["Width"], config["Window Geometry"]["Height"], log)
+            xvfb, display, pipe = start_xvfb(config["Window Geometry"]["Width"], config["Window Geometry"]["Height"],
+                                             log)
         except (OSError, RuntimeError) as error:
             print(f"error: {error}", file=sys.stderr)
             return 2
@@ -183,6 +192,7 @@ def headless(args) -> int:
                 child.wait()
             xvfb.terminate()
             xvfb.wait()
+            os.close(pipe)
     if written is None:
         print("error: RViz never showed a window on Xvfb: no rviz.png (was the demo run with --rviz?)",
               file=sys.stderr)
