@@ -31,7 +31,8 @@ help:
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
 	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
 	@echo "make fuzz           coverage-guided fuzzing of the protocol, map loaders and bag reader (FUZZ_SECONDS each)"
-	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=); runs/<time>/"
+	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=, RVIZ=1,"
+	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, STEPS=, SEED=, POLICIES=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
@@ -94,11 +95,16 @@ POLICY ?= dqn
 MODE ?= learning
 SEED ?= 1
 demo: build
-	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need.
-	@if [ -n "$(RVIZ)" ] && ! dpkg-query -W -f='$${Status}' rviz 2>/dev/null | grep -q 'install ok installed'; then \
-		apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q rviz; fi
-	@$(ROSENV) $(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
-		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ),--rviz) \
+	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need. HEADLESS=1
+	@# runs it on Xvfb and keeps its last frame as runs/<time>/rviz.png (tools/rviz_view.py).
+	@missing=$$(for p in $(if $(RVIZ)$(HEADLESS),rviz) $(if $(HEADLESS),xvfb); do \
+		dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
+	if [ -n "$$missing" ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$missing; fi
+	@$(ROSENV) $(if $(and $(MAP),$(RVIZ)$(HEADLESS)),mkdir -p .ros; $(PY) tools/rviz_view.py fit --map $(MAP) \
+		--out .ros/offload.rviz; export OFFLOAD_RVIZ_CONFIG=$(ROOT)/.ros/offload.rviz;) \
+		$(if $(HEADLESS),$(PY) tools/rviz_view.py headless --runs-dir runs --) \
+		$(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
+		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
 		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL))
 
 # Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at

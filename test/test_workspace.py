@@ -145,7 +145,8 @@ def test_package_xml_declares_what_the_code_imports(package):
 
 def test_ros_free_pip_install_plans_serves_and_pings(tmp_path):
     """What a cloud host runs: `pip install ./src/offload_planner_cpp` into a venv without ROS installs the
-    core, the cloud subpackage and its commands, and none of the rospy nodes or demo tools."""
+    core, the cloud subpackage and its commands, and none of the rospy nodes or demo tools; its declared
+    dependencies are enough to load a map_server map (YAML + PGM)."""
     venv = tmp_path / "venv"
     # Nothing of the sourced workspace (PYTHONPATH, ROS_*) may leak in: a host without ROS.
     env = {name: value for name, value in os.environ.items()
@@ -161,6 +162,8 @@ def test_ros_free_pip_install_plans_serves_and_pings(tmp_path):
             "assert importlib.util.find_spec('offload_planner_cpp.devtools') is None\n"
             "from offload_planner_cpp.cloud.server import CloudServer, ServerConfig\n"
             "from offload_planner_cpp.cloud.client import CloudClient\n"
+            "from offload_planner_cpp.maps import load_map\n"
+            f"assert load_map({str(PLANNER / 'maps' / 'turtlebot3_world' / 'map.yaml')!r}).grid.shape == (384, 384)\n"
             "server = CloudServer(ServerConfig(bind='tcp://127.0.0.1:0', insecure=True, workers=1))\n"
             "endpoint = server.start()\n"
             "client = CloudClient(endpoint, insecure=True, timeout_s=10)\n"

@@ -8,9 +8,9 @@ from PIL import Image
 from offload_planner_cpp.maps import MapFormatError, load_map, load_map_server_yaml, load_movingai_map, \
     load_scenarios
 
-from planner_testdata import SHARED_MAPS
+from planner_testdata import ros_map_yamls
 
-ROS_YAMLS = sorted((SHARED_MAPS / "ros").glob("*/*.yaml")) if SHARED_MAPS.is_dir() else []
+ROS_YAMLS = ros_map_yamls()
 
 
 def write_map_server(tmp_path, pixels, **fields):
@@ -21,7 +21,6 @@ def write_map_server(tmp_path, pixels, **fields):
     return tmp_path / "m.yaml"
 
 
-@pytest.mark.skipif(not ROS_YAMLS, reason=f"no ROS maps under {SHARED_MAPS}")
 @pytest.mark.parametrize("yaml_file", ROS_YAMLS, ids=lambda p: p.parent.name)
 def test_ros_maps_load_like_map_server(yaml_file):
     occupancy = load_map_server_yaml(yaml_file)
@@ -42,7 +41,6 @@ def test_ros_maps_load_like_map_server(yaml_file):
     assert (grid == 0).sum() > 1000 and (grid == 100).sum() > 100
 
 
-@pytest.mark.skipif(not ROS_YAMLS, reason=f"no ROS maps under {SHARED_MAPS}")
 def test_willow_walls_are_unknown_grey(shared_maps):
     grid = load_map(next((shared_maps / "ros" / "willow_garage_2010").glob("*.yaml"))).grid
     assert (grid == -1).sum() > 10 * (grid == 100).sum()

@@ -1,5 +1,5 @@
-"""The planner reproduces MovingAI optimal lengths on every shared benchmark map (short and long
-buckets), and the CLI reports mismatches."""
+"""The planner reproduces MovingAI optimal lengths on every benchmark map, bundled and shared (short and
+long buckets), and the CLI reports mismatches."""
 import subprocess
 import sys
 from pathlib import Path
@@ -11,9 +11,9 @@ import offload_planner_cpp
 from offload_planner_cpp.maps import Scenario, length_tolerance, load_movingai_map, load_scenarios
 from offload_planner_cpp.movingai import check, spread
 
-from planner_testdata import SHARED_MAPS
+from planner_testdata import BUNDLED_MOVINGAI, SHARED_MAPS, movingai_maps
 
-MAP_FILES = sorted((SHARED_MAPS / "movingai").glob("*/*.map")) if SHARED_MAPS.is_dir() else []
+MAP_FILES = movingai_maps()
 
 
 def bucket_spread(scenarios, per_bucket=3, buckets=12):
@@ -36,12 +36,36 @@ def assert_legal_path(grid, path):
     assert (corners_a == 0).all() and (corners_b == 0).all(), "diagonal step cuts a corner"
 
 
-def test_shared_movingai_maps_are_present():
-    # Without this, a missing map set would only show as one skipped test and the optimality check
-    # would silently stop running.
-    assert MAP_FILES, (f"no MovingAI maps (*/*.map) under {SHARED_MAPS / 'movingai'}: the optimal-length "
-                       f"check needs the shared map set; put it at ../shared/data/maps beside the workspace "
-                       f"or point OFFLOAD_SHARED_MAPS at it")
+def test_bundled_movingai_maps_are_present():
+    # Without this, losing the bundled set would only show as fewer parametrized cases and the
+    # optimality check would silently stop running on a bare clone. Both precisions are covered: dao
+    # prints about 6 significant digits, street 8 decimals (and uses CRLF lines).
+    bundled = sorted(p.relative_to(BUNDLED_MOVINGAI).as_posix() for p in BUNDLED_MOVINGAI.glob("*/*.map"))
+    assert {"dao/arena.map", "street/Berlin_0_256.map"} <= set(bundled), bundled
+    for map_file in BUNDLED_MOVINGAI.glob("*/*.map"):
+        assert map_file in MAP_FILES
+        assert Path(str(map_file) + ".scen").is_file(), f"{map_file} has no .scen beside it"
+    assert (BUNDLED_MOVINGAI.parent / "README.md").read_text().count("ODC-By") >= 1, "attribution missing"
+
+
+def test_shared_movingai_maps_are_used_when_present():
+    shared = sorted((SHARED_MAPS / "movingai").glob("*/*.map"))
+    if not shared:
+        pytest.skip(f"no shared MovingAI set at {SHARED_MAPS / 'movingai'}: only the bundled maps are checked "
+                    f"(put the set at ../shared/data/maps beside the workspace or point OFFLOAD_SHARED_MAPS at it)")
+    names = {p.relative_to(p.parents[1]).as_posix() for p in MAP_FILES}
+    assert {p.relative_to(p.parents[1]).as_posix() for p in shared} <= names
+
+
+def test_bundled_copies_match_the_shared_set():
+    # The bundled files claim to be unchanged copies (CRLF and missing final newline included).
+    shared_root = SHARED_MAPS / "movingai"
+    pairs = [(p, shared_root / p.relative_to(BUNDLED_MOVINGAI)) for p in BUNDLED_MOVINGAI.glob("*/*.map*")]
+    pairs = [(ours, theirs) for ours, theirs in pairs if theirs.is_file()]
+    if not pairs:
+        pytest.skip(f"no shared MovingAI set at {shared_root} to compare the bundled copies with")
+    for ours, theirs in pairs:
+        assert ours.read_bytes() == theirs.read_bytes(), f"{ours} differs from {theirs}"
 
 
 @pytest.mark.parametrize("map_file", MAP_FILES, ids=lambda p: p.stem)

@@ -5,14 +5,20 @@ Parameters:
     ~map (str, required): a map_server `.yaml` or a MovingAI `.map` file.
     ~frame_id (str, "map"): frame of the published map.
     ~movingai_resolution (float, 0.05): metres per cell for MovingAI maps, which have none.
+    ~static_child_frame (str, ""): when set, also broadcasts an identity transform from ~frame_id to this
+        frame on /tf_static, so the map frame exists in TF (RViz's fixed frame) where nothing localises
+        the robot (the demo). Leave it empty on a robot whose localisation publishes map -> odom.
 
 Topics:
-    map (nav_msgs/OccupancyGrid, latched), map_metadata (nav_msgs/MapMetaData, latched).
+    map (nav_msgs/OccupancyGrid, latched), map_metadata (nav_msgs/MapMetaData, latched),
+    /tf_static (tf2_msgs/TFMessage, latched; only with ~static_child_frame).
 """
 import math
 
 import numpy as np
 import rospy
+import tf2_ros
+from geometry_msgs.msg import TransformStamped
 from nav_msgs.msg import MapMetaData, OccupancyGrid
 from rospy.numpy_msg import numpy_msg
 
@@ -37,10 +43,20 @@ def to_message(occupancy: OccupancyMap, frame_id: str, stamp) -> NumpyOccupancyG
     return msg
 
 
+def identity_transform(parent: str, child: str, stamp) -> TransformStamped:
+    transform = TransformStamped()
+    transform.header.frame_id = parent
+    transform.header.stamp = stamp
+    transform.child_frame_id = child
+    transform.transform.rotation.w = 1.0
+    return transform
+
+
 def main():
     rospy.init_node("map_publisher")
     path = rospy.get_param("~map", "")
     frame_id = rospy.get_param("~frame_id", "map")
+    static_child_frame = str(rospy.get_param("~static_child_frame", ""))
     if not path:
         rospy.logfatal("~map is required: a map_server .yaml or a MovingAI .map file")
         raise SystemExit(2)
@@ -57,6 +73,9 @@ def main():
     meta_pub = rospy.Publisher("map_metadata", MapMetaData, queue_size=1, latch=True)
     meta_pub.publish(msg.info)
     map_pub.publish(msg)
+    if static_child_frame:
+        broadcaster = tf2_ros.StaticTransformBroadcaster()
+        broadcaster.sendTransform(identity_transform(frame_id, static_child_frame, msg.header.stamp))
     rospy.loginfo("published %s: %d x %d cells at %.3f m in frame '%s'", path, occupancy.width, occupancy.height,
                   occupancy.resolution, frame_id)
     rospy.spin()
