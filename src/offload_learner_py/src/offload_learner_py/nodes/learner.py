@@ -384,9 +384,13 @@ class LearnerNode:
         msg.loss_valid = outcome.loss is not None
         msg.loss = outcome.loss if outcome.loss is not None else float("nan")
         self.outcome_pub.publish(msg)
-        if outcome.delivered != NO_PATH_DELIVERED:
-            side = outcome.local if outcome.delivered == LOCAL else outcome.cloud
-            self.path_pubs[outcome.delivered].publish(side.response.path)
+        # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one.
+        for action, side in ((LOCAL, outcome.local), (CLOUD, outcome.cloud)):
+            planned = side is not None and side.status == PlanPathResponse.OK and side.response is not None
+            empty = Path()
+            empty.header.frame_id = self.map_frame
+            empty.header.stamp = rospy.Time.now()
+            self.path_pubs[action].publish(side.response.path if planned else empty)
         correct = float("nan")
         if outcome.reward is not None and outcome.imputed is None:
             best = CLOUD if outcome.cloud_s < outcome.local_s else LOCAL
