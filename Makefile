@@ -88,7 +88,7 @@ fuzz: build
 
 
 bench-decision: build
-	@$(ROSENV) $(PY) -m offload_learner_py.bench_decision
+	@$(ROSENV) $(PY) -m offload_learner_py.bench.decision
 
 STEPS ?= 360
 POLICY ?= dqn
@@ -117,7 +117,7 @@ bench-online: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online
 
 bench-offline: build
-	@$(ROSENV) $(PY) -m offload_learner_py.bench_offline
+	@$(ROSENV) $(PY) -m offload_learner_py.bench.offline
 # cosmic-ray over the learner's reward, state and DQN modules and the cloud protocol (about 15 min),
 # then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 5 min).
 mutate: build

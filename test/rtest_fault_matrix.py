@@ -38,9 +38,9 @@ from offload_msgs.msg import OffloadDecision, OffloadOutcome, PlanTiming  # noqa
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse  # noqa: E402
 from rospy.numpy_msg import numpy_msg  # noqa: E402
 
-from offload_learner_py import bags  # noqa: E402
-from offload_learner_py.checkpoint import load_checkpoint  # noqa: E402
-from offload_learner_py.state import input_size  # noqa: E402
+from offload_learner_py.data import bags  # noqa: E402
+from offload_learner_py.core.checkpoint import load_checkpoint  # noqa: E402
+from offload_learner_py.core.state import input_size  # noqa: E402
 from offload_planner_cpp import free_cells, plan as plan_cells  # noqa: E402
 from offload_planner_cpp._core import check_map  # noqa: E402
 from offload_planner_cpp.devtools.wan_emulator import LinkModel, WanEmulator  # noqa: E402

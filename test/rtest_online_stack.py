@@ -16,8 +16,8 @@ import rostest
 from offload_msgs.msg import OffloadDecision, OffloadOutcome, RequestRejected, TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
-from offload_learner_py.checkpoint import load_checkpoint
-from offload_learner_py.records import NO_PATH_DELIVERED, pair_records, transition_table
+from offload_learner_py.core.checkpoint import load_checkpoint
+from offload_learner_py.data.records import NO_PATH_DELIVERED, pair_records, transition_table
 
 WORKSPACE = os.path.dirname(os.path.dirname(os.path.realpath(__file__)))
 CLOUD_TIMEOUT_S = 1.0

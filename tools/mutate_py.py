@@ -56,15 +56,15 @@ class Target:
 
 
 TARGETS = {
-    "reward": Target("reward", LEARNER / "src" / "offload_learner_py", "reward.py",
+    "reward": Target("reward", LEARNER / "src" / "offload_learner_py", "core/reward.py",
                      ("test_reward.py", "test_synthetic.py"), LEARNER / "test", budget_s=90),
-    "state": Target("state", LEARNER / "src" / "offload_learner_py", "state.py",
+    "state": Target("state", LEARNER / "src" / "offload_learner_py", "core/state.py",
                     ("test_state.py", "test_trace.py"), LEARNER / "test", budget_s=90,
                     test_support=("conftest.py", "test_dataset.py"),  # test_trace imports a helper from it
                     # the end-to-end trace test needs the built planner, not this module's copy
                     pytest_args=("--deselect=test/test_trace.py::"
                                  "test_trace_command_records_the_real_planner_on_a_real_map",)),
-    "dqn": Target("dqn", LEARNER / "src" / "offload_learner_py", "dqn.py",
+    "dqn": Target("dqn", LEARNER / "src" / "offload_learner_py", "core/dqn.py",
                   ("test_dqn.py", "test_checkpoint.py"), LEARNER / "test", budget_s=540,
                   # one seed per state feature: the other two seeds repeat the same check at 1.5 s each
                   pytest_args=tuple(f"--deselect=test/test_dqn.py::test_greedy_action_follows_each_state_feature"

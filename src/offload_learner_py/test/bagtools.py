@@ -5,8 +5,8 @@ import math
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.bag_writer import probe_request, write_requests
-from offload_learner_py.reward import reward
+from offload_learner_py.data.bag_writer import probe_request, write_requests
+from offload_learner_py.core.reward import reward
 
 
 def make_requests(n, seed=0, probe_every=1, first_id=1000):

@@ -5,8 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.trace import PlanningTrace
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.data.trace import PlanningTrace
 
 BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "..", "src", "offload_learner_py", "data",
                              "husky_playpen_trace.npz")

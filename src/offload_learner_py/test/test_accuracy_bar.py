@@ -3,11 +3,11 @@ five-seed report is the `sweep` command; these runs keep the suite short."""
 import numpy as np
 import pytest
 
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.evaluation import accuracy, learned_cpu_threshold
-from offload_learner_py.online import run_online
-from offload_learner_py.synthetic import generate_synthetic
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.evaluation import accuracy, learned_cpu_threshold
+from offload_learner_py.offline.simulation import run_online
+from offload_learner_py.data.synthetic import generate_synthetic
 
 
 def _online(kind, seed, trace, steps=1000):

@@ -8,10 +8,10 @@ import numpy as np
 import pytest
 
 from bagtools import make_requests, write
-from offload_learner_py import bags
-from offload_learner_py.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
+from offload_learner_py.data import bags
+from offload_learner_py.data.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
                                            installed_definitions, typestore_for, unindex)
-from offload_learner_py.reward import reward
+from offload_learner_py.core.reward import reward
 
 
 def _by_id(requests):
@@ -278,7 +278,7 @@ def test_requests_the_router_routed_otherwise_are_kept(tmp_path):
     """A probe whose decided side was dropped before it started (a newer request needed it) and a cloud
     decision the open breaker kept local are requests like any other; a non-probe whose routed side has no
     latency is not."""
-    from offload_learner_py.bag_writer import probe_request
+    from offload_learner_py.data.bag_writer import probe_request
     cancelled = probe_request(1, 1.0, 0.5, 0.05, 0.2, 0.05, 0, 1.0, math.nan, probe=True)
     cancelled[1].update(local_measured=False, local_s=0.0, reward_valid=False, delivered=1)
     kept_local = probe_request(2, 1.0, 0.5, 0.05, 0.2, 0.05, 0, 1.0, math.nan, probe=False)

@@ -7,7 +7,7 @@ import shutil
 import pytest
 
 from bagtools import make_requests
-from offload_learner_py import bags
+from offload_learner_py.data import bags
 
 rosbag = pytest.importorskip("rosbag")
 offload_msgs = pytest.importorskip("offload_msgs.msg")

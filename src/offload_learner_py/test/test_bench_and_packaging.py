@@ -5,9 +5,9 @@ import sys
 
 import numpy as np
 
-from offload_learner_py import bench_decision
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent
+from offload_learner_py.bench import decision as bench_decision
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
 
 PACKAGE_DIR = os.path.join(os.path.dirname(__file__), "..", "src", "offload_learner_py")
 

@@ -1,6 +1,6 @@
 """The offline benchmark runs end to end on tiny bags and prints its measured figures (no timing is
 judged here: speed is the benchmark's business, on a quiet machine)."""
-from offload_learner_py import bench_offline
+from offload_learner_py.bench import offline as bench_offline
 
 
 def test_benchmark_prints_ingest_and_training_rates(capsys):

@@ -1,7 +1,7 @@
 """The link breaker: opens on consecutive failures or a bad heartbeat, trials while open, closes on health."""
 import pytest
 
-from offload_learner_py.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
+from offload_learner_py.online.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
 
 
 class Clock:

@@ -4,10 +4,10 @@ import numpy as np
 import pytest
 import torch
 
-from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
+from offload_learner_py.core.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
     save_checkpoint
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
 
 
 def _trained_agent(config=DQNConfig(seed=4, learning_starts=10, batch_size=8)):
@@ -128,7 +128,7 @@ def test_truncated_or_corrupt_checkpoints_are_refused(tmp_path):
 
 
 def test_config_and_normalisation_values_are_type_checked():
-    from offload_learner_py.normalisation import StateNormalisation
+    from offload_learner_py.core.normalisation import StateNormalisation
     for bad, message in [({"batch_size": "64"}, "batch_size must be an integer"),
                          ({"learning_rate": float("nan")}, "learning_rate must be a finite number"),
                          ({"hidden_sizes": 5}, "hidden_sizes must be a list"), ({"seed": -1}, "seed must be >= 0")]:

@@ -1,6 +1,6 @@
 import pytest
 
-from offload_learner_py.cpu import CpuAvailability, read_proc_stat
+from offload_learner_py.online.cpu import CpuAvailability, read_proc_stat
 
 
 class FakeStat:

@@ -5,7 +5,7 @@ import zlib
 import numpy as np
 import pytest
 
-from offload_learner_py.dataset import COLUMNS, TransitionTable
+from offload_learner_py.data.dataset import COLUMNS, TransitionTable
 
 
 def _table(n=20):

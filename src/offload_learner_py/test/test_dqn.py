@@ -6,10 +6,12 @@ import pytest
 import torch
 from torch import nn
 
-from offload_learner_py import CLOUD, LOCAL, config as config_module
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent, QNetwork
-from offload_learner_py.normalisation import StateNormalisation
+from offload_learner_py import CLOUD, LOCAL
+
+from offload_learner_py.core import config as config_module
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent, QNetwork
+from offload_learner_py.core.normalisation import StateNormalisation
 
 
 def _states(n, seed=0):

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.evaluation import (accuracy, confusion_matrix, evaluate, learned_cpu_threshold,
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.evaluation import (accuracy, confusion_matrix, evaluate, learned_cpu_threshold,
                                            oracle_actions)
 
 

@@ -6,9 +6,9 @@ import sys
 import numpy as np
 import pytest
 
-from offload_learner_py import experiments
-from offload_learner_py.dataset import COLUMNS
-from offload_learner_py.synthetic import generate_synthetic
+from offload_learner_py.offline import experiments
+from offload_learner_py.data.dataset import COLUMNS
+from offload_learner_py.data.synthetic import generate_synthetic
 
 
 def test_synthetic_command_writes_metrics_and_plots(tmp_path, capsys):
@@ -40,7 +40,7 @@ def test_config_overrides_reach_the_learner(tmp_path):
 
 def _cli(*args, cwd):
     env = {**os.environ, "PYTHONPATH": os.path.join(os.path.dirname(__file__), "..", "src")}
-    return subprocess.run([sys.executable, "-m", "offload_learner_py.experiments", *args], cwd=cwd, env=env,
+    return subprocess.run([sys.executable, "-m", "offload_learner_py.offline.experiments", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=120)
 
 

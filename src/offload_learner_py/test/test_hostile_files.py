@@ -10,12 +10,14 @@ import numpy as np
 import pytest
 import torch
 
-from offload_learner_py import checkpoint, npz_io
-from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dataset import COLUMNS, TABLE_FORMAT, TransitionTable
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.trace import PlanningTrace
+from offload_learner_py.core import checkpoint
+
+from offload_learner_py.data import npz_io
+from offload_learner_py.core.checkpoint import IncompatibleCheckpointError, load_checkpoint, save_checkpoint
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.data.dataset import COLUMNS, TABLE_FORMAT, TransitionTable
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.data.trace import PlanningTrace
 
 
 def _good_columns(n=20):

@@ -4,7 +4,7 @@ import math
 import numpy as np
 import pytest
 
-from offload_learner_py.latency_model import LatencyModel, LatencyModelConfig
+from offload_learner_py.online.latency_model import LatencyModel, LatencyModelConfig
 
 
 def local_latency_s(d, u, b):

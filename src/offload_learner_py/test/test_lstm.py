@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from offload_learner_py.evaluation import accuracy
-from offload_learner_py.lstm_baseline import LSTMConfig, LSTMPolicy
+from offload_learner_py.core.evaluation import accuracy
+from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
 
 
 def test_defaults_are_the_paper_s():

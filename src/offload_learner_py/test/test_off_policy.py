@@ -6,9 +6,11 @@ import numpy as np
 import pytest
 
 from bagtools import write
-from offload_learner_py import CLOUD, LOCAL, bags, off_policy
-from offload_learner_py.bag_writer import probe_request
-from offload_learner_py.reward import reward
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.data import bags
+from offload_learner_py.offline import off_policy
+from offload_learner_py.data.bag_writer import probe_request
+from offload_learner_py.core.reward import reward
 
 
 def logged_steps(n=4000, seed=3, probe_rate=1.0):

@@ -7,16 +7,16 @@ import numpy as np
 import pytest
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.cpu import CgroupBudgetReader, CpuAvailability, LatestCpuAvailability, parse_cpu_list, \
+from offload_learner_py.online.cpu import CgroupBudgetReader, CpuAvailability, LatestCpuAvailability, parse_cpu_list, \
     read_proc_stat_cores
-from offload_learner_py.dataset import TransitionTable
+from offload_learner_py.data.dataset import TransitionTable
 from offload_planner_cpp import free_cells
-from offload_learner_py.goals import GoalSampler, default_start_cell
-from offload_learner_py.records import NO_PATH_DELIVERED, RecordMismatchError, pair_records, transition_table
-from offload_learner_py.reward import reward
-from offload_learner_py.summary import format_summary, learned_offload_input_size, oracle_share_by_tercile, \
+from offload_learner_py.online.goals import GoalSampler, default_start_cell
+from offload_learner_py.data.records import NO_PATH_DELIVERED, RecordMismatchError, pair_records, transition_table
+from offload_learner_py.core.reward import reward
+from offload_learner_py.offline.summary import format_summary, learned_offload_input_size, oracle_share_by_tercile, \
     summarise
-from offload_learner_py.workload import LoadSchedule, run_workload
+from offload_learner_py.online.workload import LoadSchedule, run_workload
 
 
 # --- goals -------------------------------------------------------------------------------------
@@ -247,7 +247,7 @@ def test_latest_availability_never_waits_and_keeps_the_last_measured_window():
 
 
 def test_delivered_figures_are_what_the_caller_saw_and_the_robot_paid():
-    from offload_learner_py.summary import delivered_figures
+    from offload_learner_py.offline.summary import delivered_figures
     decisions, outcomes = [], []
     for k in range(10):
         decisions.append(SimpleNamespace(**vars(decision(k)), mode="deployed", routed=LOCAL,

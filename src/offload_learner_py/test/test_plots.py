@@ -2,7 +2,7 @@ import os
 
 import numpy as np
 
-from offload_learner_py.plots import (plot_accuracy_bars, plot_action_vs_cpu, plot_action_vs_input_size,
+from offload_learner_py.offline.plots import (plot_accuracy_bars, plot_action_vs_cpu, plot_action_vs_input_size,
                                       plot_confusion_matrix, plot_training)
 
 

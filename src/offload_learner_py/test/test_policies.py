@@ -1,12 +1,12 @@
 import numpy as np
 import pytest
 
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.evaluation import accuracy
-from offload_learner_py.lstm_baseline import LSTMConfig, LSTMPolicy
-from offload_learner_py.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, OraclePolicy,
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.evaluation import accuracy
+from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
+from offload_learner_py.core.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, OraclePolicy,
                                          Policy, RandomPolicy)
-from offload_learner_py.synthetic import generate_synthetic
+from offload_learner_py.data.synthetic import generate_synthetic
 
 
 ALL = [AlwaysLocal(), AlwaysCloud(), RandomPolicy(3), InputSizeThreshold(), OraclePolicy(),

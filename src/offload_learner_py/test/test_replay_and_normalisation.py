@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from offload_learner_py.normalisation import StateNormalisation
-from offload_learner_py.replay import ReplayMemory
+from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.replay import ReplayMemory
 
 
 def test_replay_is_fifo_with_fixed_capacity():

@@ -8,9 +8,11 @@ import numpy as np
 from PIL import Image
 
 from bagtools import make_requests, write
-from offload_learner_py import bags, report, retrain
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.evaluation import evaluate
+from offload_learner_py.data import bags
+from offload_learner_py.offline import report
+from offload_learner_py.offline import retrain
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.evaluation import evaluate
 
 FIGURES = ("fig6_loss_reward.png", "fig7_action_vs_input_size.png", "fig11_action_vs_cpu.png", "fig12_confusion.png",
            "fig13_dqn_vs_lstm.png")

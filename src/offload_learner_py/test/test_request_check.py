@@ -5,7 +5,7 @@ import math
 import pytest
 
 from offload_planner_cpp import PlanStatus
-from offload_learner_py.request_check import MAX_MESSAGE_CHARS, check_request
+from offload_learner_py.online.request_check import MAX_MESSAGE_CHARS, check_request
 
 MAP = dict(width=100, height=80, resolution=0.05, origin_xy=(-1.0, 2.0), orientation=(0.0, 0.0, 0.0, 1.0))
 

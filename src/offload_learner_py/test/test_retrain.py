@@ -8,9 +8,11 @@ import pytest
 import torch
 
 from bagtools import make_requests, write
-from offload_learner_py import CLOUD, LOCAL, bags, retrain
-from offload_learner_py.checkpoint import load_checkpoint
-from offload_learner_py.config import DQNConfig
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.data import bags
+from offload_learner_py.offline import retrain
+from offload_learner_py.core.checkpoint import load_checkpoint
+from offload_learner_py.core.config import DQNConfig
 
 
 @pytest.fixture(scope="module")
@@ -62,7 +64,7 @@ def test_the_node_loads_it_through_model(run_bag, tmp_path):
     policy, agent = learner.make_policy("dqn", "", str(tmp_path / "checkpoint.pt"), False, 1, {}, 1.1)
     assert agent.steps >= 200 and policy.epsilon() == 0.0
     # and decides with it: the greedy action of the retrained network, propensity 1 (frozen, ~learn false)
-    from offload_learner_py.state import State
+    from offload_learner_py.core.state import State
 
     table = data.transition_table()
     greedy = retrain.greedy_actions(agent, table.states[:20])
@@ -118,7 +120,7 @@ def test_chronological_split_keeps_both_sides_non_empty():
 
 
 def test_a_reward_logged_with_another_alpha_is_caught(run_bag):
-    from offload_learner_py.reward import CostWeights
+    from offload_learner_py.core.reward import CostWeights
 
     table = bags.read_bags([run_bag]).transition_table()
     assert retrain.logged_reward_mismatch(table, CostWeights()) < 1e-12
@@ -127,7 +129,7 @@ def test_a_reward_logged_with_another_alpha_is_caught(run_bag):
 
 def _bag_with_configs(path, alphas):
     """A bag of requests and, per session, the learner's latched config with that alpha."""
-    from offload_learner_py.bag_writer import CONFIG_TOPIC, CONFIG_TYPE, config_definition, installed_definitions, \
+    from offload_learner_py.data.bag_writer import CONFIG_TOPIC, CONFIG_TYPE, config_definition, installed_definitions, \
         typestore_for
 
     store = typestore_for(*installed_definitions(), extra={CONFIG_TYPE: config_definition()})

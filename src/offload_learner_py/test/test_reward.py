@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.reward import CostWeights, cloud_latency_s, reward, rewards
+from offload_learner_py.core.reward import CostWeights, cloud_latency_s, reward, rewards
 
 
 def test_local_action_is_always_zero_reward():

@@ -5,12 +5,12 @@ import threading
 import pytest
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.reward import CostWeights, reward
-from offload_learner_py.router import NO_PATH_DELIVERED, Decision, DecisionPolicy, DQNDecision, FixedPolicy, \
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.reward import CostWeights, reward
+from offload_learner_py.online.router import NO_PATH_DELIVERED, Decision, DecisionPolicy, DQNDecision, FixedPolicy, \
     InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
-from offload_learner_py.state import State
+from offload_learner_py.core.state import State
 
 OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10
 STATUSES = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR)

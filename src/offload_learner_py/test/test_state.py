@@ -3,7 +3,7 @@ import math
 import numpy as np
 import pytest
 
-from offload_learner_py.state import State, input_size, input_size_from_cells, node_count, raw_input_size
+from offload_learner_py.core.state import State, input_size, input_size_from_cells, node_count, raw_input_size
 
 
 def test_paper_worked_example_45_09_m_at_0_05_m():
@@ -51,7 +51,7 @@ def test_state_validates_ranges():
 
 
 def test_the_state_has_the_papers_three_features():
-    from offload_learner_py.state import STATE_FIELDS, STATE_SIZE
+    from offload_learner_py.core.state import STATE_FIELDS, STATE_SIZE
     assert STATE_SIZE == 3 and STATE_FIELDS == ("input_size", "cpu_availability", "round_trip_s")
     assert State(0.5, 0.6, 0.03).as_array().shape == (STATE_SIZE,)
 

@@ -1,8 +1,8 @@
 import numpy as np
 import pytest
 
-from offload_learner_py.reward import CostWeights
-from offload_learner_py.synthetic import generate_synthetic
+from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.data.synthetic import generate_synthetic
 
 
 def _ratios(table):

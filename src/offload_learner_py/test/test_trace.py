@@ -5,8 +5,8 @@ import sys
 import numpy as np
 import pytest
 
-from offload_learner_py.state import input_size_from_cells
-from offload_learner_py.trace import PlanningTrace, free_cells, record_trace
+from offload_learner_py.core.state import input_size_from_cells
+from offload_learner_py.data.trace import PlanningTrace, free_cells, record_trace
 
 
 class NoPathError(RuntimeError):
@@ -129,7 +129,7 @@ SMALL_REAL_MAP = os.path.join(os.path.dirname(__file__), "..", "..", "offload_pl
 
 
 def _trace_cli(*args, cwd):
-    return subprocess.run([sys.executable, "-m", "offload_learner_py.trace", *args], cwd=cwd, capture_output=True,
+    return subprocess.run([sys.executable, "-m", "offload_learner_py.data.trace", *args], cwd=cwd, capture_output=True,
                           text=True, timeout=120)
 
 

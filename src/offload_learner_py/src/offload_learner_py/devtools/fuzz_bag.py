@@ -14,8 +14,8 @@ import tempfile
 import atheris
 
 with atheris.instrument_imports():
-    from offload_learner_py import bags
-from offload_learner_py.bag_writer import probe_request, unindex, write_requests
+    from offload_learner_py.data import bags
+from offload_learner_py.data.bag_writer import probe_request, unindex, write_requests
 
 
 def seed_corpus(directory: str) -> None:

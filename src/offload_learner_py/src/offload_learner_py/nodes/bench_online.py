@@ -18,7 +18,7 @@ import numpy as np
 from offload_planner_cpp import free_cells
 from offload_planner_cpp._core import check_map
 from offload_planner_cpp.devtools.loopback import free_port
-from offload_learner_py.goals import GoalSampler, default_start_cell
+from offload_learner_py.online.goals import GoalSampler, default_start_cell
 
 
 def main(argv=None) -> int:

@@ -28,8 +28,8 @@ import time
 import numpy as np
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
-from offload_learner_py.bags import read_bags
-from offload_learner_py.summary import delivered_figures
+from offload_learner_py.data.bags import read_bags
+from offload_learner_py.offline.summary import delivered_figures
 
 POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
 RUNS = {

@@ -19,12 +19,12 @@ import numpy as np
 
 from offload_planner_cpp.cli_args import bounded_float
 from offload_planner_cpp.devtools.loopback import free_port
-from offload_learner_py import plots
+from offload_learner_py.offline import plots
 from offload_learner_py.nodes.demo_keys import ensure_demo_keys
-from offload_learner_py.evaluation import confusion_matrix
-from offload_learner_py.bags import read_bags
-from offload_learner_py.report import report_run
-from offload_learner_py.summary import format_summary, summarise
+from offload_learner_py.core.evaluation import confusion_matrix
+from offload_learner_py.data.bags import read_bags
+from offload_learner_py.offline.report import report_run
+from offload_learner_py.offline.summary import format_summary, summarise
 
 CGROUP_ROOT = "/sys/fs/cgroup"
 CGROUP_PERIOD_US = 4000   # the kernel's smallest quota is 1 ms, so 4 ms is the shortest period for 25 %
@@ -59,7 +59,7 @@ class RobotBudget:
 
 def analyse(out_dir: pathlib.Path, policy: str) -> dict:
     """Bag -> transition table -> summary.json, table.npz, figures; prints the summary table."""
-    from offload_learner_py.checkpoint import load_checkpoint
+    from offload_learner_py.core.checkpoint import load_checkpoint
 
     bag = out_dir / "offload.bag"
     if not bag.exists():

@@ -12,7 +12,7 @@ from rospy.numpy_msg import numpy_msg
 
 from offload_planner_cpp import free_cells
 from offload_planner_cpp._core import check_map
-from offload_learner_py.goals import GoalSampler, default_start_cell
+from offload_learner_py.online.goals import GoalSampler, default_start_cell
 
 
 def pose(frame_id: str, xy) -> PoseStamped:

@@ -1,6 +1,6 @@
 """offload_learner: the offloading router node. It serves the same PlanPath and GetPlan services as the
 two planners it routes to (the local planner node and the cloud bridge), decides per request with
-offload_learner_py.router, and publishes every decision, outcome and training statistic so a bag
+offload_learner_py.online.router, and publishes every decision, outcome and training statistic so a bag
 rebuilds the transition table. Thin: all logic lives in the ROS-free router."""
 import json
 import math
@@ -20,18 +20,18 @@ from offload_msgs.msg import LearnerConfig, LinkLatency, OffloadDecision, Offloa
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.breaker import BreakerConfig
-from offload_learner_py.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
+from offload_learner_py.online.breaker import BreakerConfig
+from offload_learner_py.core.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
     save_checkpoint
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.online.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
     read_proc_stat_cores
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.request_check import check_request
-from offload_learner_py.reward import CostWeights
-from offload_learner_py.router import LEARNING, NO_PATH_DELIVERED, DQNDecision, FixedPolicy, \
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.online.request_check import check_request
+from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.online.router import LEARNING, NO_PATH_DELIVERED, DQNDecision, FixedPolicy, \
     InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
-from offload_learner_py.state import State, input_size
+from offload_learner_py.core.state import State, input_size
 
 POLICIES = ("dqn", "local", "cloud", "random", "threshold")
 

@@ -10,9 +10,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.reward import CostWeights, reward
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.reward import CostWeights, reward
 
 
 @dataclass

@@ -2,7 +2,7 @@
 makes it per planning request. Prints p50/p99 in microseconds for torch eager, TorchScript and the
 numpy fast path, all measured in this run on the same states.
 
-    python -m offload_learner_py.bench_decision [--decisions 20000] [--budget-us 100]
+    python -m offload_learner_py.bench.decision [--decisions 20000] [--budget-us 100]
 """
 import argparse
 import sys
@@ -14,9 +14,9 @@ import numpy as np
 import torch
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.normalisation import StateNormalisation
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.normalisation import StateNormalisation
 
 
 def measure_us(decide: Callable[[float, float, float], tuple], states: np.ndarray, warm_up: int = 500) -> Dict[str, float]:

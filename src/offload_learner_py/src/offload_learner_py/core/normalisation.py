@@ -5,7 +5,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from offload_learner_py.state import STATE_SIZE
+from offload_learner_py.core.state import STATE_SIZE
 
 # A constant feature (e.g. a steady round trip) has no spread; it is centred but not blown up.
 MIN_SCALE = 1e-3

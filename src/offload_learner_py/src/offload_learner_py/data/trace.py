@@ -3,7 +3,7 @@ the real planner and timed, with the input size d_t of the pair. The synthetic d
 (eq. 13-15) are built on such a trace, so l_local is always a measured time.
 
 Record one with
-    python -m offload_learner_py.trace --map /path/map.yaml --queries 300 --seed 1 --out trace.npz
+    python -m offload_learner_py.data.trace --map /path/map.yaml --queries 300 --seed 1 --out trace.npz
 """
 import argparse
 import sys
@@ -13,8 +13,8 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
-from offload_learner_py.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
-from offload_learner_py.state import input_size_from_cells
+from offload_learner_py.data.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
+from offload_learner_py.core.state import input_size_from_cells
 
 TRACE_FORMAT = "offload_learner_py.trace/1"
 _ARRAYS = ("start_cell", "goal_cell", "distance_m", "input_size", "local_s", "planner_s", "expansions")

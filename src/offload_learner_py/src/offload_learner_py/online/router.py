@@ -34,10 +34,10 @@ from typing import Any, Callable, Optional, Tuple
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
-from offload_learner_py.latency_model import LatencyModel, LatencyModelConfig
-from offload_learner_py.reward import CostWeights, cloud_latency_s, reward
-from offload_learner_py.state import State
+from offload_learner_py.online.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
+from offload_learner_py.online.latency_model import LatencyModel, LatencyModelConfig
+from offload_learner_py.core.reward import CostWeights, cloud_latency_s, reward
+from offload_learner_py.core.state import State
 
 LEARNING, DEPLOYED = "learning", "deployed"
 MODES = (LEARNING, DEPLOYED)

@@ -6,11 +6,11 @@ from typing import Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.evaluation import oracle_actions
-from offload_learner_py.reward import CostWeights
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.evaluation import oracle_actions
+from offload_learner_py.core.reward import CostWeights
 
 
 class Policy(ABC):
@@ -104,7 +104,7 @@ class DQNPolicy(Policy):
         self.online_run = None
 
     def fit(self, train):
-        from offload_learner_py.online import run_online
+        from offload_learner_py.offline.simulation import run_online
 
         self.agent = DQNAgent(self.config)
         self.online_run = run_online(self.agent, train, self.weights)

@@ -5,7 +5,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.dataset import TransitionTable
+from offload_learner_py.data.dataset import TransitionTable
 
 
 def oracle_actions(table: TransitionTable, tie_breaker: Optional[np.ndarray] = None) -> np.ndarray:

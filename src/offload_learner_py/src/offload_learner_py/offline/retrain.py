@@ -1,6 +1,6 @@
 """Retrain the DQN offline from recorded bags.
 
-    python -m offload_learner_py.retrain BAGS... --out DIR [--seed S] [--steps N] [--baselines]
+    python -m offload_learner_py.offline.retrain BAGS... --out DIR [--seed S] [--steps N] [--baselines]
 
 Reads the bags (files, globs, directories), keeps the requests with both latencies (the transition
 table), splits them in time (the first 80 % to train, the last 20 % held out), trains the Q-network
@@ -25,17 +25,17 @@ import numpy as np
 import torch
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.bags import BagData, read_bags
-from offload_learner_py.checkpoint import save_checkpoint
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.evaluation import evaluate
-from offload_learner_py.normalisation import StateNormalisation
-from offload_learner_py.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results, \
+from offload_learner_py.data.bags import BagData, read_bags
+from offload_learner_py.core.checkpoint import save_checkpoint
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.evaluation import evaluate
+from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results, \
     to_jsonable
-from offload_learner_py.replay import ReplayMemory
-from offload_learner_py.reward import CostWeights, rewards
+from offload_learner_py.core.replay import ReplayMemory
+from offload_learner_py.core.reward import CostWeights, rewards
 
 DEFAULT_EPOCHS = 50
 MIN_ROWS = 10
@@ -208,7 +208,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     if np.all(greedy >= 0) and len(greedy):
         evaluation["online_greedy"] = evaluate(greedy, test)
     if baselines:
-        from offload_learner_py.experiments import baseline_policies
+        from offload_learner_py.offline.experiments import baseline_policies
 
         evaluation["baselines"] = {policy.name: evaluate(policy.fit(train).choose(test), test)
                                    for policy in baseline_policies(config.seed)}

@@ -8,9 +8,9 @@ from typing import Callable, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.evaluation import accuracy, evaluate, learned_cpu_threshold, oracle_actions
-from offload_learner_py.records import NO_PATH_DELIVERED, RequestLog
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.evaluation import accuracy, evaluate, learned_cpu_threshold, oracle_actions
+from offload_learner_py.data.records import NO_PATH_DELIVERED, RequestLog
 
 FEATURES = (("input_size", "d_t"), ("cpu_availability", "u_t"), ("round_trip_s", "b_t"))
 

@@ -6,7 +6,7 @@ from typing import Dict, Iterable
 
 import numpy as np
 
-from offload_learner_py.dataset import TransitionTable
+from offload_learner_py.data.dataset import TransitionTable
 
 NO_PATH_DELIVERED = 255
 # Fields added with the two modes and robot cost accounting, and their value in records made before them

@@ -21,7 +21,7 @@ def installed_definitions(msg_dir: Optional[str] = None) -> Tuple[str, str]:
     """(OffloadDecision.msg, OffloadOutcome.msg) text from the source tree's offload_msgs."""
     if msg_dir is None:
         here = os.path.dirname(os.path.abspath(__file__))
-        msg_dir = os.path.join(here, "..", "..", "..", "offload_msgs", "msg")
+        msg_dir = os.path.join(here, "..", "..", "..", "..", "offload_msgs", "msg")
     with open(os.path.join(msg_dir, "OffloadDecision.msg")) as decision, \
             open(os.path.join(msg_dir, "OffloadOutcome.msg")) as outcome:
         return decision.read(), outcome.read()
@@ -30,7 +30,7 @@ def installed_definitions(msg_dir: Optional[str] = None) -> Tuple[str, str]:
 def config_definition(msg_dir: Optional[str] = None) -> str:
     """LearnerConfig.msg text from the source tree's offload_msgs."""
     if msg_dir is None:
-        msg_dir = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "offload_msgs", "msg")
+        msg_dir = os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", "..", "..", "..", "offload_msgs", "msg")
     with open(os.path.join(msg_dir, "LearnerConfig.msg")) as config:
         return config.read()
 

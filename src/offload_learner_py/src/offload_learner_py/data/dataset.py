@@ -10,7 +10,7 @@ from typing import Dict
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
+from offload_learner_py.data.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
 
 COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
            "action_propensity", "reward")

@@ -16,11 +16,11 @@ import time
 import numpy as np
 import torch
 
-from offload_learner_py.bag_writer import installed_definitions, probe_request, typestore_for, write_requests
-from offload_learner_py.bags import read_bag, read_bags
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.retrain import train_offline
-from offload_learner_py.reward import reward
+from offload_learner_py.data.bag_writer import installed_definitions, probe_request, typestore_for, write_requests
+from offload_learner_py.data.bags import read_bag, read_bags
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.offline.retrain import train_offline
+from offload_learner_py.core.reward import reward
 
 INGEST_BAR = 20_000
 TRAIN_BAR = 300

@@ -24,7 +24,7 @@ from typing import Optional, Tuple
 
 import numpy as np
 
-from offload_learner_py.normalisation import INPUT_SIZE_LOG_FLOOR
+from offload_learner_py.core.normalisation import INPUT_SIZE_LOG_FLOOR
 
 N_FEATURES = 7
 LATENCY_FLOOR_S = 1e-6

@@ -1,9 +1,9 @@
 """The paper's experiments as commands.
 
-    python -m offload_learner_py.experiments synthetic --kind {local,cloud,cpu} --steps N --seed S --out DIR
-    python -m offload_learner_py.experiments sweep --kind K --seeds 1 2 3 4 5 --steps N --out DIR
-    python -m offload_learner_py.experiments compare --data FILE --out DIR
-    python -m offload_learner_py.experiments generate --kind K --steps N --seed S --out FILE.npz
+    python -m offload_learner_py.offline.experiments synthetic --kind {local,cloud,cpu} --steps N --seed S --out DIR
+    python -m offload_learner_py.offline.experiments sweep --kind K --seeds 1 2 3 4 5 --steps N --out DIR
+    python -m offload_learner_py.offline.experiments compare --data FILE --out DIR
+    python -m offload_learner_py.offline.experiments generate --kind K --steps N --seed S --out FILE.npz
 
 `synthetic` trains the DQN online over a synthetic stream (Algorithm 1) built on the bundled trace of
 real planning times and writes DIR/metrics.json, the online transition table, a checkpoint and plots.
@@ -27,22 +27,22 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from offload_learner_py.checkpoint import save_checkpoint
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.dqn import DQNAgent
-from offload_learner_py.evaluation import evaluate, learned_cpu_threshold
-from offload_learner_py.lstm_baseline import LSTMConfig, LSTMPolicy
-from offload_learner_py.online import print_progress, run_online
-from offload_learner_py.plots import (plot_accuracy_bars, plot_action_vs_cpu, plot_action_vs_input_size,
+from offload_learner_py.core.checkpoint import save_checkpoint
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.evaluation import evaluate, learned_cpu_threshold
+from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
+from offload_learner_py.offline.simulation import print_progress, run_online
+from offload_learner_py.offline.plots import (plot_accuracy_bars, plot_action_vs_cpu, plot_action_vs_input_size,
                                       plot_confusion_matrix, plot_training)
-from offload_learner_py.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, OraclePolicy,
+from offload_learner_py.core.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, OraclePolicy,
                                          RandomPolicy)
-from offload_learner_py.reward import CostWeights
-from offload_learner_py.synthetic import SYNTHETIC_KINDS, SyntheticSettings, generate_synthetic
-from offload_learner_py.trace import PlanningTrace
+from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.data.synthetic import SYNTHETIC_KINDS, SyntheticSettings, generate_synthetic
+from offload_learner_py.data.trace import PlanningTrace
 
-BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "data", "husky_playpen_trace.npz")
+BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "..", "data", "husky_playpen_trace.npz")
 
 
 def baseline_policies(seed: int) -> list:
@@ -320,7 +320,7 @@ def _fraction(text: str) -> float:
 def main(argv: Optional[List[str]] = None) -> int:
     """Run one command. Bad user input (a missing or invalid data, trace or config) prints
     `error: ...` on stderr and returns 2, as argparse does for bad arguments."""
-    parser = argparse.ArgumentParser(prog="python -m offload_learner_py.experiments", description=__doc__,
+    parser = argparse.ArgumentParser(prog="python -m offload_learner_py.offline.experiments", description=__doc__,
                                      formatter_class=argparse.RawDescriptionHelpFormatter)
     commands = parser.add_subparsers(dest="command", required=True)
 

@@ -1,7 +1,7 @@
 """FIFO replay memory of Algorithm 1: a preallocated numpy ring, oldest experience replaced first."""
 import numpy as np
 
-from offload_learner_py.state import STATE_SIZE
+from offload_learner_py.core.state import STATE_SIZE
 
 
 class ReplayMemory:

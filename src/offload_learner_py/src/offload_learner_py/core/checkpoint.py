@@ -6,12 +6,12 @@ import zipfile
 
 import torch
 
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dqn import N_ACTIONS, DQNAgent
-from offload_learner_py.normalisation import StateNormalisation
-from offload_learner_py.state import STATE_SIZE
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import N_ACTIONS, DQNAgent
+from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.state import STATE_SIZE
 
-CHECKPOINT_FORMAT = "offload_learner_py.dqn"
+CHECKPOINT_FORMAT = "offload_learner_py.dqn"   # a file format name: kept when the module moved
 CHECKPOINT_VERSION = 1
 # Bounds checked before anything is unpickled. The weights live in their own zip members; the pickle
 # holds only the structure, config and counters (a few KiB). The largest network a config allows

@@ -24,10 +24,10 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.records import DECISION_FIELDS, NO_PATH_DELIVERED, OUTCOME_FIELDS, RequestLog, \
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.data.records import DECISION_FIELDS, NO_PATH_DELIVERED, OUTCOME_FIELDS, RequestLog, \
     transition_table
-from offload_learner_py.reward import CostWeights, reward
+from offload_learner_py.core.reward import CostWeights, reward
 
 DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"

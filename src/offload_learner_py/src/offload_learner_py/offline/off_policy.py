@@ -23,7 +23,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.records import RequestLog
+from offload_learner_py.data.records import RequestLog
 
 Z_95 = 1.959963984540054
 
@@ -233,7 +233,7 @@ def candidate_actions(steps: LoggedSteps, model: Optional[str] = None) -> Dict[s
     """Actions of always-local, always-cloud and, with a checkpoint, its greedy policy."""
     candidates = {"always_local": np.full(len(steps), LOCAL), "always_cloud": np.full(len(steps), CLOUD)}
     if model:
-        from offload_learner_py.checkpoint import load_checkpoint
+        from offload_learner_py.core.checkpoint import load_checkpoint
 
         q = load_checkpoint(model).q_values(steps.states)
         candidates["model"] = np.where(q[:, CLOUD] > q[:, LOCAL], CLOUD, LOCAL)
@@ -241,7 +241,7 @@ def candidate_actions(steps: LoggedSteps, model: Optional[str] = None) -> Dict[s
 
 
 def main(argv=None) -> int:
-    from offload_learner_py.bags import read_bags
+    from offload_learner_py.data.bags import read_bags
 
     parser = argparse.ArgumentParser(description="Off-policy estimates (IPS, DR) of always-local, always-cloud "
                                                  "and a checkpoint's greedy policy from the bags' logged "

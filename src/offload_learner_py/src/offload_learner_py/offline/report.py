@@ -1,6 +1,6 @@
 """The paper's section V from one's own bags.
 
-    python -m offload_learner_py.report BAGS... --out DIR [--model CHECKPOINT] [--seed S]
+    python -m offload_learner_py.offline.report BAGS... --out DIR [--model CHECKPOINT] [--seed S]
 
 Writes DIR/report.md (figures beside it in DIR/figures/), DIR/report.html (one self-contained page,
 the PNGs inlined) and DIR/report.json: loss and cumulative reward per step (Fig. 6), action against
@@ -26,15 +26,15 @@ from typing import Dict, List, Optional, Sequence
 import numpy as np
 import torch
 
-from offload_learner_py import plots
-from offload_learner_py.bags import BagData, read_bags
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.evaluation import accuracy, confusion_matrix, evaluate, learned_cpu_threshold
-from offload_learner_py.lstm_baseline import LSTMConfig, LSTMPolicy
-from offload_learner_py.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results
-from offload_learner_py.retrain import chronological_split, greedy_actions, train_offline
-from offload_learner_py.summary import learned_offload_input_size
+from offload_learner_py.offline import plots
+from offload_learner_py.data.bags import BagData, read_bags
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.evaluation import accuracy, confusion_matrix, evaluate, learned_cpu_threshold
+from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
+from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results
+from offload_learner_py.offline.retrain import chronological_split, greedy_actions, train_offline
+from offload_learner_py.offline.summary import learned_offload_input_size
 
 # Section V of the paper (real data unless said otherwise).
 PAPER = {
@@ -84,7 +84,7 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
 
     # Q-function behind the learned offload point and threshold
     if model:
-        from offload_learner_py.checkpoint import load_checkpoint
+        from offload_learner_py.core.checkpoint import load_checkpoint
 
         agent = load_checkpoint(model)
         q_source = f"the checkpoint {model}"

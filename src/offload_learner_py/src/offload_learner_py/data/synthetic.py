@@ -16,9 +16,9 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.reward import CostWeights, rewards
-from offload_learner_py.trace import PlanningTrace
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.reward import CostWeights, rewards
+from offload_learner_py.data.trace import PlanningTrace
 
 SYNTHETIC_KINDS = ("local", "cloud", "cpu")
 

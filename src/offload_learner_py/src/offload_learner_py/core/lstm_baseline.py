@@ -9,9 +9,9 @@ import torch
 from torch import nn
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.dataset import TransitionTable
-from offload_learner_py.normalisation import INPUT_SIZE_LOG_FLOOR
-from offload_learner_py.policies import Policy
+from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.core.normalisation import INPUT_SIZE_LOG_FLOOR
+from offload_learner_py.core.policies import Policy
 
 FEATURE_COLUMNS = ("input_size", "cpu_availability", "round_trip_s")
 

@@ -9,10 +9,10 @@ import torch
 from torch import nn
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.config import DQNConfig
-from offload_learner_py.normalisation import INPUT_SIZE_LOG_FLOOR, StateNormalisation
-from offload_learner_py.replay import ReplayMemory
-from offload_learner_py.state import STATE_SIZE
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.normalisation import INPUT_SIZE_LOG_FLOOR, StateNormalisation
+from offload_learner_py.core.replay import ReplayMemory
+from offload_learner_py.core.state import STATE_SIZE
 
 N_ACTIONS = 2
 
