@@ -408,9 +408,21 @@ def test_learning_mode_dqn_acts_greedily():
     assert {d.propensity for d in decisions} == {1.0} and len({d.action for d in decisions}) == 1
 
 
+class WarmingRecorder(LearningRecorder):
+    """Warming up until it has been taught `warm_up` transitions, as an untrained DQN."""
+
+    def __init__(self, action, warm_up):
+        super().__init__(action)
+        self.warm_up = warm_up
+
+    @property
+    def warming_up(self):
+        return len(self.taught) < self.warm_up
+
+
 def test_deployed_mode_probes_while_warming_up_then_a_share_and_imputes_the_other_side():
     clock = VirtualClock()
-    policy = LearningRecorder(LOCAL)
+    policy = WarmingRecorder(LOCAL, warm_up=2 * 20)   # two transitions per probe: 20 probes
     local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
     router, recorder = configured_router(policy, local, cloud, clock, mode="deployed", probe_rate=0.1)
     for _ in range(400):

@@ -255,8 +255,9 @@ class RouterConfig:
     probe_rate: float = 0.05
     """deployed: share of requests on which both sides run (learning mode probes every request)."""
     probe_while_warming_up: bool = True
-    """deployed, a learning policy: probe every request until it and both latency models have their first
-    samples (a fixed policy never probes beyond probe_rate)."""
+    """deployed: probe every request while the policy is still warming up (an untrained DQN); a trained or a
+    fixed policy probes at probe_rate only. Until the latency models have their first samples, one-sided
+    requests teach nothing (there is nothing to impute with)."""
     cloud_timeout_s: float = 5.0
     """l_cloud of a request the cloud did not answer (the paper's 5 s)."""
     weights: CostWeights = field(default_factory=CostWeights)
@@ -420,7 +421,7 @@ class OffloadRouter:
         config = self.config
         probe = config.probes_every_request or bool(self.rng.random() < config.probe_rate)
         if config.mode == DEPLOYED and config.probe_while_warming_up and not probe and self.policy.learns:
-            probe = self.policy.warming_up or not all(model.ready for model in self.models.values())
+            probe = self.policy.warming_up
         admitted = self.breaker.admit()
         action = decision.action
         if admitted == OPEN:
