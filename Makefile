@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo bench-policies bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
+.PHONY: help deps venv build test demo demo-options bench-policies bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -94,7 +94,13 @@ STEPS ?= 360
 POLICY ?= dqn
 MODE ?= learning
 SEED ?= 1
-demo: build
+# Checked before the build and before ROS: a bad STEPS or a MAP that is not a file fails in one line at once
+# (the driver then checks the map's YAML and image before it starts anything).
+demo-options:
+	@case "$(STEPS)" in ''|*[!0-9]*|0) echo "error: STEPS must be a positive integer, got '$(STEPS)'" >&2; exit 2;; esac
+	@if [ -n "$(MAP)" ] && [ ! -f "$(MAP)" ]; then echo "error: MAP $(MAP): no such file" >&2; exit 2; fi
+
+demo: demo-options build
 	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need. HEADLESS=1
 	@# runs it on Xvfb and keeps its last frame as runs/<time>/rviz.png (tools/rviz_view.py).
 	@missing=$$(for p in $(if $(RVIZ)$(HEADLESS),rviz) $(if $(HEADLESS),xvfb); do \

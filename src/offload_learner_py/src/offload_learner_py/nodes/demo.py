@@ -7,6 +7,7 @@ the launch ends, and the bag it recorded is read back into the transition table,
 and written to runs/<timestamp>/ with the checkpoint. Ctrl-C stops everything cleanly (and still
 summarises what was recorded)."""
 import argparse
+import ctypes
 import json
 import os
 import pathlib
@@ -17,7 +18,7 @@ import time
 
 import numpy as np
 
-from offload_planner_cpp.cli_args import bounded_float
+from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_planner_cpp.devtools.loopback import free_port
 from offload_learner_py.offline import plots
 from offload_learner_py.nodes.demo_keys import ensure_demo_keys
@@ -45,16 +46,57 @@ class RobotBudget:
 
     def close(self) -> None:
         for directory in self.dirs:
-            # Stray processes (none after a clean shutdown) go back to the root group so rmdir works.
-            try:
-                with open(os.path.join(directory, "cgroup.procs")) as procs:
-                    pids = procs.read().split()
-                for pid in pids:
-                    with open(os.path.join(os.path.dirname(directory), "cgroup.procs"), "w") as root:
-                        root.write(pid)
-                os.rmdir(directory)
-            except OSError:
-                pass
+            self.remove(directory)
+
+    @staticmethod
+    def remove(directory: str) -> None:
+        # Stray processes (none after a clean shutdown) go back to the root group so rmdir works.
+        try:
+            with open(os.path.join(directory, "cgroup.procs")) as procs:
+                pids = procs.read().split()
+            for pid in pids:
+                with open(os.path.join(os.path.dirname(directory), "cgroup.procs"), "w") as root:
+                    root.write(pid)
+        except OSError:
+            pass
+        try:
+            os.rmdir(directory)
+        except OSError:
+            pass
+
+
+def remove_stale_budgets() -> list:
+    """The cgroups `offload_robot_<pid>` of demo drivers that died without cleaning up (SIGKILL)."""
+    removed = []
+    for controller in ("cpu", "cpuacct"):
+        root = pathlib.Path(CGROUP_ROOT) / controller
+        for group in root.glob("offload_robot_*") if root.is_dir() else ():
+            pid = group.name.rsplit("_", 1)[-1]
+            if pid.isdigit() and not pathlib.Path(f"/proc/{pid}").exists():
+                RobotBudget.remove(str(group))
+                removed.append(str(group))
+    return removed
+
+
+def end_with_parent() -> None:
+    """In the child before exec: SIGTERM when the driver dies, however it dies (roslaunch then shuts its
+    nodes down), so a killed driver leaves no launch running. Linux prctl(PR_SET_PDEATHSIG)."""
+    ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)
+
+
+def check_options(args) -> str:
+    """Why the options cannot make a run, in one line, or "" (checked before anything starts)."""
+    if args.steps < 1:
+        return f"STEPS must be a positive integer, got {args.steps}"
+    if args.map:
+        from offload_planner_cpp.maps import MapFormatError, load_map_server_yaml
+        try:
+            load_map_server_yaml(args.map)
+        except (MapFormatError, OSError, ValueError) as error:
+            return f"MAP {args.map}: {error}"
+    if args.model and not os.path.isfile(args.model):
+        return f"MODEL {args.model}: no such file"
+    return ""
 
 
 def analyse(out_dir: pathlib.Path, policy: str) -> dict:
@@ -104,7 +146,7 @@ def analyse(out_dir: pathlib.Path, policy: str) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--launch", required=True, help="launch/offload_demo.launch")
-    parser.add_argument("--steps", type=int, default=300)
+    parser.add_argument("--steps", type=bounded_int("--steps", 1, 10_000_000), default=300)
     parser.add_argument("--map", default="", help="map_server YAML (default: the bundled Husky playpen)")
     parser.add_argument("--policy", default="dqn")
     parser.add_argument("--mode", choices=("learning", "deployed"), default="learning",
@@ -129,9 +171,12 @@ def main(argv=None) -> int:
     if args.analyse_only:
         analyse(pathlib.Path(args.analyse_only), args.policy)
         return 0
-    if args.steps < 1:
-        print("error: STEPS must be at least 1", file=sys.stderr)
+    problem = check_options(args)
+    if problem:
+        print(f"error: {problem}", file=sys.stderr)
         return 2
+    for group in remove_stale_budgets():
+        print(f"demo: removed {group}, left by a demo driver that died", flush=True)
     out_dir = pathlib.Path(args.runs_dir).resolve() / time.strftime("%Y%m%d-%H%M%S")
     out_dir.mkdir(parents=True)
     ros_home = os.environ.get("ROS_HOME", str(pathlib.Path.home() / ".ros"))
@@ -166,7 +211,7 @@ def main(argv=None) -> int:
           f"{args.budget_cores if budget else 'no'} core budget, cloud on core {args.cloud_core}; output {out_dir}",
           flush=True)
     launch = subprocess.Popen(["roslaunch", "-p", str(master_port), args.launch]
-                              + launch_args, env=env, start_new_session=True)
+                              + launch_args, env=env, start_new_session=True, preexec_fn=end_with_parent)
     interrupted = False
     try:
         while launch.poll() is None:
@@ -192,17 +237,18 @@ def main(argv=None) -> int:
     except (FileNotFoundError, ValueError) as error:
         print(f"error: cannot summarise the run: {error}", file=sys.stderr)
         return 1
-    if args.no_report:
-        print(f"\nrun directory: {out_dir}")
-        return 130 if interrupted else 0
-    try:
-        report = report_run(str(out_dir))
-        print(f"report (the paper's section V from this run's bag): {report}")
-    except (OSError, ValueError) as error:
-        print(f"warning: no report: {error}", file=sys.stderr)
+    if not args.no_report:
+        try:
+            report = report_run(str(out_dir))
+            print(f"report (the paper's section V from this run's bag): {report}")
+        except (OSError, ValueError) as error:
+            print(f"warning: no report: {error}", file=sys.stderr)
     print(f"\nrun directory: {out_dir}")
     if interrupted:
         return 130
+    if summary.get("paths_delivered", 0) == 0:
+        print("error: no request got a path in this run", file=sys.stderr)
+        return 1
     if summary["paths_delivered"] < summary["requests"]:
         print(f"warning: {summary['requests'] - summary['paths_delivered']} requests got no path", file=sys.stderr)
     return 0

@@ -2,6 +2,8 @@
 learner's ~plan by default) at a rate or for a count. Exits after the count, so a launch file can mark
 it required and end the run."""
 import math
+import os
+import signal
 
 import numpy as np
 import rospy
@@ -39,6 +41,8 @@ def main():
       ~lethal_threshold (int, 50), ~unknown_is_obstacle (bool, true)   the planner's rules of free cells
       ~tolerance (float, 0.0)        PlanPath tolerance of each request
       ~map_wait_s (float, 60)        how long to wait for the map
+      ~end_launch_when_done (bool, false)  after ~count requests, end the roslaunch that started this node
+                                     (SIGINT to the parent, as Ctrl-C): the demo's clean end
     Topics: subscribes map (nav_msgs/OccupancyGrid, once); publishes ~goal (geometry_msgs/PoseStamped).
     """
     rospy.init_node("goal_generator")
@@ -101,6 +105,11 @@ def main():
             break
     rospy.loginfo("goal generator done: %d paths delivered for %d requests", delivered, sent)
     plan.close()
+    if p("end_launch_when_done", False) and not rospy.is_shutdown():
+        # The launch that started us (roslaunch is our parent) ends as on Ctrl-C: a clean shutdown, where a
+        # `required` node that exits makes roslaunch report a death in red.
+        os.kill(os.getppid(), signal.SIGINT)
+        rospy.spin()   # exit when roslaunch shuts us down with the rest, not before (that would be a death)
 
 
 if __name__ == "__main__":
