@@ -151,9 +151,9 @@ class FaultMatrixTest(unittest.TestCase):
         cls.bag_number += 1
         bag = os.path.join(cls.tmp.name, f"session{cls.bag_number}.bag")
         cls.bag_paths.append(bag)
-        args = ElementTree.parse(launch_file("record.launch")).find("node").get("args").replace("$(arg bag)", bag)
+        topics = ElementTree.parse(launch_file("record.launch")).find("node").get("args").split("--", 1)[1].split()
         cls.processes["record"] = subprocess.Popen(
-            ["rosrun", "rosbag", "record", *args.split(), "__name:=offload_record"],
+            ["rosrun", "rosbag", "record", "-O", bag, *topics, "__name:=offload_record"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     @classmethod

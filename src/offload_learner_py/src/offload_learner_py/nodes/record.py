@@ -1,0 +1,60 @@
+"""offload_record: `rosbag record` of the offloading topics that never replaces a bag and fails loudly.
+
+rosbag record -O truncates an existing file (a crashed session's .bag.active, or a finished bag), and on a
+disk with less free space than its --min-space it records nothing, saying so only in its own log. This
+checks both before it hands over to rosbag (exec: the recorder keeps this process, so signals reach it),
+and exits non-zero with one line instead: record.launch marks it required, so the launch fails.
+
+    offload_record [--bag PATH | --prefix PREFIX] [--min-free-mib N] -- TOPIC...
+"""
+import argparse
+import os
+import shutil
+import sys
+import time
+
+from offload_planner_cpp.cli_args import bounded_int
+
+MIN_FREE_MIB = 1024   # rosbag record's own --min-space default: below it, it records nothing
+
+
+def bag_path(bag: str, prefix: str, now: float) -> str:
+    """The exact bag asked for, else PREFIX-<local time>.bag: a restart never reuses a name."""
+    return bag or f"{prefix}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}.bag"
+
+
+def problem(path: str, min_free_mib: int) -> str:
+    """Why recording into `path` would lose or record nothing, or ""."""
+    for existing in (path, path + ".active"):
+        if os.path.lexists(existing):
+            return f"{existing} exists: refusing to replace a recorded bag (give another bag:= name)"
+    directory = os.path.dirname(os.path.abspath(path))
+    if not os.path.isdir(directory):
+        return f"{directory} is not a directory"
+    free_mib = shutil.disk_usage(directory).free // (1 << 20)
+    if free_mib < min_free_mib:
+        return (f"only {free_mib} MiB free in {directory}, under the {min_free_mib} MiB rosbag needs to record "
+                f"(it would record nothing): free space or record elsewhere")
+    return ""
+
+
+def main(argv=None) -> None:
+    argv = sys.argv[1:] if argv is None else argv
+    ros_args = [arg for arg in argv if arg.startswith("__") and ":=" in arg]   # __name:=, __log:= from roslaunch
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--bag", default="", help="exact bag file")
+    parser.add_argument("--prefix", default=os.path.join(os.environ.get("ROS_HOME", "/tmp"), "offload"))
+    parser.add_argument("--min-free-mib", type=bounded_int("--min-free-mib", 0, 1 << 30), default=MIN_FREE_MIB)
+    parser.add_argument("topics", nargs="+")
+    args = parser.parse_args([arg for arg in argv if arg not in ros_args])
+    path = bag_path(args.bag, args.prefix, time.time())
+    why = problem(path, args.min_free_mib)
+    if why:
+        raise SystemExit(f"offload_record: {why}")
+    print(f"offload_record: recording {len(args.topics)} topics into {path}", flush=True)
+    os.execvp("rosbag", ["rosbag", "record", "-O", path, f"--min-space={args.min_free_mib}M", *args.topics,
+                         *ros_args])
+
+
+if __name__ == "__main__":
+    main()
