@@ -272,9 +272,9 @@ class StaleThenFresh:
         return OK, {"side": self, "map": "old" if self.calls <= self.stale_calls else "new"}
 
 
-def stale_router(policy, local, cloud, clock, probe_rate=0.0, map_wait_s=2.0):
+def stale_router(policy, local, cloud, clock, probe_rate=0.0, map_wait_s=2.0, stale_map=None):
     recorder = Recorder()
-    statuses = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR)
+    statuses = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, stale_map=stale_map)
     router = OffloadRouter(policy, local, cloud, statuses,
                            RouterConfig(probe_rate=probe_rate, cloud_timeout_s=5.0, map_wait_s=map_wait_s,
                                         map_retry_s=0.02),
@@ -314,6 +314,26 @@ def test_a_local_planner_that_never_takes_the_announced_map_keeps_serving_its_la
     (outcome,) = recorder.outcomes
     assert outcome.delivered == LOCAL and outcome.reward is None
     assert 0.5 <= outcome.local_s < 0.5 + 0.010 + 0.02 + 1e-9
+
+
+STALE = 12
+
+
+def test_a_path_only_on_the_old_map_is_never_ok_and_is_waited_for_once_per_map():
+    """The planner never takes the announced map: the caller gets the old path with STALE_MAP and why, and
+    the next request on the same stale map does not wait map_wait_s again."""
+    clock = VirtualClock()
+    local, cloud = StaleThenFresh(clock, 0.010, stale_calls=10**9), FakePlanner(clock, 0.050)
+    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, map_wait_s=0.5,
+                                    stale_map=STALE)
+    first = router.route("req", STATE)
+    calls_after_first = local.calls
+    second = router.route("req", STATE)
+    finish(router)
+    assert first.status == second.status == STALE and "last map the planner accepted" in first.note
+    assert first.response["map"] == "old"
+    assert calls_after_first > 10 and local.calls == calls_after_first + 1   # no second wait
+    assert all(o.delivered == NO_PATH_DELIVERED and o.reward is None for o in recorder.outcomes)
 
 
 def test_a_stale_cloud_path_falls_back_to_the_local_path_and_costs_the_timeout():

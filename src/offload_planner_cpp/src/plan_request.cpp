@@ -28,6 +28,7 @@ const char* statusName(PlanStatus status) {
     case PlanStatus::kCloudTimeout: return "CLOUD_TIMEOUT";
     case PlanStatus::kCloudError: return "CLOUD_ERROR";
     case PlanStatus::kInvalidRequest: return "INVALID_REQUEST";
+    case PlanStatus::kStaleMap: return "STALE_MAP";
   }
   return "";
 }

@@ -25,6 +25,7 @@ OFFLOAD_SAME_CODE(INVALID_MAP, kInvalidMap);
 OFFLOAD_SAME_CODE(CLOUD_TIMEOUT, kCloudTimeout);
 OFFLOAD_SAME_CODE(CLOUD_ERROR, kCloudError);
 OFFLOAD_SAME_CODE(INVALID_REQUEST, kInvalidRequest);
+OFFLOAD_SAME_CODE(STALE_MAP, kStaleMap);
 #undef OFFLOAD_SAME_CODE
 
 StampedPoint pointOf(const geometry_msgs::PoseStamped& pose) {

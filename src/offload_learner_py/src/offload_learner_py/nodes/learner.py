@@ -169,7 +169,8 @@ class LearnerNode:
             rospy.loginfo("waiting for %s", side.service)
             rospy.wait_for_service(side.service, timeout=wait_s)
         statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
-                            cloud_error=PlanPathResponse.CLOUD_ERROR)
+                            cloud_error=PlanPathResponse.CLOUD_ERROR, stale_map=PlanPathResponse.STALE_MAP)
+        self._stamp_warned = set()
         self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
         self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
         self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
@@ -241,9 +242,18 @@ class LearnerNode:
     def stale_map(self, response):
         """Why a path was planned on a map older than the latest map_metadata announced, or None. The
         map in force is the one whose load time map_metadata carries (map_server and map_publisher stamp
-        the grid at or after it); a zero load time (a publisher that does not set it) disables the check."""
+        the grid at or after it). A load time of zero (a publisher that does not set it) or in the future (a
+        clock gone wrong: no planner's map could ever match it) cannot tell an old map from the one in force:
+        the check is off for that map, with one warning, rather than a wait on every request."""
         info = self.map_info
-        if info is None or info.map_load_time.is_zero() or response.map_stamp >= info.map_load_time:
+        if info is None or response.map_stamp >= info.map_load_time:
+            return None
+        load_time = info.map_load_time
+        if load_time.is_zero() or load_time > rospy.Time.now() + rospy.Duration(5.0):
+            if load_time not in self._stamp_warned:
+                self._stamp_warned.add(load_time)
+                rospy.logwarn("map_metadata's load time %.3f is %s: paths cannot be checked against the map in "
+                              "force", load_time.to_sec(), "zero" if load_time.is_zero() else "in the future")
             return None
         return (f"planned on the map of {response.map_stamp.to_sec():.3f}, the map in force was loaded at "
                 f"{info.map_load_time.to_sec():.3f}")
@@ -333,8 +343,9 @@ class LearnerNode:
         result = self.router.route(request, self.build_state(request), arrived)
         if result.response is None:
             return PlanPathResponse(status=result.status, message=result.raised)
-        if result.note:
-            rospy.logwarn_throttle(10.0, "delivered a path %s", result.note)
+        if result.note:   # a path on the last map the planner took, never as OK: STALE_MAP and why
+            rospy.logwarn_throttle(10.0, "returned a path %s", result.note)
+            result.response.status, result.response.message = result.status, result.note
         return result.response
 
     def on_plan(self, request):

@@ -52,6 +52,7 @@ class Statuses:
     ok: int
     cloud_timeout: int
     cloud_error: int
+    stale_map: Optional[int] = None   # a path only on an older map; None: delivered as OK with a note
 
     def cloud_failed(self, status: int) -> bool:
         """The cloud could not answer; the request itself may be fine, so plan it locally."""
@@ -376,6 +377,7 @@ class OffloadRouter:
         self.breaker = breaker or LinkBreaker(config.breaker)
         self.models = {LOCAL: LatencyModel(config.latency_model), CLOUD: LatencyModel(config.latency_model)}
         self._lanes = {LOCAL: _Lane(), CLOUD: _Lane()}
+        self._waited_out = {}   # id(side) -> the stale-map verdict it was waited out on
         self._ids = threading.Lock()
         self._deciding = threading.Lock()   # policy and probe draws share random generators across callers
         self._idle = threading.Condition()
@@ -516,7 +518,9 @@ class OffloadRouter:
         req.delivered.set()
 
     def _call(self, side: PlanCall, request, failure_status: int, stale_status: Optional[int]) -> SideResult:
-        """stale_status None: after the wait, an answer from the older map is delivered with a note."""
+        """stale_status None: after the wait, an answer from the older map is delivered with a note (and the
+        STALE_MAP status when the node gave one). A side already waited out on the same stale map is not
+        waited for again: one wait per stale map, not one per request."""
         began = self.clock()
         while True:
             try:
@@ -529,9 +533,12 @@ class OffloadRouter:
                 result = SideResult(int(status), response, self.clock() - began,
                                     link_failed=self.statuses.cloud_failed(int(status)))
                 break
-            if self.clock() - began >= self.config.map_wait_s:
+            waited_out = self._waited_out.get(id(side)) == why
+            if waited_out or self.clock() - began >= self.config.map_wait_s:
+                self._waited_out[id(side)] = why
                 if stale_status is None:
-                    result = SideResult(int(status), response, self.clock() - began,
+                    stale = self.statuses.stale_map
+                    result = SideResult(int(status) if stale is None else stale, response, self.clock() - began,
                                         note=f"planned on the last map the planner accepted: {why} (still not "
                                              f"taken after {self.config.map_wait_s:g} s)")
                 else:
