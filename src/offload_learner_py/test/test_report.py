@@ -76,3 +76,14 @@ def test_too_little_data_gives_a_report_that_says_so_and_status_2(tmp_path, caps
     assert os.path.exists(tmp_path / "r" / "report.html")
     assert "report:" in capsys.readouterr().out
     assert not np.isnan(0.0)
+
+
+def test_the_report_shows_its_progress(tmp_path, capsys):
+    """Minutes of fitting must not be silent: a progress bar names each step on stderr."""
+    from bagtools import make_requests, write
+    from offload_learner_py.offline import report as report_module
+    bag = write(tmp_path / "run.bag", make_requests(60, probe_every=1))
+    report_module.report([bag], str(tmp_path / "out"), gradient_steps=20, lstm_epochs=2, workers=1, progress=True)
+    err = capsys.readouterr().err
+    for step in ("report: Q-function", "report: figures 6-12", "report: Fig. 13", "report: latency table"):
+        assert step in err, err[-500:]

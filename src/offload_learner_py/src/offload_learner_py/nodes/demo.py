@@ -239,7 +239,8 @@ def main(argv=None) -> int:
         return 1
     if not args.no_report:
         try:
-            report = report_run(str(out_dir))
+            print("demo: writing the report (the paper's section V from the bag)...", flush=True)
+            report = report_run(str(out_dir), progress=True)
             print(f"report (the paper's section V from this run's bag): {report}")
         except (OSError, ValueError) as error:
             print(f"warning: no report: {error}", file=sys.stderr)

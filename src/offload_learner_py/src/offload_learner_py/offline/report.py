@@ -82,7 +82,10 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
                          f"the figures need at least {MIN_ROWS} (record with a probe rate above 0)."})
         return _write(out_dir, sections, numbers, data.report.format())
 
+    stages = _Stages(progress, ["Q-function", "figures 6-12", "Fig. 13 on the first 500 steps",
+                                "Fig. 13 on all steps", "latency table and off-policy estimates"])
     # Q-function behind the learned offload point and threshold
+    stages.next()
     if model:
         from offload_learner_py.core.checkpoint import load_checkpoint
 
@@ -98,6 +101,7 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
     numbers.update(offload_input_size=offload_point, cpu_threshold=threshold, q_source=q_source)
 
     # Fig. 6: loss and cumulative reward of the online run, per request
+    stages.next()
     loss = np.where(log["outcome_loss_valid"].astype(bool), log["outcome_loss"], np.nan)
     step_reward = np.where(log["outcome_reward_valid"].astype(bool), log["outcome_reward"], 0.0)
     path6 = plots.plot_training(loss, step_reward, os.path.join(figures, "fig6_loss_reward.png"),
@@ -149,6 +153,7 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
     first = table.slice(0, min(500, len(table)))
     fig13 = {}
     for label, rows in (("first 500", first), ("all", table)):
+        stages.next()
         scores = _fit_pair(rows, seed, gradient_steps, lstm_epochs)
         fig13[f"DQN, {label}"], fig13[f"LSTM, {label}"] = scores["dqn"], scores["lstm"]
     numbers["fig13"] = fig13
@@ -162,6 +167,7 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
                               "DQN 81.62 / 83.32 %, LSTM 72.08 / 74.12 % (first 500 / all 1000 steps)."})
 
     # The latency table
+    stages.next()
     scores = evaluate(table.action, table)
     n = len(table)
     latency = {"chosen": scores["mean_latency_s"], "local": scores["mean_latency_always_local_s"],
@@ -194,7 +200,33 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
                      "ours": "IPS and doubly robust estimates from the logged propensities (taken side only), "
                              "beside the latency and accuracy measured on probe steps; 95 % intervals.",
                      "paper": "Not in the paper (it measured both sides at every step)."})
+    stages.close()
     return _write(out_dir, sections, numbers, data.report.format())
+
+
+class _Stages:
+    """One progress bar over the report's steps (with an ETA), on stderr, when asked for."""
+
+    def __init__(self, enabled: bool, names: List[str]):
+        self.names, self.index = names, -1
+        self.bar = None
+        if enabled:
+            from tqdm import tqdm
+            self.bar = tqdm(total=len(names), desc="report", unit="step", file=sys.stderr)
+
+    def next(self) -> None:
+        """The previous step is done; the next one starts."""
+        if self.bar is None:
+            return
+        if self.index >= 0:
+            self.bar.update(1)
+        self.index += 1
+        self.bar.set_description(f"report: {self.names[min(self.index, len(self.names) - 1)]}")
+
+    def close(self) -> None:
+        if self.bar is not None:
+            self.bar.update(self.bar.total - self.bar.n)
+            self.bar.close()
 
 
 def report_run(run_dir: str, **options) -> str:
