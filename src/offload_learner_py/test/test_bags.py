@@ -290,3 +290,19 @@ def test_requests_the_router_routed_otherwise_are_kept(tmp_path):
     assert list(data.log["request_id"]) == [1, 2]
     assert list(data.log["routed"]) == [0, 0] and list(data.log["breaker"]) == ["", "open"]
     assert "routed side (cloud)" in data.report.bags[0].invalid_examples[0]
+
+
+def test_values_outside_physical_bounds_are_counted_skips(tmp_path):
+    """One row with a propensity of 1e-300 or a round trip of 1e308 s would own every figure computed from
+    the bag (an IPS weight of 1e300, a NaN network): such rows are skipped and counted, the rest read."""
+    requests = make_requests(20, probe_every=1)
+    requests[3][0]["action_propensity"] = 1e-300
+    requests[5][0]["round_trip_s"] = 1e308
+    requests[7][1]["local_s"] = 1e308
+    requests[9][0]["input_size"] = 3.8e27
+    data = bags.read_bags([write(tmp_path / "run.bag", requests)])
+    report = data.report.bags[0]
+    assert len(data.log) == 16 and report.invalid == 4
+    assert any("action_propensity" in why for why in report.invalid_examples)
+    assert np.all(data.log["action_propensity"] >= bags.MIN_PROPENSITY)
+    assert np.nanmax(data.log["outcome_local_s"]) <= bags.MAX_LATENCY_S

@@ -119,3 +119,13 @@ def test_snips_and_effective_sample_size_by_hand():
     assert off_policy.snips(pi, action, propensity, latency).value == pytest.approx(2.0)   # (2*1 + 2*3) / 4
     assert off_policy.ips(pi, action, propensity, latency).value == pytest.approx(8.0 / 3)
     assert off_policy.effective_sample_size(pi, action, propensity) == pytest.approx(2.0)
+
+
+def test_accuracy_estimates_stay_shares_and_few_samples_are_flagged():
+    from offload_learner_py.offline.off_policy import Estimate, clipped, format_results
+    over = clipped(Estimate(1.4, 0.801, 1.999, 0.3, 10), 0.0, 1.0)
+    assert (over.value, over.low, over.high) == (1.0, 0.801, 1.0)
+    empty = Estimate(float("nan"), float("nan"), float("nan"), float("nan"), 0)
+    result = {"latency_ips_s": empty, "latency_snips_s": empty, "latency_dr_s": empty, "effective_sample_size": 4.0}
+    assert "effective sample size under 30 for few" in format_results({"few": result})
+    assert "warning" not in format_results({"many": {**result, "effective_sample_size": 300.0}})

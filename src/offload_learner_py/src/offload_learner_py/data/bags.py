@@ -36,6 +36,11 @@ BAG_SUFFIXES = (".bag", ".bag.active")
 # A chunk rosbag writes is 768 KiB by default; anything this large is damage or hostility, not data.
 MAX_CHUNK_BYTES = 256 * 1024 * 1024
 NO_VALUE = object()
+# Physical bounds of a row: beyond them a value is damage or hostility, and one such row would own every
+# figure (an IPS weight of 1e300, a mean latency of 1e308 s, a NaN network). Such rows are counted skips.
+MAX_LATENCY_S = 3600.0      # a latency or round trip of an hour is no planning request
+MIN_PROPENSITY = 1e-3       # importance weights stay at most 1000
+MAX_INPUT_SIZE = 1e6        # d_t is normalised by the map's cell count (the paper's values are 0 to 5)
 
 # Per field: the default when a bag's message definition lacks it (None: the field is required).
 DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
@@ -529,14 +534,14 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
         return f"decision action {decision['action']}, outcome action {outcome['action']}"
     if decision["action"] not in (LOCAL, CLOUD):
         return f"action {decision['action']} is neither local nor cloud"
-    for name, low, high in (("input_size", 0.0, math.inf), ("cpu_availability", 0.0, 1.0),
-                            ("round_trip_s", 0.0, math.inf)):
+    for name, low, high in (("input_size", 0.0, MAX_INPUT_SIZE), ("cpu_availability", 0.0, 1.0),
+                            ("round_trip_s", 0.0, MAX_LATENCY_S)):
         value = decision[name]
         if not (_finite(value) and low <= value <= high):
-            return f"{name} {value}"
+            return f"{name} {value} outside [{low:g}, {high:g}]"
     propensity = decision["action_propensity"]
-    if not (_finite(propensity) and 0.0 < propensity <= 1.0):
-        return f"action_propensity {propensity}"
+    if not (_finite(propensity) and MIN_PROPENSITY <= propensity <= 1.0):
+        return f"action_propensity {propensity} outside [{MIN_PROPENSITY:g}, 1]"
     for side in ("local", "cloud"):
         if outcome[f"{side}_measured"] is NO_VALUE:
             value = outcome[f"{side}_s"]
@@ -553,8 +558,8 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
         return f"the routed side ({routed}) has no measured latency"
     for side in ("local", "cloud"):
         value = outcome[f"{side}_s"]
-        if outcome[f"{side}_measured"] and not (_finite(value) and value > 0):
-            return f"{side}_s {value}"
+        if outcome[f"{side}_measured"] and not (_finite(value) and 0 < value <= MAX_LATENCY_S):
+            return f"{side}_s {value} outside (0, {MAX_LATENCY_S:g}]"
     for side in ("local", "cloud"):
         if not outcome[f"{side}_measured"]:
             outcome[f"{side}_s"] = math.nan    # not measured: no number stands in for it

@@ -28,6 +28,9 @@ from offload_learner_py.data.records import RequestLog
 Z_95 = 1.959963984540054
 
 
+MIN_EFFECTIVE_SAMPLES = 30   # below it, an importance-weighted figure rests on a handful of steps
+
+
 @dataclass
 class Estimate:
     value: float
@@ -205,8 +208,15 @@ def evaluate_policy(steps: LoggedSteps, actions: np.ndarray, predicted: Optional
         result["accuracy_probe"] = wilson_interval(int(correct.sum()), int(p.sum()))
         # the same accuracy estimated the off-policy way: only the taken action's correctness is used
         taken_correct = (np.where(steps.action[p] == CLOUD, cloud_s, local_s) <= best).astype(np.float64)
-        result["accuracy_ips"] = ips(pi[p], steps.action[p], steps.propensity[p], taken_correct)
+        # An accuracy is a share: IPS can overshoot it on few steps, so the estimate and its interval are
+        # clipped to [0, 1] (the clipping is visible as an interval that ends at 0 or 100 %).
+        result["accuracy_ips"] = clipped(ips(pi[p], steps.action[p], steps.propensity[p], taken_correct), 0.0, 1.0)
     return result
+
+
+def clipped(estimate: Estimate, low: float, high: float) -> Estimate:
+    clip = lambda value: min(max(value, low), high) if math.isfinite(value) else value  # noqa: E731
+    return Estimate(clip(estimate.value), clip(estimate.low), clip(estimate.high), estimate.std_error, estimate.n)
 
 
 def to_jsonable(result: Dict) -> Dict:
@@ -226,6 +236,10 @@ def format_results(results: Dict[str, Dict]) -> str:
                      f"{result['effective_sample_size']:7.0f}"
                      f"{result.get('accuracy_probe', empty).format(100, 1):>22}"
                      f"{result.get('accuracy_ips', empty).format(100, 1):>22}")
+    few = [name for name, result in results.items() if result["effective_sample_size"] < MIN_EFFECTIVE_SAMPLES]
+    if few:
+        lines.append(f"warning: effective sample size under {MIN_EFFECTIVE_SAMPLES} for {', '.join(few)}: their IPS, "
+                     "SNIPS and DR figures rest on a handful of logged steps (record more, or with more probes)")
     return "\n".join(lines)
 
 
