@@ -256,6 +256,7 @@ def candidate_actions(steps: LoggedSteps, model: Optional[str] = None) -> Dict[s
 
 def main(argv=None) -> int:
     from offload_learner_py.data.bags import read_bags
+    from offload_learner_py.offline.output import terminal_text
 
     parser = argparse.ArgumentParser(description="Off-policy estimates (IPS, DR) of always-local, always-cloud "
                                                  "and a checkpoint's greedy policy from the bags' logged "
@@ -266,7 +267,7 @@ def main(argv=None) -> int:
     parser.add_argument("--workers", type=int, default=None)
     args = parser.parse_args(argv)
     data = read_bags(args.bags, workers=args.workers)
-    print(data.report.format(), file=sys.stderr)
+    print(terminal_text(data.report.format()), file=sys.stderr)
     if len(data.log) == 0:
         print("error: no request read from the bags", file=sys.stderr)
         return 2

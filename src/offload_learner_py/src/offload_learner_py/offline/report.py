@@ -32,6 +32,7 @@ from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.evaluation import accuracy, confusion_matrix, evaluate, learned_cpu_threshold
 from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
+from offload_learner_py.offline.output import OutputDirError, code_block, prepare_out_dir, terminal_text
 from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results
 from offload_learner_py.offline.retrain import chronological_split, greedy_actions, train_offline
 from offload_learner_py.offline.summary import learned_offload_input_size
@@ -264,7 +265,7 @@ def _write(out_dir: str, sections: List[Dict], numbers: Dict, read_report: str) 
             if key in section:
                 md += [f"**{label}:** {section[key]}" if label else section[key], ""]
                 page.append(f"<p>{'<b>' + label + ':</b> ' if label else ''}{html.escape(section[key])}</p>")
-    md += ["## Bags read", "", "```", read_report, "```", ""]
+    md += ["## Bags read", "", "```", code_block(read_report), "```", ""]
     page.append(f"<h2>Bags read</h2><pre>{html.escape(read_report)}</pre>")
     path = os.path.join(out_dir, "report.md")
     with open(path, "w") as out:
@@ -309,10 +310,16 @@ def main(argv: Optional[List[str]] = None) -> int:
                         help="gradient steps of each offline DQN fit (default: 50 passes over its transitions)")
     parser.add_argument("--workers", type=int, default=None)
     parser.add_argument("--quiet", action="store_true")
+    parser.add_argument("--force", action="store_true", help="overwrite an earlier report in --out")
     args = parser.parse_args(argv)
+    try:
+        prepare_out_dir(args.out, args.force)
+    except OutputDirError as error:
+        print(f"error: {error}", file=sys.stderr)
+        return 2
     torch.set_num_threads(1)   # tiny networks: one thread is fastest
     data = read_bags(args.bags, workers=args.workers)
-    print(data.report.format(), file=sys.stderr)
+    print(terminal_text(data.report.format()), file=sys.stderr)
     try:
         path = report(out_dir=args.out, model=args.model, seed=args.seed, gradient_steps=args.steps, data=data,
                       progress=not args.quiet)

@@ -32,6 +32,7 @@ from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import evaluate
 from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.offline.output import code_block, prepare_out_dir, terminal_text
 from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results, \
     to_jsonable
 from offload_learner_py.core.replay import ReplayMemory
@@ -247,7 +248,7 @@ def format_evaluation(evaluation: Dict, read_report: str = "") -> str:
     lines += ["", "Off-policy estimates on the held-out requests (95 % intervals):", "", "```",
               evaluation["off_policy_table"], "```"]
     if read_report:
-        lines += ["", "Bags read:", "", "```", read_report, "```"]
+        lines += ["", "Bags read:", "", "```", code_block(read_report), "```"]
     return "\n".join(lines) + "\n"
 
 
@@ -281,8 +282,10 @@ def main(argv: Optional[List[str]] = None) -> int:
     parser.add_argument("--set", action="append", default=[], metavar="FIELD=VALUE", help="any DQNConfig field")
     parser.add_argument("--workers", type=int, default=None, help="bag reader processes (default: CPU count)")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--force", action="store_true", help="overwrite earlier results in --out")
     args = parser.parse_args(argv)
     try:
+        prepare_out_dir(args.out, args.force)
         overrides = parse_overrides(args.set)
         if args.gamma is not None:
             overrides["gamma"] = args.gamma
@@ -296,7 +299,7 @@ def main(argv: Optional[List[str]] = None) -> int:
         return 2
     torch.set_num_threads(1)   # tiny network: one thread is fastest, and the result does not depend on cores
     data = read_bags(args.bags, workers=args.workers)
-    print(data.report.format(), file=sys.stderr)
+    print(terminal_text(data.report.format()), file=sys.stderr)
     if weights is None:
         try:
             weights = recorded_weights(data)
