@@ -306,3 +306,26 @@ def test_values_outside_physical_bounds_are_counted_skips(tmp_path):
     assert any("action_propensity" in why for why in report.invalid_examples)
     assert np.all(data.log["action_propensity"] >= bags.MIN_PROPENSITY)
     assert np.nanmax(data.log["outcome_local_s"]) <= bags.MAX_LATENCY_S
+
+
+@pytest.mark.parametrize("codec", ["lz4", "bz2"])
+def test_a_chunk_that_inflates_past_its_declared_size_is_refused_without_inflating(codec):
+    """A decompression bomb: a small chunk whose data inflates to far more than its header declares (and
+    than the cap). Decompression stops one byte past the bound, so memory stays bounded."""
+    import bz2
+    import struct
+
+    import lz4.frame
+    zeros = bytes(16 << 20)
+    compressor = lz4.frame.LZ4FrameCompressor() if codec == "lz4" else bz2.BZ2Compressor()
+    pieces = [compressor.begin()] if codec == "lz4" else []
+    pieces += [compressor.compress(zeros) for _ in range(8)]   # 128 MiB, over the 64 MiB cap
+    pieces.append(compressor.flush())
+    bomb = b"".join(pieces)
+    assert len(bomb) < (2 << 20)
+    with pytest.raises(ValueError, match="inflates past its declared 4096 bytes"):
+        bags._decompress_chunk(codec, bomb, {"size": struct.pack("<I", 4096)})
+    with pytest.raises(ValueError, match="inflates past"):
+        bags._decompress_chunk(codec, bomb, {})          # no declared size: the cap bounds it
+    with pytest.raises(ValueError, match="more than"):
+        bags._decompress_chunk(codec, bomb, {"size": struct.pack("<I", 1 << 30)})

@@ -33,8 +33,10 @@ DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
 CONFIG_TYPE = "offload_msgs/msg/LearnerConfig"
 BAG_SUFFIXES = (".bag", ".bag.active")
-# A chunk rosbag writes is 768 KiB by default; anything this large is damage or hostility, not data.
-MAX_CHUNK_BYTES = 256 * 1024 * 1024
+# A chunk rosbag writes is 768 KiB by default; anything this large, compressed or not, is damage or
+# hostility, not data. Decompression stops at the chunk's declared size and at this cap, so a bomb (a small
+# chunk that inflates to gigabytes) costs at most this much memory, and the chunk is a counted skip.
+MAX_CHUNK_BYTES = 64 * 1024 * 1024
 NO_VALUE = object()
 # Physical bounds of a row: beyond them a value is damage or hostility, and one such row would own every
 # figure (an IPS weight of 1e300, a mean latency of 1e308 s, a NaN network). Such rows are counted skips.
@@ -238,19 +240,22 @@ def _op(fields: Dict[str, bytes]) -> int:
     return value[0]
 
 
+def _decompressor(compression: str):
+    """The one codec dispatch of chunk data: bz2 and lz4 streams with a bounded output."""
+    if compression == "bz2":
+        return bz2.BZ2Decompressor()
+    if compression == "lz4":
+        import lz4.frame
+        return lz4.frame.LZ4FrameDecompressor()
+    raise ValueError(f"chunk compression {compression!r} is not supported")
+
+
 def _decompress_partial(compression: str, data: bytes) -> bytes:
-    """As much of a (possibly cut-off) chunk as can be decompressed."""
+    """As much of a (possibly cut-off) chunk as can be decompressed, at most MAX_CHUNK_BYTES."""
     if compression == "none":
         return data
-    if compression == "bz2":
-        decompressor = bz2.BZ2Decompressor()
-    elif compression == "lz4":
-        import lz4.frame
-        decompressor = lz4.frame.LZ4FrameDecompressor()
-    else:
-        raise ValueError(f"chunk compression {compression!r} is not supported")
     try:
-        return decompressor.decompress(data, max_length=MAX_CHUNK_BYTES)
+        return _decompressor(compression).decompress(data, max_length=MAX_CHUNK_BYTES)
     except (OSError, RuntimeError, EOFError, ValueError):
         return b""
 
@@ -341,18 +346,19 @@ def _scan_unindexed(path: str, report: BagReport, why: str = "") -> Iterator[Tup
 
 
 def _decompress_chunk(compression: str, data: bytes, fields: Dict[str, bytes]) -> bytes:
+    """A whole chunk, decompressed to at most its declared size (and MAX_CHUNK_BYTES): one that would
+    inflate further is damage or a bomb, and raises."""
     size = struct.unpack("<I", fields["size"])[0] if len(fields.get("size", b"")) == 4 else None
     if size is not None and size > MAX_CHUNK_BYTES:
         raise ValueError(f"chunk declares {size} bytes uncompressed, more than {MAX_CHUNK_BYTES}")
     if compression == "none":
         return data
-    if compression == "bz2":
-        decompressor = bz2.BZ2Decompressor()
-        return decompressor.decompress(data, max_length=MAX_CHUNK_BYTES)
-    if compression == "lz4":
-        import lz4.frame
-        return lz4.frame.LZ4FrameDecompressor().decompress(data, max_length=MAX_CHUNK_BYTES)
-    raise ValueError(f"chunk compression {compression!r} is not supported")
+    bound = MAX_CHUNK_BYTES if size is None else size
+    decompressor = _decompressor(compression)
+    inner = decompressor.decompress(data, max_length=bound + 1)
+    if len(inner) > bound:
+        raise ValueError(f"chunk inflates past {'its declared ' if size is not None else ''}{bound} bytes")
+    return inner
 
 
 def _indexed_messages(reader, wanted: List, report: BagReport) -> Iterator[Tuple[Connection, int, memoryview]]:
@@ -364,14 +370,23 @@ def _indexed_messages(reader, wanted: List, report: BagReport) -> Iterator[Tuple
             continue
         chunk = reader.chunks[info.pos]
         if chunk.datasize > MAX_CHUNK_BYTES:
-            raise ValueError(f"a chunk of {chunk.datasize} bytes at offset {info.pos} is larger than "
-                             f"{MAX_CHUNK_BYTES}")
-        reader.bio.seek(chunk.datapos)
-        data = reader.bio.read(chunk.datasize)
-        if len(data) != chunk.datasize:
-            raise ValueError(f"the chunk at offset {info.pos} is cut off")
+            report.damaged_chunks += 1
+            report.note(f"chunk at offset {info.pos}: {chunk.datasize} bytes, over the {MAX_CHUNK_BYTES}-byte cap")
+            continue
         try:
-            inner = chunk.decompressor(data)
+            # The chunk record's own header names its compression and uncompressed size (never trust rosbags'
+            # unbounded decompressor with them).
+            reader.bio.seek(info.pos)
+            (header_size,) = struct.unpack("<I", reader.bio.read(4))
+            if header_size > 1 << 16:
+                raise ValueError(f"a chunk header of {header_size} bytes")
+            fields = _header_fields(reader.bio.read(header_size))
+            compression = fields.get("compression", b"none").decode("ascii", "replace")
+            reader.bio.seek(chunk.datapos)
+            data = reader.bio.read(chunk.datasize)
+            if len(data) != chunk.datasize:
+                raise ValueError(f"the chunk at offset {info.pos} is cut off")
+            inner = _decompress_chunk(compression, data, fields)
         except Exception as error:   # lz4, bz2 raise their own types on damaged data
             report.damaged_chunks += 1
             report.note(f"chunk at offset {info.pos} does not decompress: {type(error).__name__}: {error}")
