@@ -329,3 +329,26 @@ def test_a_chunk_that_inflates_past_its_declared_size_is_refused_without_inflati
         bags._decompress_chunk(codec, bomb, {})          # no declared size: the cap bounds it
     with pytest.raises(ValueError, match="more than"):
         bags._decompress_chunk(codec, bomb, {"size": struct.pack("<I", 1 << 30)})
+
+
+_REAL_READ_ONE = bags._read_one
+
+
+def _read_one_killed_on_killer(path):
+    """A reader the kernel kills (as the OOM killer would) on one bag; module level so workers can run it."""
+    if path.endswith("killer.bag"):
+        os.kill(os.getpid(), 9)
+    return _REAL_READ_ONE(path)
+
+
+def test_a_reader_killed_on_one_bag_loses_that_bag_only(tmp_path, monkeypatch):
+    """A reader process that dies (the OOM killer) broke the pool, and five good bags were reported as
+    dead with it: now each is read again alone, and only the killing bag is reported, as what it is."""
+    good = [write(tmp_path / f"good{k}.bag", make_requests(5, first_id=100 * k)) for k in range(4)]
+    killer = str(tmp_path / "killer.bag")
+    shutil.copy(good[0], killer)
+    monkeypatch.setattr(bags, "_read_one", _read_one_killed_on_killer)
+    data = bags.read_bags(good + [killer], workers=2)
+    failed = data.report.failed
+    assert [bag.path for bag in failed] == [killer] and "reader process died" in failed[0].error
+    assert sum(bag.ok for bag in data.report.bags) == 4 and len(data.log) == 20

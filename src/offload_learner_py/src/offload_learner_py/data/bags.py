@@ -760,10 +760,20 @@ def read_bags(arguments: Sequence[str], workers: Optional[int] = None) -> BagDat
             for path, future in zip(paths, futures):
                 try:
                     results.append(future.result())
-                except BrokenProcessPool as error:   # a reader process died (killed, out of memory)
-                    results.append((None, BagReport(path=path, ok=False,
-                                                    error=f"{path}: reader process died: {error}")))
+                except BrokenProcessPool:
+                    # One reader process died (killed, out of memory) and broke the pool for every bag still
+                    # in it: each of those is read again alone, so only the bag that kills a reader is lost.
+                    results.append(_read_alone(path))
     return merge(results)
+
+
+def _read_alone(path: str) -> Tuple[Optional[Dict], BagReport]:
+    with ProcessPoolExecutor(max_workers=1) as pool:
+        try:
+            return pool.submit(_read_one, path).result()
+        except BrokenProcessPool:
+            return None, BagReport(path=path, ok=False, error=f"{path}: the reader process died reading it "
+                                                              "(killed, or out of memory)")
 
 
 def merge(results: Sequence[Tuple[Optional[Dict], BagReport]]) -> BagData:

@@ -283,7 +283,7 @@ def main(argv=None) -> int:
     if args.json:
         with open(args.json, "w") as out:
             json.dump({name: to_jsonable(result) for name, result in results.items()}, out, indent=2)
-    return 0
+    return 1 if data.report.failed else 0   # a bag that could not be read is not a documented skip
 
 
 if __name__ == "__main__":

@@ -327,6 +327,8 @@ def main(argv: Optional[List[str]] = None) -> int:
         print(f"error: {error}", file=sys.stderr)
         return 2
     print(f"report: {path} and {os.path.join(args.out, 'report.html')}")
+    if data.report.failed:
+        return 1   # a bag that could not be read is not a documented skip
     return 0 if len(data.transition_table()) >= MIN_ROWS else 2
 
 
