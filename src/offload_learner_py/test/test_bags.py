@@ -352,3 +352,15 @@ def test_a_reader_killed_on_one_bag_loses_that_bag_only(tmp_path, monkeypatch):
     failed = data.report.failed
     assert [bag.path for bag in failed] == [killer] and "reader process died" in failed[0].error
     assert sum(bag.ok for bag in data.report.bags) == 4 and len(data.log) == 20
+
+
+def test_a_hostile_definition_under_our_type_name_is_refused_at_once(tmp_path):
+    """A definition of thousands of fields under the learner's type name (parsing 200k of them took minutes
+    and gigabytes) is refused before it is parsed, naming the bag."""
+    decision_msg, outcome_msg = installed_definitions()
+    padded = decision_msg + "".join(f"float64 pad{k}\n" for k in range(2000))
+    store = typestore_for(padded, outcome_msg)
+    path = write(tmp_path / "hostile.bag", make_requests(3), store=store)
+    data = bags.read_bags([path])
+    (failed,) = data.report.failed
+    assert "hostile.bag" in failed.error and "cap" in failed.error

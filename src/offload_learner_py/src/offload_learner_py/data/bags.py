@@ -37,6 +37,11 @@ BAG_SUFFIXES = (".bag", ".bag.active")
 # hostility, not data. Decompression stops at the chunk's declared size and at this cap, so a bomb (a small
 # chunk that inflates to gigabytes) costs at most this much memory, and the chunk is a counted skip.
 MAX_CHUNK_BYTES = 64 * 1024 * 1024
+# Our message definitions are a few kB with a few dozen fields; one far larger under our type names is
+# hostile (parsing a 200k-field definition took minutes and gigabytes), and so are many distinct ones.
+MAX_DEFINITION_BYTES = 64 * 1024
+MAX_DEFINITION_FIELDS = 256
+MAX_DEFINITIONS = 16
 NO_VALUE = object()
 # Physical bounds of a row: beyond them a value is damage or hostility, and one such row would own every
 # figure (an IPS weight of 1e300, a mean latency of 1e308 s, a NaN network). Such rows are counted skips.
@@ -682,6 +687,14 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
         key = (connection.msgtype, connection.md5sum, connection.msgdef)
         decoder = decoders.get(key)
         if decoder is None:
+            if len(decoders) >= MAX_DEFINITIONS:
+                raise BagReadError(f"{path}: more than {MAX_DEFINITIONS} distinct definitions of the learner's "
+                                   "messages: not a recording of this learner")
+            if len(connection.msgdef) > MAX_DEFINITION_BYTES or \
+                    connection.msgdef.count("\n") > MAX_DEFINITION_FIELDS:
+                raise BagReadError(f"{path}: the definition of {connection.msgtype} on {connection.topic} is "
+                                   f"{len(connection.msgdef)} bytes in {connection.msgdef.count(chr(10))} lines, over "
+                                   f"the {MAX_DEFINITION_BYTES}-byte / {MAX_DEFINITION_FIELDS}-line cap")
             defaults = {DECISION_TYPE: DECISION_DEFAULTS, CONFIG_TYPE: CONFIG_DEFAULTS}.get(connection.msgtype,
                                                                                           OUTCOME_DEFAULTS)
             try:
