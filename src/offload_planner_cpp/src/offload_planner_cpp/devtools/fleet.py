@@ -40,12 +40,13 @@ def haproxy_config(frontend_port: int, server_ports: List[int], stats_port: Opti
     stats = (f"\nlisten stats\n    mode http\n    bind {LOOPBACK}:{stats_port}\n    stats enable\n"
              f"    stats uri /\n" if stats_port else "")
     return f"""global
-    maxconn 4096
+    # Headroom: idle or hostile connections must not use up the slots new robots need.
+    maxconn 20000
 
 defaults
     mode tcp
     timeout connect 1s
-    # ZeroMQ connections are long-lived and may idle between plans.
+    # ZeroMQ connections are long-lived and may idle between plans (the bridge pings every second).
     timeout client 1h
     timeout server 1h
     retries 2
@@ -53,10 +54,26 @@ defaults
 
 frontend robots
     bind {LOOPBACK}:{frontend_port}
+    maxconn 16000
+    # At most 64 connections from one address (a robot uses a few): one host cannot fill the table.
+    stick-table type ip size 100k expire 60s store conn_cur
+    tcp-request connection track-sc0 src
+    tcp-request connection reject if {{ sc0_conn_cur gt 64 }}
+    # A ZeroMQ peer sends its greeting (0xFF, 8 bytes, 0x7F) at once: a connection that sends nothing for
+    # 10 s is closed instead of holding a slot for the hour of the client timeout.
+    tcp-request inspect-delay 10s
+    tcp-request content accept if {{ req.len ge 10 }} {{ req.payload(0,1) -m bin ff }}
+    tcp-request content reject
     default_backend planners
 
 backend planners
     balance leastconn
+    # Beyond a TCP connect (a stopped server's kernel still accepts): send a ZMTP greeting signature and
+    # expect the server's, which only a running libzmq I/O thread sends.
+    option tcp-check
+    tcp-check connect
+    tcp-check send-binary ff00000000000000017f
+    tcp-check expect binary ff
     default-server inter 250ms fall 2 rise 2 on-marked-down shutdown-sessions
 {servers}
 {stats}"""
