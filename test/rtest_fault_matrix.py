@@ -151,7 +151,8 @@ class FaultMatrixTest(unittest.TestCase):
         cls.bag_number += 1
         bag = os.path.join(cls.tmp.name, f"session{cls.bag_number}.bag")
         cls.bag_paths.append(bag)
-        topics = ElementTree.parse(launch_file("record.launch")).find("node").get("args").split("--", 1)[1].split()
+        tokens = ElementTree.parse(launch_file("record.launch")).find("node").get("args").split()
+        topics = tokens[tokens.index("--") + 1:]
         cls.processes["record"] = subprocess.Popen(
             ["rosrun", "rosbag", "record", "-O", bag, *topics, "__name:=offload_record"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

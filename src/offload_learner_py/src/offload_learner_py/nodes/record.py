@@ -15,7 +15,8 @@ import time
 
 from offload_planner_cpp.cli_args import bounded_int
 
-MIN_FREE_MIB = 1024   # rosbag record's own --min-space default: below it, it records nothing
+MIN_FREE_MIB = 1024   # the recorder's own minimum free space (1 GB, not an option of the rosbag command):
+                      # below it, it records nothing
 
 
 def bag_path(bag: str, prefix: str, now: float) -> str:
@@ -52,8 +53,7 @@ def main(argv=None) -> None:
     if why:
         raise SystemExit(f"offload_record: {why}")
     print(f"offload_record: recording {len(args.topics)} topics into {path}", flush=True)
-    os.execvp("rosbag", ["rosbag", "record", "-O", path, f"--min-space={args.min_free_mib}M", *args.topics,
-                         *ros_args])
+    os.execvp("rosbag", ["rosbag", "record", "-O", path, *args.topics, *ros_args])
 
 
 if __name__ == "__main__":

@@ -40,8 +40,9 @@ def haproxy_config(frontend_port: int, server_ports: List[int], stats_port: Opti
     stats = (f"\nlisten stats\n    mode http\n    bind {LOOPBACK}:{stats_port}\n    stats enable\n"
              f"    stats uri /\n" if stats_port else "")
     return f"""global
-    # Headroom: idle or hostile connections must not use up the slots new robots need.
-    maxconn 20000
+    # Headroom over the frontend's limit (each connection needs two file descriptors: 9000 fits a 20000
+    # descriptor limit); the per-source limit keeps one host from using up the slots new robots need.
+    maxconn 9000
 
 defaults
     mode tcp
@@ -54,7 +55,7 @@ defaults
 
 frontend robots
     bind {LOOPBACK}:{frontend_port}
-    maxconn 16000
+    maxconn 8000
     # At most 64 connections from one address (a robot uses a few): one host cannot fill the table.
     stick-table type ip size 100k expire 60s store conn_cur
     tcp-request connection track-sc0 src
