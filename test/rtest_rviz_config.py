@@ -17,6 +17,10 @@ from roslib.message import get_message_class
 sys.path.insert(0, os.path.dirname(os.path.realpath(__file__)))
 from rtest_online_stack import launch_file  # noqa: E402  (shared helper)
 
+# tools/rviz_view.py reads the same configuration: one walk over its displays
+sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(launch_file("offload_demo.launch"))), "tools"))
+from rviz_view import displays  # noqa: E402
+
 # The message type each RViz display class subscribes to (rviz's default plugins).
 DISPLAY_TYPES = {"rviz/Map": "nav_msgs/OccupancyGrid", "rviz/Path": "nav_msgs/Path",
                  "rviz/Pose": "geometry_msgs/PoseStamped", "rviz/PoseArray": "geometry_msgs/PoseArray",
@@ -29,14 +33,6 @@ WAIT_S = 90.0    # for the stack to come up and for both sides to deliver a path
 def rviz_config():
     with open(os.path.join(os.path.dirname(launch_file("offload_demo.launch")), "config", "offload.rviz")) as f:
         return yaml.safe_load(f)
-
-
-def displays(config):
-    def walk(items):
-        for item in items or []:
-            yield item
-            yield from walk(item.get("Displays"))
-    return list(walk(config["Visualization Manager"]["Displays"]))
 
 
 def tf_frames(buffer):
