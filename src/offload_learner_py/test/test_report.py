@@ -87,3 +87,15 @@ def test_the_report_shows_its_progress(tmp_path, capsys):
     err = capsys.readouterr().err
     for step in ("report: Q-function", "report: figures 6-12", "report: Fig. 13", "report: latency table"):
         assert step in err, err[-500:]
+
+
+def test_the_report_page_wraps_wide_blocks_and_flags_a_tiny_held_out_set(tmp_path):
+    from bagtools import make_requests, write
+    from offload_learner_py.offline import report as report_module
+    bag = write(tmp_path / "run.bag", make_requests(60, probe_every=1))
+    path = report_module.report([bag], str(tmp_path / "out"), gradient_steps=20, lstm_epochs=2, workers=1)
+    page = open(tmp_path / "out" / "report.html").read()
+    assert "pre{white-space:pre-wrap" in page
+    text = open(path).read()
+    assert "held-out 20 % is under 30 steps" in text and "repeat the 'all' bars" in text
+    assert "Compare the rows with each other" in text
