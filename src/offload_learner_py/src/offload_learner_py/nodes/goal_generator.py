@@ -43,6 +43,7 @@ def main():
       ~map_wait_s (float, 60)        how long to wait for the map
       ~end_launch_when_done (bool, false)  after ~count requests, end the roslaunch that started this node
                                      (SIGINT to the parent, as Ctrl-C): the demo's clean end
+      ~end_delay_s (float, 6.0)      before that, time for the last outcome to be recorded
     Topics: subscribes map (nav_msgs/OccupancyGrid, once); publishes ~goal (geometry_msgs/PoseStamped).
     """
     rospy.init_node("goal_generator")
@@ -106,6 +107,9 @@ def main():
     rospy.loginfo("goal generator done: %d paths delivered for %d requests", delivered, sent)
     plan.close()
     if p("end_launch_when_done", False) and not rospy.is_shutdown():
+        # The last request's outcome is published once its slower side is done (up to the cloud timeout):
+        # wait for it to reach the recorder before the launch goes down.
+        rospy.sleep(float(p("end_delay_s", 6.0)))
         # The launch that started us (roslaunch is our parent) ends as on Ctrl-C: a clean shutdown, where a
         # `required` node that exits makes roslaunch report a death in red.
         os.kill(os.getppid(), signal.SIGINT)
