@@ -39,3 +39,18 @@ def test_same_seed_same_model(size_split_table):
 def test_unknown_features_are_rejected():
     with pytest.raises(ValueError):
         LSTMPolicy(LSTMConfig(features=("gpu",)))
+
+
+def test_the_lstm_fit_shows_its_epochs_when_asked(capsys):
+    import numpy as np
+
+    from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
+    from offload_learner_py.data.dataset import TransitionTable
+    d = np.random.default_rng(0).uniform(0.1, 2, 60)
+    table = TransitionTable(t=np.arange(60), input_size=d, cpu_availability=np.full(60, 0.5),
+                            round_trip_s=np.full(60, 0.05), local_s=0.1 * d, cloud_s=np.full(60, 0.1),
+                            action=np.zeros(60, np.int64), action_propensity=np.ones(60), reward=np.zeros(60))
+    LSTMPolicy(LSTMConfig(epochs=3), progress=True).fit(table)
+    assert "LSTM baseline (lstm)" in capsys.readouterr().err
+    LSTMPolicy(LSTMConfig(epochs=3)).fit(table)
+    assert "LSTM baseline" not in capsys.readouterr().err

@@ -50,11 +50,12 @@ class LatencyLSTM(nn.Module):
 class LSTMPolicy(Policy):
     name = "lstm"
 
-    def __init__(self, config: LSTMConfig = LSTMConfig()):
+    def __init__(self, config: LSTMConfig = LSTMConfig(), progress: bool = False):
         unknown = set(config.features) - set(FEATURE_COLUMNS)
         if unknown or not config.features:
             raise ValueError(f"features must be a non-empty subset of {FEATURE_COLUMNS}, got {config.features}")
         self.config = config
+        self.progress = progress   # a progress bar over the epochs on stderr
         self.model = None
         self.validation_loss = float("nan")
 
@@ -88,7 +89,13 @@ class LSTMPolicy(Policy):
         optimizer = torch.optim.Adam(model.parameters(), lr=config.learning_rate)
         rng = np.random.default_rng(config.seed)
         best_loss, best_state = float("inf"), None
-        for _ in range(config.epochs):
+        epochs = range(config.epochs)
+        if self.progress:
+            import sys
+
+            from tqdm import tqdm
+            epochs = tqdm(epochs, desc=f"LSTM baseline ({self.name})", unit="epoch", file=sys.stderr)
+        for _ in epochs:
             order = rng.permutation(len(x_train))
             for start in range(0, len(order), config.batch_size):
                 batch = torch.from_numpy(order[start:start + config.batch_size])

@@ -45,13 +45,14 @@ from offload_learner_py.data.trace import PlanningTrace
 BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "..", "data", "husky_playpen_trace.npz")
 
 
-def baseline_policies(seed: int) -> list:
+def baseline_policies(seed: int, progress: bool = False) -> list:
     """Every policy but the DQN, in report order. The LSTM reads the input size only, as in the
-    paper; lstm_all_features also reads u and b, a stronger baseline than the paper's."""
+    paper; lstm_all_features also reads u and b, a stronger baseline than the paper's. With progress, the
+    LSTM fits (the slow ones) show a bar over their epochs."""
     return [AlwaysLocal(), AlwaysCloud(), RandomPolicy(seed), InputSizeThreshold(), OraclePolicy(),
-            LSTMPolicy(LSTMConfig(seed=seed)),
-            _named(LSTMPolicy(LSTMConfig(seed=seed, features=("input_size", "cpu_availability", "round_trip_s"))),
-                   "lstm_all_features")]
+            LSTMPolicy(LSTMConfig(seed=seed), progress=progress),
+            _named(LSTMPolicy(LSTMConfig(seed=seed, features=("input_size", "cpu_availability", "round_trip_s")),
+                              progress=progress), "lstm_all_features")]
 
 
 def _named(policy, name: str):
@@ -59,9 +60,10 @@ def _named(policy, name: str):
     return policy
 
 
-def _score_baselines(train: TransitionTable, test: TransitionTable, seed: int) -> Dict[str, dict]:
+def _score_baselines(train: TransitionTable, test: TransitionTable, seed: int,
+                     progress: bool = False) -> Dict[str, dict]:
     scores = {}
-    for policy in baseline_policies(seed):
+    for policy in baseline_policies(seed, progress):
         scores[policy.name] = evaluate(policy.fit(train).choose(test), test)
         if isinstance(policy, InputSizeThreshold):
             scores[policy.name]["threshold"] = policy.threshold
@@ -154,7 +156,7 @@ def run_sweep(kind: str, seeds: List[int], steps: int, out_dir: str, config: DQN
 
 
 def run_compare(data_path: str, out_dir: str, config: DQNConfig, train_fraction: float = 0.5,
-                weights: CostWeights = CostWeights()) -> dict:
+                weights: CostWeights = CostWeights(), progress: bool = False) -> dict:
     if not 0.0 < train_fraction < 1.0:
         raise ValueError(f"train_fraction must be in (0, 1), got {train_fraction}")
     os.makedirs(out_dir, exist_ok=True)
@@ -166,7 +168,7 @@ def run_compare(data_path: str, out_dir: str, config: DQNConfig, train_fraction:
     dqn = DQNPolicy(config, weights).fit(train)
     dqn_actions = dqn.choose(test)
     scores = {"dqn": evaluate(dqn_actions, test)}
-    scores.update(_score_baselines(train, test, config.seed))
+    scores.update(_score_baselines(train, test, config.seed, progress))
     result = {"data": data_path, "rows": len(table), "train_rows": split, "test_rows": len(test),
               "split": "chronological: the first rows fit every policy, the rest score them",
               "dqn_config": config.to_dict(), "policies": scores,
@@ -396,7 +398,7 @@ def _run(args) -> int:
                  for key in ("accuracy", "accuracy_taken", "lstm_accuracy", "learned_threshold") if key in summary}
         print(json.dumps(brief))
     else:
-        result = run_compare(args.data, args.out, config, args.train_fraction)
+        result = run_compare(args.data, args.out, config, args.train_fraction, progress=True)
         print(comparison_markdown(result))
     return 0
 

@@ -212,7 +212,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
         from offload_learner_py.offline.experiments import baseline_policies
 
         evaluation["baselines"] = {policy.name: evaluate(policy.fit(train).choose(test), test)
-                                   for policy in baseline_policies(config.seed)}
+                                   for policy in baseline_policies(config.seed, progress)}
     # Off-policy: every held-out request (one latency or two) from the first held-out one on.
     log_rows = np.flatnonzero(_rewarded_rows(data))
     first_test_log_row = log_rows[cut]
