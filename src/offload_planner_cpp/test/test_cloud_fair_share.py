@@ -59,9 +59,30 @@ def test_absurd_fair_share_flags_are_refused():
 
 # -- STATS -----------------------------------------------------------------------------------------------
 
+def test_stats_show_a_key_its_own_figures_and_are_rate_limited(key_root):
+    """Any key could read every robot's name, counts and maps, and ask 3,000 times a second: a key sees
+    only itself unless it is a --stats-admin, and STATS draw on the client's token bucket."""
+    server = start_server(key_root / "server", workers=1, rate_per_client=5.0, burst_per_client=3,
+                          stats_admins=("robot2",))
+    try:
+        with CloudClient(server.endpoint, keys_dir=str(key_root / "robot1")) as robot1, \
+                CloudClient(server.endpoint, keys_dir=str(key_root / "robot2")) as robot2:
+            robot2.ping()
+            robot1.ping()
+            own = robot1.stats()
+            assert set(own["clients"]) == {"robot1"} and own["requests"] == 0
+            statuses = [robot1.request(protocol.encode_stats).status for _ in range(10)]
+            assert statuses.count(Status.BUSY) >= 5 and Status.OK in statuses
+            everyone = robot2.stats()                   # the admin key sees every robot
+        assert set(everyone["clients"]) == {"robot1", "robot2"}
+        assert everyone["clients"]["robot1"]["rate_limited"] == statuses.count(Status.BUSY)
+    finally:
+        server.stop()
+
+
 def test_stats_count_a_known_sequence_from_two_robots(key_root, caplog):
     caplog.set_level(logging.INFO, logger="offload_planner_cpp.cloud.server")
-    server = start_server(key_root / "server", workers=1, stats_log_s=0.05)
+    server = start_server(key_root / "server", workers=1, stats_log_s=0.05, stats_admins=("robot2",))
     grid_a, grid_b = random_map(40, 30, 0.1, seed=1), random_map(20, 20, 0.1, seed=2)
     try:
         with CloudClient(server.endpoint, keys_dir=str(key_root / "robot1")) as robot1, \
@@ -103,6 +124,7 @@ def test_stats_count_a_known_sequence_from_two_robots(key_root, caplog):
         printed = json.loads(done.stdout)
         assert printed["stats"] == 2 and printed["replies"] == stats["replies"]
         assert printed["clients"]["robot1"]["replies"] == {"OK": 3}
+        assert set(printed["clients"]) == {"robot1"}   # not an admin: its own figures, no other robot's
 
         # The periodic log line (every 0.05 s here) carries the counters.
         def stats_lines():
@@ -119,7 +141,7 @@ def test_stats_count_a_known_sequence_from_two_robots(key_root, caplog):
 def test_stats_is_answered_while_the_only_worker_plans(key_root):
     """STATS is the broker's, as PING: sent right behind a long plan on the same connection, its answer
     comes first and sees that plan in flight."""
-    server = start_server(key_root / "server", workers=1)
+    server = start_server(key_root / "server", workers=1, stats_admins=("robot2",))
     grid = random_map(1400, 1400, 0.1, seed=4)
     context = zmq.Context()
     try:
@@ -189,7 +211,7 @@ def polite_plans(endpoint, key_dir, grid, count):
 
 
 def flood_beside_polite_robot(key_root, polite_count=8, **server_config):
-    server = start_server(key_root / "server", workers=1, max_wait_s=60, **server_config)
+    server = start_server(key_root / "server", workers=1, max_wait_s=60, stats_admins=("robot2",), **server_config)
     greedy_grid, polite_grid = random_map(400, 400, 0.1, seed=5), random_map(300, 300, 0.1, seed=6)
     context = zmq.Context()
     try:
@@ -243,7 +265,7 @@ def test_greedy_robot_is_held_to_its_share_of_the_queue(key_root):
 def test_robot_uploading_many_maps_cannot_evict_another_robots_map(key_root):
     maps = [random_map(100, 100, 0.1, seed=20 + k) for k in range(12)]
     charge = maps[0].nbytes + ENTRY_OVERHEAD_BYTES
-    server = start_server(key_root / "server", workers=1, cache_bytes=4 * charge)   # room for four maps
+    server = start_server(key_root / "server", workers=1, cache_bytes=4 * charge, stats_admins=("robot2",))   # room for four maps
     try:
         with CloudClient(server.endpoint, keys_dir=str(key_root / "robot1")) as robot1, \
                 CloudClient(server.endpoint, keys_dir=str(key_root / "robot2")) as robot2:

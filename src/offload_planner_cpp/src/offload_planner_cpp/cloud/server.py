@@ -150,6 +150,8 @@ class ServerConfig:
     rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
     burst_per_client: int = 100           # wait; and its bucket's size. rate 0: no rate limit
     stats_log_s: float = 60.0             # period of the stats log line; 0: none
+    stats_admins: tuple = ()              # client key names whose STATS show every client; others see
+                                          # their own figures only (a local, inproc/ipc, caller sees all)
 
 
 @dataclass(eq=False)   # compared by identity: removed from the queue as itself
@@ -554,7 +556,13 @@ class CloudServer:
                 return
             if kind == Kind.STATS:
                 self.counts["stats"] += 1
-                self._send(frontend, route + protocol.encode_stats_reply(request_id, self.stats()))
+                # Like a plan, from the client's token bucket: STATS cost the broker, which everyone shares.
+                rate, burst = self.config.rate_per_client, self.config.burst_per_client
+                if rate and not client.take_token(time.monotonic(), rate, burst):
+                    client.rate_limited += 1
+                    raise ProtocolError(Status.BUSY, f"client {client.name} is over its rate of {rate:g} "
+                                                     "requests/s")
+                self._send(frontend, route + protocol.encode_stats_reply(request_id, self.stats(client.name)))
                 return
             if kind not in (Kind.PLAN, Kind.UPLOAD):
                 raise ProtocolError(Status.BAD_REQUEST, f"a client cannot send a {kind.name} message")
@@ -689,8 +697,10 @@ class CloudServer:
         if request.client.waiting == 0:
             self._clients_waiting -= 1
 
-    def stats(self) -> dict:
-        """The counters STATS answers with (broker thread; cheap: no worker is asked)."""
+    def stats(self, viewer: Optional[str] = None) -> dict:
+        """The counters STATS answers with (broker thread; cheap: no worker is asked). A `viewer` that is
+        neither an admin (--stats-admin) nor local sees its own client figures only: other robots' names,
+        counts and map sizes are theirs."""
         cache = self.cache
         cache_by_client = cache.bytes_by_owner()
         return {
@@ -708,7 +718,9 @@ class CloudServer:
                                "cache_hits": client.cache_hits, "cache_misses": client.cache_misses,
                                "uploads": client.uploads, "rate_limited": client.rate_limited, "fair_share_refused": client.fair_share_refused,
                                "waiting": client.waiting, "cache_bytes": cache_by_client.get(name, 0)}
-                        for name, client in self._clients.items()},
+                        for name, client in self._clients.items()
+                        if viewer is None or viewer == "local" or viewer in self.config.stats_admins
+                        or name == viewer},
         }
 
     @staticmethod
@@ -885,6 +897,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "have while the server is busy; over it BUSY (default 50; 0: no limit)")
     parser.add_argument("--burst-per-client", type=bounded_int("--burst-per-client", 1, 1000000), default=100,
                         help="token bucket size of --rate-per-client (default 100)")
+    parser.add_argument("--stats-admin", action="append", default=[], metavar="KEY_NAME",
+                        help="a client key name whose STATS show every client (repeatable); the others see "
+                             "their own figures only")
     parser.add_argument("--stats-log-s", type=bounded_float("--stats-log-s", 0, 86400), default=60.0,
                         help="log a line of the STATS counters every this many seconds (default 60; 0: never)")
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
@@ -905,7 +920,8 @@ def main(argv=None) -> int:
                           cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
                           max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
                           max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client,
-                          burst_per_client=args.burst_per_client, stats_log_s=args.stats_log_s)
+                          burst_per_client=args.burst_per_client, stats_log_s=args.stats_log_s,
+                          stats_admins=tuple(args.stats_admin))
     try:
         server = CloudServer(config)
     except (OSError, ValueError, zmq.ZMQError) as error:

@@ -173,7 +173,8 @@ class Cloud:
         for port in self.server_ports:
             self.processes.append(subprocess.Popen(
                 [sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind", f"tcp://{LOOPBACK}:{port}",
-                 "--workers", str(workers), "--keys-dir", str(keys_dir), "--log-level", "ERROR"],
+                 "--workers", str(workers), "--keys-dir", str(keys_dir), "--log-level", "ERROR",
+                 "--stats-admin", "robot00"],   # the fleet report reads every robot through robot00
                 stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL))
         for port in self.server_ports:
             if not wait_for_port(port, 20.0):
