@@ -44,13 +44,15 @@ FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "r
           "bridge_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts")
 
 
-def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra) -> pathlib.Path:
-    """One live run of the demo stack; the run directory it wrote."""
+def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra,
+             progress: str = "") -> pathlib.Path:
+    """One live run of the demo stack; the run directory it wrote. `progress` ("3/8, about 6 min left")
+    heads the line that announces it."""
     command = [sys.executable, "-m", "offload_learner_py.nodes.demo", "--launch", launch, "--steps", str(steps),
                "--seed", str(seed), "--runs-dir", str(runs_dir), "--no-report", *extra]
     if map_yaml:
         command += ["--map", map_yaml]
-    print("bench-policies:", " ".join(command[3:]), flush=True)
+    print(f"bench-policies {progress}:" if progress else "bench-policies:", " ".join(command[3:]), flush=True)
     completed = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     (runs_dir / "demo.log").write_text(completed.stdout)
     runs = sorted(path for path in runs_dir.iterdir() if path.is_dir())
@@ -159,9 +161,16 @@ def main(argv=None) -> int:
                "steps": args.steps, "seed": args.seed, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None}
     model = ["--model", checkpoint] if checkpoint else []
-    for name in policies:
+    total, began = len(policies) + len(outage), time.monotonic()
+
+    def progress(done: int) -> str:
+        if not done:
+            return f"{done + 1}/{total}"
+        left_s = (time.monotonic() - began) / done * (total - done)
+        return f"{done + 1}/{total}, about {left_s / 60:.0f} min left"
+    for index, name in enumerate(policies):
         extra = RUNS[name] + (model if name.startswith("dqn") else [])
-        figures = measure(run_demo(args.launch, out / name, args.steps, args.seed, map_yaml, extra),
+        figures = measure(run_demo(args.launch, out / name, args.steps, args.seed, map_yaml, extra, progress(index)),
                           args.cloud_timeout_s)
         results["delivered_s"][name] = figures.pop("delivered_s")
         results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
@@ -171,11 +180,11 @@ def main(argv=None) -> int:
             results["oracle_mean_s"] = figures.get("probe_oracle_mean_s")
         print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
     results["outage"] = {}
-    for name in outage:
+    for index, name in enumerate(outage, start=len(policies)):
         extra = RUNS[name] + (model if name.startswith("dqn") else []) + [
             "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
-        figures = measure(run_demo(args.launch, out / f"outage-{name}", args.steps, args.seed, map_yaml, extra),
-                          args.cloud_timeout_s)
+        figures = measure(run_demo(args.launch, out / f"outage-{name}", args.steps, args.seed, map_yaml, extra,
+                                   progress(index)), args.cloud_timeout_s)
         figures.pop("delivered_s")
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
