@@ -31,10 +31,11 @@ help:
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
 	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
 	@echo "make fuzz           coverage-guided fuzzing of the protocol, map loaders and bag reader (FUZZ_SECONDS each)"
-	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, POLICY=, SEED=, RVIZ=1,"
+	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, LINK=wan|edge, UNKNOWN=free,"
+	@echo "                    POLICY=, MODE=, HEDGE=1, SEED=, RVIZ=1,"
 	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
-	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, STEPS=, SEED=, POLICIES=)"
+	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, LINK=, STEPS=, SEED=, POLICIES=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
 
@@ -99,6 +100,8 @@ SEED ?= 1
 demo-options:
 	@case "$(STEPS)" in ''|*[!0-9]*|0) echo "error: STEPS must be a positive integer, got '$(STEPS)'" >&2; exit 2;; esac
 	@if [ -n "$(MAP)" ] && [ ! -f "$(MAP)" ]; then echo "error: MAP $(MAP): no such file" >&2; exit 2; fi
+	@case "$(LINK)" in ''|wan|edge) ;; *) echo "error: LINK must be wan or edge, got '$(LINK)'" >&2; exit 2;; esac
+	@case "$(UNKNOWN)" in ''|free|obstacle) ;; *) echo "error: UNKNOWN must be free or obstacle, got '$(UNKNOWN)'" >&2; exit 2;; esac
 
 demo: demo-options build
 	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need. HEADLESS=1
@@ -111,13 +114,15 @@ demo: demo-options build
 		$(if $(HEADLESS),$(PY) tools/rviz_view.py headless --runs-dir runs --) \
 		$(PY) -m offload_learner_py.nodes.demo --launch launch/offload_demo.launch --steps $(STEPS) \
 		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
-		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL))
+		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL)) $(if $(LINK),--link $(LINK)) \
+		$(if $(filter free,$(UNKNOWN)),--plan-unknown)
 
 # Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
 # STEPS=200, plus a learning run for the DQN and the link-failure scenario).
 bench-policies: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
-		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT))
+		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
+		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown)
 
 bench-online: build
 	@$(ROSENV) $(PY) -m offload_learner_py.nodes.bench_online

@@ -29,6 +29,7 @@ import numpy as np
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_learner_py.data.bags import read_bags
+from offload_learner_py.nodes.demo import LINK_PROFILES
 from offload_learner_py.offline.summary import delivered_figures
 
 POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
@@ -129,7 +130,9 @@ def plot(results: dict, path: pathlib.Path) -> None:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--launch", default="launch/offload_demo.launch")
-    parser.add_argument("--map", default="", help="map_server YAML (default: the demo's, the Husky playpen)")
+    parser.add_argument("--map", default="", help="map_server YAML (default: the demo's, the nav2 warehouse)")
+    parser.add_argument("--link", choices=LINK_PROFILES, default="edge", help="the demo's link profile")
+    parser.add_argument("--plan-unknown", action="store_true", help="plan and draw goals through unknown cells")
     parser.add_argument("--steps", type=bounded_int("--steps", 10, 100000), default=200)
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--policies", default=",".join(POLICIES), help="comma list of " + ",".join(POLICIES))
@@ -152,12 +155,14 @@ def main(argv=None) -> int:
     out = pathlib.Path(args.runs_dir).resolve() / time.strftime("bench-policies-%Y%m%d-%H%M%S")
     out.mkdir(parents=True)
     map_yaml = os.path.abspath(args.map) if args.map else ""
+    scenario = ["--link", args.link] + (["--plan-unknown"] if args.plan_unknown else [])
     checkpoint = os.path.abspath(args.checkpoint) if args.checkpoint else ""
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
         learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
-                            ["--policy", "dqn", "--mode", "learning"])
+                            ["--policy", "dqn", "--mode", "learning", *scenario])
         checkpoint = str(learning / "checkpoint.pt")
-    results = {"map": map_yaml or "husky_playpen (bundled)", "map_name": pathlib.Path(map_yaml).stem or "husky_playpen",
+    results = {"map": map_yaml or "nav2_warehouse (bundled)", "map_name": pathlib.Path(map_yaml).stem or "warehouse",
+               "link": args.link, "plan_unknown": args.plan_unknown,
                "steps": args.steps, "seed": args.seed, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None}
     model = ["--model", checkpoint] if checkpoint else []
@@ -169,7 +174,7 @@ def main(argv=None) -> int:
         left_s = (time.monotonic() - began) / done * (total - done)
         return f"{done + 1}/{total}, about {left_s / 60:.0f} min left"
     for index, name in enumerate(policies):
-        extra = RUNS[name] + (model if name.startswith("dqn") else [])
+        extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario
         figures = measure(run_demo(args.launch, out / name, args.steps, args.seed, map_yaml, extra, progress(index)),
                           args.cloud_timeout_s)
         results["delivered_s"][name] = figures.pop("delivered_s")
@@ -181,7 +186,7 @@ def main(argv=None) -> int:
         print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
     results["outage"] = {}
     for index, name in enumerate(outage, start=len(policies)):
-        extra = RUNS[name] + (model if name.startswith("dqn") else []) + [
+        extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario + [
             "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
         figures = measure(run_demo(args.launch, out / f"outage-{name}", args.steps, args.seed, map_yaml, extra,
                                    progress(index)), args.cloud_timeout_s)

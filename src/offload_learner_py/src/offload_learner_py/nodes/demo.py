@@ -84,6 +84,10 @@ def end_with_parent() -> None:
     ctypes.CDLL(None, use_errno=True).prctl(1, signal.SIGTERM, 0, 0, 0)
 
 
+# launch/config/link_<name>.txt: the named round-trip profiles of the emulated link
+LINK_PROFILES = ("edge", "wan")
+
+
 def check_options(args) -> str:
     """Why the options cannot make a run, in one line, or "" (checked before anything starts)."""
     if args.steps < 1:
@@ -147,7 +151,11 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--launch", required=True, help="launch/offload_demo.launch")
     parser.add_argument("--steps", type=bounded_int("--steps", 1, 10_000_000), default=300)
-    parser.add_argument("--map", default="", help="map_server YAML (default: the bundled Husky playpen)")
+    parser.add_argument("--map", default="", help="map_server YAML (default: the bundled nav2 warehouse)")
+    parser.add_argument("--link", choices=LINK_PROFILES, default="edge",
+                        help="link profile: edge (on-site Wi-Fi to an edge server, 8-120 ms) or wan (a cloud region, 20-400 ms)")
+    parser.add_argument("--plan-unknown", action="store_true",
+                        help="plan through unknown cells and draw goals there too (default: known free space only)")
     parser.add_argument("--policy", default="dqn")
     parser.add_argument("--mode", choices=("learning", "deployed"), default="learning",
                         help="learning: both sides on every request (the paper); deployed: the chosen side alone")
@@ -204,10 +212,15 @@ def main(argv=None) -> int:
         launch_args.append(f"map:={os.path.abspath(args.map)}")
     if args.model:
         launch_args.append(f"model:={os.path.abspath(args.model)}")
+    launch_args.append(f"link:={args.link}")
     if args.rtt_profile:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
+    if args.plan_unknown:
+        launch_args.append("unknown_is_obstacle:=false")
     env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home)
-    print(f"demo: {args.steps} requests, policy {args.policy}, {args.mode} mode, robot on core {args.robot_core} with "
+    print(f"demo: {args.steps} requests, policy {args.policy}, {args.mode} mode, "
+          f"{'trace ' + args.rtt_profile if args.rtt_profile else args.link + ' link'}, goals in "
+          f"{'known and unknown' if args.plan_unknown else 'known'} free space, robot on core {args.robot_core} with "
           f"{args.budget_cores if budget else 'no'} core budget, cloud on core {args.cloud_core}; output {out_dir}",
           flush=True)
     launch = subprocess.Popen(["roslaunch", "-p", str(master_port), args.launch]
