@@ -193,8 +193,8 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
                              "Absolute latencies differ from the paper's by design: its local plans were small "
                              "(88 ms mean) on a whole robot CPU with a constant 30 ms link, while this system's "
                              "depend on the map and goal distances, the robot's CPU budget and its workload, and "
-                             "the link profile (the demo: a 0.5-core budget with a varying workload, a 20-400 ms "
-                             "round-trip trace). Compare the rows with each other, not with the paper's.",
+                             "the link profile (the demo: the warehouse's known free space, a 0.5-core budget with a "
+                             "varying workload, an 8-120 ms edge or 20-400 ms WAN round-trip trace). Compare the rows with each other, not with the paper's.",
                      "paper": f"{PAPER['steps']} steps of real data."})
 
     # Off-policy estimates: what a deployed robot's bags say about other policies
