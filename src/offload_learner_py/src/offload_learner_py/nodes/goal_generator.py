@@ -32,7 +32,7 @@ def main():
     Parameters (private):
       ~service (str, /offload_learner/plan)  PlanPath service to call
       ~count (int, 100)              requests to send, then exit; 0 sends until shutdown
-      ~period_s (float, 0.2)         pause between the answer to one request and the next request
+      ~period_s (float, 0.1)         pause between the answer to one request and the next request
       ~rate_hz (float, 0)            instead, send at this fixed rate (a request still waits for the
                                      previous answer); 0 uses ~period_s
       ~seed (int, 1)                 goal draws
@@ -49,7 +49,7 @@ def main():
     rospy.init_node("goal_generator")
     p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
     service = str(p("service", "/offload_learner/plan"))
-    count, period_s, rate_hz = int(p("count", 100)), float(p("period_s", 0.2)), float(p("rate_hz", 0.0))
+    count, period_s, rate_hz = int(p("count", 100)), float(p("period_s", 0.1)), float(p("rate_hz", 0.0))
     try:
         grid_msg = rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=float(p("map_wait_s", 60.0)))
         info = grid_msg.info
