@@ -57,3 +57,33 @@ def test_dqn_policy_learns_offline_from_a_table(small_trace):
     policy = DQNPolicy(DQNConfig(seed=2, learning_starts=100)).fit(train)
     assert accuracy(policy.choose(test), test) > 0.95
     assert len(policy.online_run.table) == 400
+
+
+@pytest.mark.parametrize("make", [lambda: AlwaysLocal(), lambda: AlwaysCloud(), lambda: InputSizeThreshold(0.01),
+                                  lambda: InputSizeThreshold(), lambda: DQNPolicy(DQNConfig(learning_starts=20,
+                                                                                           batch_size=16))],
+                         ids=["local", "cloud", "threshold_fixed", "threshold_fitted", "dqn"])
+def test_an_online_decision_is_the_offline_choice_for_the_same_state(make, size_split_table):
+    """One policy, two uses: the router's per-request decide and the offline batch choose agree on every
+    state (the DQN greedy: its numpy snapshot decides as the torch network chooses)."""
+    from offload_learner_py.core.state import State
+    policy = make().fit(size_split_table(120, 1))
+    policy.explore = False
+    test = size_split_table(60, 2)
+    decided = [policy.decide(State(*row)) for row in test.states]
+    assert [d.action for d in decided] == policy.choose(test).tolist()
+    assert all(d.propensity == 1.0 for d in decided)
+
+
+def test_the_oracle_and_the_lstm_are_offline_only():
+    from offload_learner_py.core.state import State
+    for policy in (OraclePolicy(), LSTMPolicy(LSTMConfig(epochs=1))):
+        with pytest.raises(NotImplementedError, match="offline only"):
+            policy.decide(State(1.0, 0.5, 0.05))
+
+
+def test_a_fixed_threshold_is_not_refitted_and_must_be_finite(size_split_table):
+    policy = InputSizeThreshold(5.0, name="threshold").fit(size_split_table(120, 1))
+    assert policy.threshold == 5.0 and policy.name == "threshold"
+    with pytest.raises(ValueError, match="threshold"):
+        InputSizeThreshold(float("nan"))

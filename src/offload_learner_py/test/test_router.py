@@ -8,8 +8,9 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.reward import CostWeights, reward
-from offload_learner_py.online.router import NO_PATH_DELIVERED, Decision, DecisionPolicy, DQNDecision, FixedPolicy, \
-    InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
+from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision, DQNPolicy, InputSizeThreshold, \
+    Policy, RandomPolicy
+from offload_learner_py.online.router import NO_PATH_DELIVERED, OffloadRouter, RouterConfig, Statuses
 from offload_learner_py.core.state import State
 
 OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10
@@ -73,7 +74,7 @@ def finish(router):
 def test_local_decision_calls_only_the_local_planner():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.120), FakePlanner(clock, 0.050)
-    router, recorder = make_router(FixedPolicy(LOCAL, "local"), local, cloud, clock)
+    router, recorder = make_router(AlwaysLocal("local"), local, cloud, clock)
     result = router.route("req", STATE)
     finish(router)
     assert result.status == OK and result.response["side"] is local
@@ -87,7 +88,7 @@ def test_local_decision_calls_only_the_local_planner():
 def test_probe_runs_both_and_rewards_with_eq10():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.200), FakePlanner(clock, 0.080)
-    router, recorder = make_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=1.0)
+    router, recorder = make_router(AlwaysLocal("local"), local, cloud, clock, probe_rate=1.0)
     router.route("req", STATE)
     finish(router)
     (outcome,) = recorder.outcomes
@@ -101,7 +102,7 @@ def test_probe_delivers_the_first_good_path_while_the_other_side_still_runs():
     clock = VirtualClock()
     gate = threading.Event()
     local, cloud = FakePlanner(clock, 0.300, gate=gate), FakePlanner(clock, 0.090)
-    router, recorder = make_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=1.0)
+    router, recorder = make_router(AlwaysLocal("local"), local, cloud, clock, probe_rate=1.0)
     result = router.route("req", STATE)
     assert result.response["side"] is cloud      # returned before the local planner was allowed to finish
     assert not recorder.outcomes                   # the outcome waits for both latencies
@@ -116,7 +117,7 @@ def test_the_slower_side_of_a_probe_does_not_hold_up_the_next_request():
     clock = VirtualClock()
     gate = threading.Event()
     local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.1)
-    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
+    router, recorder = make_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=1.0)
     first = router.route("first", STATE)
     second = router.route("second", STATE)     # the first probe's local side is still running
     assert first.response["side"] is cloud and second.response["side"] is cloud
@@ -132,7 +133,7 @@ def test_a_background_call_not_yet_started_is_cancelled_by_a_newer_request():
     clock = VirtualClock()
     gate = threading.Event()
     local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.1)
-    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
+    router, recorder = make_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=1.0)
     for name in ("first", "second", "third"):
         assert router.route(name, STATE).response["side"] is cloud
     gate.set()
@@ -149,7 +150,7 @@ def test_cloud_failure_falls_back_to_a_local_path_and_costs_the_timeout(failure)
     local = FakePlanner(clock, 0.150)
     cloud = {"timeout": FakePlanner(clock, 2.0, status=TIMEOUT), "error": FakePlanner(clock, 0.01, status=ERROR),
              "raises": FakePlanner(clock, 0.01, raises=RuntimeError("bridge gone"))}[failure]
-    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, timeout_s=2.0)
+    router, recorder = make_router(AlwaysCloud("cloud"), local, cloud, clock, timeout_s=2.0)
     result = router.route("req", STATE)
     finish(router)
     assert result.status == OK and result.response["side"] is local
@@ -163,7 +164,7 @@ def test_cloud_failure_falls_back_to_a_local_path_and_costs_the_timeout(failure)
 def test_unreachable_goal_gets_the_planner_status_and_teaches_nothing():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.05, status=NO_PATH), FakePlanner(clock, 0.09, status=NO_PATH)
-    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=0)))
+    policy = DQNPolicy(agent=DQNAgent(DQNConfig(learning_starts=0)))
     router, recorder = make_router(policy, local, cloud, clock, probe_rate=1.0)
     result = router.route("req", STATE)
     finish(router)
@@ -176,7 +177,7 @@ def test_unreachable_goal_gets_the_planner_status_and_teaches_nothing():
 def test_request_without_a_state_goes_to_the_local_planner_without_a_decision():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.05, status=NO_PATH), FakePlanner(clock, 0.09)
-    router, recorder = make_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0)
+    router, recorder = make_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=1.0)
     assert router.route("req", None).status == NO_PATH
     finish(router)
     assert not recorder.decisions and not cloud.calls
@@ -185,7 +186,7 @@ def test_request_without_a_state_goes_to_the_local_planner_without_a_decision():
 
 def test_request_ids_are_consecutive_from_the_configured_base():
     clock = VirtualClock()
-    router, recorder = make_router(FixedPolicy(LOCAL, "local"), FakePlanner(clock, 0.01), FakePlanner(clock, 0.01),
+    router, recorder = make_router(AlwaysLocal("local"), FakePlanner(clock, 0.01), FakePlanner(clock, 0.01),
                                    clock)
     router.next_request_id = 1000
     for _ in range(3):
@@ -198,7 +199,7 @@ def test_dqn_learns_on_probe_steps_and_prefers_the_faster_side():
     """Cloud is faster for long requests, local for short ones: after online learning over real
     rewards, the greedy policy follows the rule."""
     clock = VirtualClock()
-    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=40, train_frequency=1, target_update_interval=10,
+    policy = DQNPolicy(agent=DQNAgent(DQNConfig(learning_starts=40, train_frequency=1, target_update_interval=10,
                                             seed=3)))
 
     class ScriptedSide:
@@ -226,7 +227,7 @@ def test_dqn_learns_on_probe_steps_and_prefers_the_faster_side():
 
 def test_frozen_dqn_is_greedy_and_does_not_learn():
     agent = DQNAgent(DQNConfig(learning_starts=0))
-    policy = DQNDecision(agent, learn=False)
+    policy = DQNPolicy(agent=agent, learn=False)
     decision = policy.decide(STATE)
     assert decision.propensity == 1.0
     assert decision.action == (CLOUD if decision.q_cloud > decision.q_local else LOCAL)
@@ -234,21 +235,21 @@ def test_frozen_dqn_is_greedy_and_does_not_learn():
 
 
 def test_dqn_warm_up_explores_uniformly_with_propensity_one_half():
-    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=100)))
+    policy = DQNPolicy(agent=DQNAgent(DQNConfig(learning_starts=100)))
     decisions = [policy.decide(STATE) for _ in range(200)]
     assert {d.propensity for d in decisions} == {0.5}
     assert {d.action for d in decisions} == {LOCAL, CLOUD}
 
 
 def test_baseline_policies():
-    assert InputSizeThresholdDecision(1.1).decide(State(1.2, 0.5, 0.0)).action == CLOUD
-    assert InputSizeThresholdDecision(1.1).decide(State(1.0, 0.5, 0.0)).action == LOCAL
-    actions = {RandomDecision(seed=2).decide(STATE).action for _ in range(1)}
+    assert InputSizeThreshold(1.1).decide(State(1.2, 0.5, 0.0)).action == CLOUD
+    assert InputSizeThreshold(1.1).decide(State(1.0, 0.5, 0.0)).action == LOCAL
+    actions = {RandomPolicy(seed=2).decide(STATE).action for _ in range(1)}
     assert actions <= {LOCAL, CLOUD}
-    assert isinstance(FixedPolicy(CLOUD, "cloud"), DecisionPolicy) and FixedPolicy(CLOUD, "c").decide(STATE) == \
+    assert isinstance(AlwaysCloud("cloud"), Policy) and AlwaysCloud("c").decide(STATE) == \
         Decision(CLOUD, 1.0)
     with pytest.raises(ValueError, match="threshold"):
-        InputSizeThresholdDecision(float("nan"))
+        InputSizeThreshold(float("nan"))
 
 
 @pytest.mark.parametrize("kwargs, message", [({"probe_rate": 1.5}, "probe_rate"),
@@ -290,7 +291,7 @@ NO_MAP = 1
 def test_a_path_from_a_stale_map_is_never_delivered_the_planner_is_asked_again():
     clock = VirtualClock()
     local, cloud = StaleThenFresh(clock, 0.010, stale_calls=3), FakePlanner(clock, 0.050)
-    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock)
+    router, recorder = stale_router(AlwaysLocal("local"), local, cloud, clock)
     result = router.route("req", STATE)
     finish(router)
     assert result.status == OK and result.response["map"] == "new"
@@ -306,7 +307,7 @@ def test_a_local_planner_that_never_takes_the_announced_map_keeps_serving_its_la
     learned from a latency that measured the wait."""
     clock = VirtualClock()
     local, cloud = StaleThenFresh(clock, 0.010, stale_calls=10**9), FakePlanner(clock, 0.050)
-    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, map_wait_s=0.5)
+    router, recorder = stale_router(AlwaysLocal("local"), local, cloud, clock, map_wait_s=0.5)
     result = router.route("req", STATE)
     finish(router)
     assert result.status == OK and result.response["map"] == "old" and result.raised is None
@@ -324,7 +325,7 @@ def test_a_path_only_on_the_old_map_is_never_ok_and_is_waited_for_once_per_map()
     the next request on the same stale map does not wait map_wait_s again."""
     clock = VirtualClock()
     local, cloud = StaleThenFresh(clock, 0.010, stale_calls=10**9), FakePlanner(clock, 0.050)
-    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, map_wait_s=0.5,
+    router, recorder = stale_router(AlwaysLocal("local"), local, cloud, clock, map_wait_s=0.5,
                                     stale_map=STALE)
     first = router.route("req", STATE)
     calls_after_first = local.calls
@@ -339,7 +340,7 @@ def test_a_path_only_on_the_old_map_is_never_ok_and_is_waited_for_once_per_map()
 def test_a_stale_cloud_path_falls_back_to_the_local_path_and_costs_the_timeout():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.120), StaleThenFresh(clock, 0.010, stale_calls=10**9)
-    router, recorder = stale_router(FixedPolicy(CLOUD, "cloud"), _Fresh(local), cloud, clock, map_wait_s=0.3)
+    router, recorder = stale_router(AlwaysCloud("cloud"), _Fresh(local), cloud, clock, map_wait_s=0.3)
     result = router.route("req", STATE)
     finish(router)
     assert result.status == OK and result.response["map"] == "new" and result.response["side"] is local
@@ -350,7 +351,7 @@ def test_a_stale_cloud_path_falls_back_to_the_local_path_and_costs_the_timeout()
 def test_probe_delivers_the_fresh_side_even_when_the_stale_side_answers_first():
     clock = VirtualClock()
     local, cloud = StaleThenFresh(clock, 0.001, stale_calls=10**9), _Fresh(FakePlanner(clock, 0.300))
-    router, recorder = stale_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=1.0,
+    router, recorder = stale_router(AlwaysLocal("local"), local, cloud, clock, probe_rate=1.0,
                                     map_wait_s=1.0)
     result = router.route("req", STATE)
     finish(router)
@@ -380,7 +381,7 @@ def test_router_config_rejects_a_bad_map_wait():
 def test_probe_with_both_sides_on_the_old_map_delivers_the_local_last_good_map():
     clock = VirtualClock()
     local, cloud = StaleThenFresh(clock, 0.001, stale_calls=10**9), StaleThenFresh(clock, 0.002, stale_calls=10**9)
-    router, recorder = stale_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=1.0, map_wait_s=0.2)
+    router, recorder = stale_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=1.0, map_wait_s=0.2)
     result = router.route("req", STATE)
     finish(router)
     assert result.status == OK and result.response["side"] is local and result.note
@@ -389,13 +390,20 @@ def test_probe_with_both_sides_on_the_old_map_delivers_the_local_last_good_map()
 
 
 # --- modes, hedge, breaker, accounting ------------------------------------------------------------
-class LearningRecorder(FixedPolicy):
+class LearningRecorder(Policy):
     """A fixed policy that records what it is taught."""
+    name = "recorder"
     learns = True
 
     def __init__(self, action):
-        super().__init__(action, "recorder")
+        self.action = action
         self.taught = []
+
+    def choose(self, table):
+        raise NotImplementedError
+
+    def decide(self, state):
+        return Decision(self.action, 1.0)
 
     def learn(self, state, action, reward_value):
         self.taught.append((action, reward_value))
@@ -423,7 +431,7 @@ def test_learning_mode_probes_every_request_and_teaches_both_actions():
 
 
 def test_learning_mode_dqn_acts_greedily():
-    policy = DQNDecision(DQNAgent(DQNConfig(learning_starts=100)), explore=False)
+    policy = DQNPolicy(agent=DQNAgent(DQNConfig(learning_starts=100)), explore=False)
     decisions = [policy.decide(STATE) for _ in range(50)]
     assert {d.propensity for d in decisions} == {1.0} and len({d.action for d in decisions}) == 1
 
@@ -464,7 +472,7 @@ def test_deployed_mode_probes_while_warming_up_then_a_share_and_imputes_the_othe
 def test_a_deployed_fixed_policy_never_probes_beyond_its_rate():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
-    router, recorder = configured_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, mode="deployed",
+    router, recorder = configured_router(AlwaysLocal("local"), local, cloud, clock, mode="deployed",
                                          probe_rate=0.0)
     for _ in range(30):
         router.route("req", STATE)
@@ -507,7 +515,7 @@ def test_hedge_starts_the_other_side_at_once_when_the_chosen_one_is_still_busy()
     clock = VirtualClock()
     gate = threading.Event()
     local, cloud = FakePlanner(clock, 0.3, gate=gate), FakePlanner(clock, 0.05)
-    router, recorder = configured_router(FixedPolicy(LOCAL, "local"), local, cloud, clock, probe_rate=0.0,
+    router, recorder = configured_router(AlwaysLocal("local"), local, cloud, clock, probe_rate=0.0,
                                          probe_while_warming_up=False, hedge=True, hedge_deadline_s=10.0)
     first = threading.Thread(target=router.route, args=("first", STATE))
     first.start()
@@ -524,7 +532,7 @@ def test_hedge_starts_the_other_side_at_once_when_the_chosen_one_is_still_busy()
 def test_no_hedge_when_the_chosen_side_answers_in_time():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.15), FakePlanner(clock, 0.05)
-    router, recorder = configured_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=0.0,
+    router, recorder = configured_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0,
                                          probe_while_warming_up=False, hedge=True, hedge_deadline_s=5.0)
     router.route("req", STATE)
     finish(router)
@@ -533,7 +541,7 @@ def test_no_hedge_when_the_chosen_side_answers_in_time():
 
 def test_hedge_deadline_follows_the_latency_model_within_its_bounds():
     clock = VirtualClock()
-    router, _ = configured_router(FixedPolicy(CLOUD, "cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
+    router, _ = configured_router(AlwaysCloud("cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
                                   clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
     assert router._deadline_s(CLOUD, STATE) == 0.9          # no model yet: the upper bound
     for k in range(60):
@@ -544,7 +552,7 @@ def test_hedge_deadline_follows_the_latency_model_within_its_bounds():
 def test_breaker_opens_after_cloud_failures_and_routes_locally_without_calling_the_cloud():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.1), FakePlanner(clock, 5.0, status=TIMEOUT)
-    router, recorder = configured_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=0.0,
+    router, recorder = configured_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0,
                                          probe_while_warming_up=False)
     router.breaker.clock = lambda: 0.0          # no trial falls due
     for _ in range(6):
@@ -564,7 +572,7 @@ def test_breaker_trial_is_a_probe_and_a_cloud_answer_closes_it():
     clock = VirtualClock()
     now = [0.0]
     local, cloud = FakePlanner(clock, 0.1), FakePlanner(clock, 0.05)
-    router, recorder = configured_router(FixedPolicy(CLOUD, "cloud"), local, cloud, clock, probe_rate=0.0,
+    router, recorder = configured_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0,
                                          probe_while_warming_up=False)
     router.breaker.clock = lambda: now[0]
     router.breaker.record_heartbeat(False, 5.0)
@@ -580,7 +588,7 @@ def test_cost_accounting_sums_every_side_called():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
     costs = {id(local): (0.18, 0, 0), id(cloud): (0.004, 1200, 800)}
-    router = OffloadRouter(FixedPolicy(LOCAL, "local"), local, cloud, STATUSES, RouterConfig(mode="learning"),
+    router = OffloadRouter(AlwaysLocal("local"), local, cloud, STATUSES, RouterConfig(mode="learning"),
                            clock=clock, account=lambda response: costs[id(response["side"])])
     outcomes = []
     router.on_outcome = outcomes.append
@@ -606,7 +614,7 @@ class SharedClock:
 
 def test_delivered_latency_runs_from_the_arrival_of_the_request():
     clock = SharedClock()
-    router, recorder = make_router(FixedPolicy(LOCAL, "local"), FakePlanner(clock, 0.2), FakePlanner(clock, 0.1),
+    router, recorder = make_router(AlwaysLocal("local"), FakePlanner(clock, 0.2), FakePlanner(clock, 0.1),
                                    clock)
     clock.advance(1.0)
     router.route("req", STATE, arrived=0.25)     # it waited 0.75 s before routing

@@ -17,6 +17,20 @@ from offload_learner_py.core.state import STATE_SIZE
 N_ACTIONS = 2
 
 
+def greedy_actions(q: np.ndarray) -> np.ndarray:
+    """The greedy action of each row of N x 2 Q-values: the cloud only when strictly better, so a tie (an
+    untrained network) plans on board."""
+    q = np.asarray(q)
+    return np.where(q[..., CLOUD] > q[..., LOCAL], CLOUD, LOCAL).astype(np.int64)
+
+
+def epsilon_greedy(rng: np.random.Generator, epsilon: float, greedy: int) -> Tuple[int, float]:
+    """Algorithm 1's action: uniform with probability epsilon, else the greedy one; and the probability it
+    had of being chosen (its propensity, which off-policy evaluation of the log needs)."""
+    action = int(rng.integers(0, N_ACTIONS)) if rng.random() < epsilon else int(greedy)
+    return action, epsilon / N_ACTIONS + (1.0 - epsilon if action == greedy else 0.0)
+
+
 class QNetwork(nn.Module):
     def __init__(self, hidden_sizes=(256, 256, 256), state_size: int = STATE_SIZE, n_actions: int = N_ACTIONS):
         super().__init__()
@@ -64,8 +78,7 @@ class DQNAgent:
             return self.q_network(x).numpy()
 
     def greedy_action(self, state) -> int:
-        q = self.q_values(state)
-        return CLOUD if q[CLOUD] > q[LOCAL] else LOCAL
+        return int(greedy_actions(self.q_values(state)))
 
     def in_warm_up(self) -> bool:
         return self.steps < self.config.learning_starts
@@ -75,13 +88,7 @@ class DQNAgent:
         which off-policy evaluation of the logged table needs. Uniform during warm-up, as
         Algorithm 1 line 10 explores."""
         epsilon = 1.0 if self.in_warm_up() else self.config.epsilon
-        greedy = self.greedy_action(state)
-        if self.rng.random() < epsilon:
-            action = int(self.rng.integers(0, N_ACTIONS))
-        else:
-            action = greedy
-        propensity = epsilon / N_ACTIONS + (1.0 - epsilon if action == greedy else 0.0)
-        return action, propensity
+        return epsilon_greedy(self.rng, epsilon, self.greedy_action(state))
 
     # --- learning -------------------------------------------------------------------------------
     def observe(self, state, action: int, reward: float, next_state) -> Optional[float]:
@@ -152,5 +159,4 @@ class FastDecision:
             h += b
             if i < last:
                 np.maximum(h, 0.0, out=h)
-        q_local, q_cloud = float(h[LOCAL]), float(h[CLOUD])
-        return (CLOUD if q_cloud > q_local else LOCAL), q_local, q_cloud
+        return int(greedy_actions(h)), float(h[LOCAL]), float(h[CLOUD])

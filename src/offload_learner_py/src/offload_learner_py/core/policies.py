@@ -1,20 +1,38 @@
-"""One policy interface for the DQN and its baselines: fit on a training table, then choose an action
-for every row of another. Only the oracle reads latencies, which is why it is offline only."""
+"""One policy interface for the DQN and its baselines, offline and online.
+
+Offline: fit on a training table, then choose an action for every row of another (`choose`). Online (the
+router): decide one request from its state (`decide`, with the action's propensity and Q-values), and
+learn from its eq. 10 reward (`learn`); baselines never learn. Only the oracle reads latencies, which is
+why it is offline only."""
+import math
+import threading
 from abc import ABC, abstractmethod
-from typing import Optional
+from dataclasses import dataclass
+from typing import Optional, Tuple
 
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
-from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.dqn import DQNAgent, epsilon_greedy, greedy_actions
 from offload_learner_py.core.evaluation import oracle_actions
 from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.core.state import State
+from offload_learner_py.data.dataset import TransitionTable
+
+
+@dataclass(frozen=True)
+class Decision:
+    """One online decision: the action, the probability the policy had of taking it, its Q-values."""
+    action: int
+    propensity: float
+    q_local: float = float("nan")
+    q_cloud: float = float("nan")
 
 
 class Policy(ABC):
     name = "policy"
+    learns = False
 
     def fit(self, train: TransitionTable) -> "Policy":
         """Learn from a table with both latencies per row. Fixed policies ignore it."""
@@ -24,29 +42,70 @@ class Policy(ABC):
     def choose(self, table: TransitionTable) -> np.ndarray:
         """Action (0 local, 1 cloud) per row, from the states only (except the oracle)."""
 
+    def decide(self, state: State) -> Decision:
+        """The action for one request (online), with the probability the policy had of taking it."""
+        raise NotImplementedError(f"the {self.name} policy is offline only")
+
+    def learn(self, state: State, action: int, reward_value: float) -> Optional[float]:
+        """One online transition; the training loss when a gradient step ran. Baselines never learn."""
+        return None
+
+    def flush(self) -> Optional[float]:
+        return None
+
+    @property
+    def warming_up(self) -> bool:
+        """Still collecting its first transitions: a deployed router probes every request meanwhile."""
+        return False
+
+    @property
+    def steps(self) -> int:
+        return 0
+
+    def stats(self) -> dict:
+        return {"steps": self.steps, "gradient_steps": 0, "replay_size": 0, "epsilon": 0.0}
+
 
 class AlwaysLocal(Policy):
     name = "always_local"
 
+    def __init__(self, name: Optional[str] = None):
+        self.name = name or self.name
+
     def choose(self, table):
         return np.full(len(table), LOCAL, dtype=np.int64)
+
+    def decide(self, state):
+        return Decision(LOCAL, 1.0)
 
 
 class AlwaysCloud(Policy):
     name = "always_cloud"
 
+    def __init__(self, name: Optional[str] = None):
+        self.name = name or self.name
+
     def choose(self, table):
         return np.full(len(table), CLOUD, dtype=np.int64)
 
+    def decide(self, state):
+        return Decision(CLOUD, 1.0)
+
 
 class RandomPolicy(Policy):
+    """Uniform actions. `choose` draws the same actions for the same table each time (seeded); `decide`
+    goes on drawing from one stream."""
     name = "random"
 
     def __init__(self, seed: int = 1):
         self.seed = seed
+        self.rng = np.random.default_rng(seed)
 
     def choose(self, table):
         return np.random.default_rng(self.seed).integers(0, 2, len(table)).astype(np.int64)
+
+    def decide(self, state):
+        return Decision(int(self.rng.integers(0, 2)), 0.5)
 
 
 class OraclePolicy(Policy):
@@ -58,15 +117,22 @@ class OraclePolicy(Policy):
 
 
 class InputSizeThreshold(Policy):
-    """Offload when d_t is above (or below) a threshold, both picked to maximise training accuracy:
-    the rule the paper's real-data policy ended up resembling (offload above d of about 1.1)."""
+    """Offload when d_t is above (or below) a threshold: the rule the paper's real-data policy ended up
+    resembling (offload above d of about 1.1). Given a threshold, it is fixed (the node's `threshold`
+    policy); without one, `fit` picks the threshold and its side to maximise training accuracy."""
     name = "threshold_d"
 
-    def __init__(self):
-        self.threshold: Optional[float] = None
-        self.cloud_above = True
+    def __init__(self, threshold: Optional[float] = None, cloud_above: bool = True, name: Optional[str] = None):
+        if threshold is not None and not (threshold >= 0 and math.isfinite(threshold)):
+            raise ValueError(f"input-size threshold must be finite and >= 0, got {threshold}")
+        self.threshold = threshold
+        self.cloud_above = cloud_above
+        self.fixed = threshold is not None
+        self.name = name or self.name
 
     def fit(self, train):
+        if self.fixed:
+            return self
         d = train.input_size
         # +1 for rows where cloud is strictly faster, -1 where local is, 0 on ties.
         gain = np.sign(train.local_s - train.cloud_s)
@@ -84,34 +150,114 @@ class InputSizeThreshold(Policy):
             self.cloud_above, self.threshold = False, float(cuts[int(np.argmax(below))])
         return self
 
-    def choose(self, table):
+    def _actions(self, input_size) -> np.ndarray:
         if self.threshold is None:
             raise RuntimeError("fit the threshold policy on training data first")
-        above = table.input_size > self.threshold
-        return np.where(above == self.cloud_above, CLOUD, LOCAL).astype(np.int64)
+        return np.where((np.asarray(input_size) > self.threshold) == self.cloud_above, CLOUD, LOCAL).astype(np.int64)
+
+    def choose(self, table):
+        return self._actions(table.input_size)
+
+    def decide(self, state):
+        return Decision(int(self._actions(state.input_size)), 1.0)
 
 
 class DQNPolicy(Policy):
-    """fit runs Algorithm 1 online over the training rows in order (epsilon-greedy, replay, target
-    copies), with rewards from the rows' measured latencies; choose is the greedy policy."""
+    """Algorithm 1. Offline, `fit` runs it over the training rows in order (epsilon-greedy, replay, target
+    copies) with rewards from the rows' measured latencies, and `choose` is the greedy policy.
+
+    Online, decisions read a numpy snapshot of the Q-network (FastDecision), rebuilt after each gradient
+    step, so deciding never waits for training or takes the torch path. With learn false the greedy
+    policy of the given agent is used and nothing is trained. With explore false (learning mode, where
+    both sides run anyway, and deployed mode, where probes explore) the action is always the greedy one:
+    epsilon-greedy would only cost the robot time."""
     name = "dqn"
 
     def __init__(self, config: DQNConfig = DQNConfig(), weights: CostWeights = CostWeights(),
-                 agent: Optional[DQNAgent] = None):
+                 agent: Optional[DQNAgent] = None, learn: bool = True, seed: Optional[int] = None,
+                 explore: bool = True):
         self.config = config
         self.weights = weights
         self.agent = agent
         self.online_run = None
+        self.learns = learn
+        self.explore = explore
+        self.lock = threading.Lock()     # held while training or saving the agent
+        self._seed = seed
+        self._pending: Optional[Tuple[np.ndarray, int, float]] = None
+        self._rng = self._snapshot = None
+        if agent is not None:
+            self._online(agent)
+
+    def _online(self, agent: DQNAgent) -> None:
+        self.agent = agent
+        self._rng = np.random.default_rng(agent.config.seed if self._seed is None else self._seed)
+        self._snapshot = agent.fast_decision()
 
     def fit(self, train):
         from offload_learner_py.offline.simulation import run_online
 
-        self.agent = DQNAgent(self.config)
-        self.online_run = run_online(self.agent, train, self.weights)
+        agent = DQNAgent(self.config)
+        self.online_run = run_online(agent, train, self.weights)
+        self._online(agent)
         return self
 
     def choose(self, table):
         if self.agent is None:
             raise RuntimeError("fit the DQN policy (or pass a trained agent) first")
-        q = self.agent.q_values(table.states)
-        return np.where(q[:, CLOUD] > q[:, LOCAL], CLOUD, LOCAL).astype(np.int64)
+        return greedy_actions(self.agent.q_values(table.states))
+
+    # -- online ----------------------------------------------------------------------------------------
+    def epsilon(self) -> float:
+        if not (self.learns and self.explore):
+            return 0.0
+        return 1.0 if self.agent.in_warm_up() else self.agent.config.epsilon
+
+    @property
+    def warming_up(self) -> bool:
+        return self.learns and self.agent.in_warm_up()
+
+    def decide(self, state):
+        if self.agent is None:
+            raise RuntimeError("fit the DQN policy (or pass a trained agent) first")
+        greedy, q_local, q_cloud = self._snapshot.decide(state.input_size, state.cpu_availability,
+                                                         state.round_trip_s)
+        action, propensity = epsilon_greedy(self._rng, self.epsilon(), greedy)
+        return Decision(action, propensity, q_local, q_cloud)
+
+    def learn(self, state, action, reward_value):
+        """Store the transition and train on schedule. The next state of a transition is the state of
+        the next learned request (it does not depend on the action), so each transition is stored
+        when its successor arrives; flush() stores the last one with its own state."""
+        if not self.learns:
+            return None
+        with self.lock:
+            current = state.as_array()
+            loss = None
+            if self._pending is not None:
+                loss = self._observe(*self._pending, current)
+            self._pending = (current, action, reward_value)
+            return loss
+
+    def flush(self) -> Optional[float]:
+        with self.lock:
+            if self._pending is None:
+                return None
+            state, action, reward_value = self._pending
+            self._pending = None
+            return self._observe(state, action, reward_value, state)
+
+    def _observe(self, state, action, reward_value, next_state):
+        steps_before = self.agent.gradient_steps
+        loss = self.agent.observe(state, action, reward_value, next_state)
+        if self.agent.gradient_steps != steps_before or self.agent.steps == 1:
+            self._snapshot = self.agent.fast_decision()
+        return loss
+
+    @property
+    def steps(self):
+        return self.agent.steps if self.agent is not None else 0
+
+    def stats(self):
+        return {"steps": self.agent.steps, "gradient_steps": self.agent.gradient_steps,
+                "replay_size": len(self.agent.memory), "epsilon": self.epsilon()}

@@ -29,8 +29,8 @@ from offload_learner_py.online.cpu import CgroupBudgetReader, LatestCpuAvailabil
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.online.request_check import check_request
 from offload_learner_py.core.reward import CostWeights
-from offload_learner_py.online.router import LEARNING, NO_PATH_DELIVERED, DQNDecision, FixedPolicy, \
-    InputSizeThresholdDecision, OffloadRouter, RandomDecision, RouterConfig, Statuses
+from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, RandomPolicy
+from offload_learner_py.online.router import OffloadRouter, RouterConfig, Statuses
 from offload_learner_py.core.state import State, input_size
 
 POLICIES = ("dqn", "local", "cloud", "random", "threshold")
@@ -75,13 +75,13 @@ def make_cpu_sampler(cores: str, cgroup: str) -> LatestCpuAvailability:
 def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, dqn_overrides: dict,
                 threshold: float, explore: bool = True):
     if name == "local":
-        return FixedPolicy(LOCAL, "local"), None
+        return AlwaysLocal("local"), None
     if name == "cloud":
-        return FixedPolicy(CLOUD, "cloud"), None
+        return AlwaysCloud("cloud"), None
     if name == "random":
-        return RandomDecision(seed), None
+        return RandomPolicy(seed), None
     if name == "threshold":
-        return InputSizeThresholdDecision(threshold), None
+        return InputSizeThreshold(threshold, name="threshold"), None
     config = DQNConfig.from_dict({"seed": seed, **dqn_overrides})
     source = None
     if checkpoint and os.path.exists(checkpoint):
@@ -94,7 +94,7 @@ def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, 
     else:
         agent = DQNAgent(config)
         rospy.logwarn("no checkpoint at %r and no ~model: the DQN starts untrained", checkpoint)
-    return DQNDecision(agent, learn=learn, seed=seed + agent.steps, explore=explore), agent
+    return DQNPolicy(config, agent=agent, learn=learn, seed=seed + agent.steps, explore=explore), agent
 
 
 def recorder_connected(publisher, recorder: str) -> bool:
@@ -461,7 +461,7 @@ class LearnerNode:
         if not self.checkpoint_path or self.agent is None or not self.policy.learns:
             return False
         try:
-            with self.policy._lock:
+            with self.policy.lock:
                 save_checkpoint(self.agent, self.checkpoint_path)
         except (OSError, ValueError) as error:
             self.checkpoint_failures += 1
@@ -476,7 +476,7 @@ class LearnerNode:
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
-        if isinstance(self.policy, DQNDecision):
+        if isinstance(self.policy, DQNPolicy):
             self.policy.flush()
         if self.save():
             rospy.loginfo("checkpoint %s: %d steps", self.checkpoint_path, self.agent.steps)

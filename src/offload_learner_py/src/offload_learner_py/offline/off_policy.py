@@ -24,6 +24,7 @@ from typing import Dict, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.dqn import greedy_actions
 from offload_learner_py.data.records import RequestLog
 
 Z_95 = 1.959963984540054
@@ -277,7 +278,7 @@ def candidate_actions(steps: LoggedSteps, model: Optional[str] = None) -> Dict[s
         from offload_learner_py.core.checkpoint import load_checkpoint
 
         q = load_checkpoint(model).q_values(steps.states)
-        candidates["model"] = np.where(q[:, CLOUD] > q[:, LOCAL], CLOUD, LOCAL)
+        candidates["model"] = greedy_actions(q)
     return candidates
 
 

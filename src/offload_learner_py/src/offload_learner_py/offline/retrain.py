@@ -29,7 +29,7 @@ from offload_learner_py.data.bags import BagData, read_bags
 from offload_learner_py.core.checkpoint import save_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.dqn import DQNAgent, greedy_actions
 from offload_learner_py.core.evaluation import evaluate
 from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.offline.output import code_block, prepare_out_dir, terminal_text
@@ -146,11 +146,10 @@ def recorded_weights(data: BagData) -> CostWeights:
     return CostWeights(alpha, 1.0 - alpha)
 
 
-def greedy_actions(agent: DQNAgent, states: np.ndarray) -> np.ndarray:
+def agent_greedy_actions(agent: DQNAgent, states: np.ndarray) -> np.ndarray:
     if len(states) == 0:
         return np.zeros(0, dtype=np.int64)
-    q = agent.q_values(states)
-    return np.where(q[:, CLOUD] > q[:, LOCAL], CLOUD, LOCAL).astype(np.int64)
+    return greedy_actions(agent.q_values(states))
 
 
 def chronological_split(n: int, test_fraction: float) -> int:
@@ -174,7 +173,7 @@ def online_greedy(data: BagData) -> np.ndarray:
     rows = _rewarded_rows(data)
     q_local, q_cloud = data.log["q_local"][rows], data.log["q_cloud"][rows]
     known = np.isfinite(q_local) & np.isfinite(q_cloud)
-    return np.where(known, np.where(q_cloud > q_local, CLOUD, LOCAL), -1)
+    return np.where(known, greedy_actions(np.stack([q_local, q_cloud], axis=-1)), -1)
 
 
 def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Optional[int] = None,
@@ -199,7 +198,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     checkpoint = os.path.join(out_dir, "checkpoint.pt")
     save_checkpoint(agent, checkpoint)
     table.save_npz(os.path.join(out_dir, "transitions.npz"))
-    retrained = greedy_actions(agent, test.states)
+    retrained = agent_greedy_actions(agent, test.states)
     evaluation = {"rows": len(table), "train_rows": len(train), "test_rows": len(test),
                   "test_from_request": int(test.t[0]), "gradient_steps": gradient_steps, "seed": config.seed,
                   "taken_only": taken_only, "final_loss": float(result.losses[-100:].mean()) if gradient_steps else None,
@@ -218,7 +217,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     first_test_log_row = log_rows[cut]
     steps = LoggedSteps.from_log(data.log, np.arange(first_test_log_row, len(data.log)))
     predicted = fit_latency_model(steps.states, steps.action, steps.latency_s)
-    candidates = {"retrained": greedy_actions(agent, steps.states), "always_local": np.full(len(steps), LOCAL),
+    candidates = {"retrained": agent_greedy_actions(agent, steps.states), "always_local": np.full(len(steps), LOCAL),
                   "always_cloud": np.full(len(steps), CLOUD)}
     ope = {name: evaluate_policy(steps, actions, predicted) for name, actions in candidates.items()}
     evaluation["off_policy"] = {name: to_jsonable(value) for name, value in ope.items()}

@@ -9,9 +9,8 @@ from typing import Callable, Optional
 
 import numpy as np
 
-from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.dqn import DQNAgent, greedy_actions
 from offload_learner_py.core.reward import CostWeights, reward
 
 
@@ -55,7 +54,7 @@ def run_online(agent: DQNAgent, stream: TransitionTable, weights: CostWeights = 
             recent = losses[window]
             progress(t + 1, steps, agent, float(np.nanmean(recent)) if np.any(~np.isnan(recent)) else float("nan"),
                      float(step_rewards[window].mean()))
-    greedy = np.where(greedy_q[:, CLOUD] > greedy_q[:, LOCAL], CLOUD, LOCAL)
+    greedy = greedy_actions(greedy_q)
     table = TransitionTable(t=stream.t, input_size=stream.input_size, cpu_availability=stream.cpu_availability,
                             round_trip_s=stream.round_trip_s, local_s=stream.local_s, cloud_s=stream.cloud_s,
                             action=actions, action_propensity=propensities, reward=step_rewards,

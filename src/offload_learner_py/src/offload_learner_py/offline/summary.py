@@ -8,6 +8,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.dqn import greedy_actions
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.evaluation import accuracy, evaluate, learned_cpu_threshold, oracle_actions
 from offload_learner_py.data.records import NO_PATH_DELIVERED, RequestLog
@@ -115,7 +116,7 @@ def summarise(log: RequestLog, table: TransitionTable, q_values: Optional[Callab
     if q_values is not None:
         states = table.states
         q = np.asarray(q_values(states))
-        greedy = np.where(q[:, CLOUD] > q[:, LOCAL], CLOUD, LOCAL)
+        greedy = greedy_actions(q)
         result["final_greedy_accuracy"] = accuracy(greedy, table)
         result["final_greedy_second_half_accuracy"] = accuracy(greedy[half:], second)
         result["learned_offload_input_size"] = learned_offload_input_size(q_values, states)

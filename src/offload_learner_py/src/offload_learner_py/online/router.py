@@ -27,7 +27,6 @@ too slow, requests are planned locally without touching the link until the link 
 import math
 import threading
 import time
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass, field
 from typing import Any, Callable, Optional, Tuple
 
@@ -36,6 +35,7 @@ import numpy as np
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.online.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
 from offload_learner_py.online.latency_model import LatencyModel, LatencyModelConfig
+from offload_learner_py.core.policies import Decision, Policy
 from offload_learner_py.core.reward import CostWeights, cloud_latency_s, reward
 from offload_learner_py.core.state import State
 
@@ -57,14 +57,6 @@ class Statuses:
     def cloud_failed(self, status: int) -> bool:
         """The cloud could not answer; the request itself may be fine, so plan it locally."""
         return status in (self.cloud_timeout, self.cloud_error)
-
-
-@dataclass(frozen=True)
-class Decision:
-    action: int
-    propensity: float
-    q_local: float = float("nan")
-    q_cloud: float = float("nan")
 
 
 @dataclass
@@ -120,133 +112,6 @@ class Outcome:
     bridge_cpu_s: float = 0.0       # the cloud bridge's CPU on the robot for this request (serialising, waiting)
     bytes_sent: int = 0
     bytes_received: int = 0
-
-
-class DecisionPolicy:
-    """What the router asks of a policy. Baselines never learn."""
-    name = "policy"
-    learns = False
-
-    def decide(self, state: State) -> Decision:
-        raise NotImplementedError
-
-    def learn(self, state: State, action: int, reward_value: float) -> Optional[float]:
-        return None
-
-    @property
-    def warming_up(self) -> bool:
-        """Still collecting its first transitions: a deployed router probes every request meanwhile."""
-        return False
-
-    @property
-    def steps(self) -> int:
-        return 0
-
-    def stats(self) -> dict:
-        return {"steps": self.steps, "gradient_steps": 0, "replay_size": 0, "epsilon": 0.0}
-
-
-class FixedPolicy(DecisionPolicy):
-    def __init__(self, action: int, name: str):
-        self.action, self.name = action, name
-
-    def decide(self, state):
-        return Decision(self.action, 1.0)
-
-
-class RandomDecision(DecisionPolicy):
-    name = "random"
-
-    def __init__(self, seed: int = 1):
-        self.rng = np.random.default_rng(seed)
-
-    def decide(self, state):
-        return Decision(int(self.rng.integers(0, 2)), 0.5)
-
-
-class InputSizeThresholdDecision(DecisionPolicy):
-    """Offload when d_t is above a fixed threshold (the rule the paper's policy came to resemble)."""
-    name = "threshold"
-
-    def __init__(self, threshold: float):
-        if not (threshold >= 0 and math.isfinite(threshold)):
-            raise ValueError(f"input-size threshold must be finite and >= 0, got {threshold}")
-        self.threshold = threshold
-
-    def decide(self, state):
-        return Decision(CLOUD if state.input_size > self.threshold else LOCAL, 1.0)
-
-
-class DQNDecision(DecisionPolicy):
-    """Algorithm 1 online. Decisions read a numpy snapshot of the Q-network (FastDecision), rebuilt
-    after each gradient step, so deciding never waits for training or takes the torch path. With
-    learn false the greedy policy of the loaded model is used and nothing is trained. With explore false
-    (learning mode, where both sides run anyway, and deployed mode, where probes explore) the action is
-    always the greedy one: epsilon-greedy would only cost the robot time."""
-    name = "dqn"
-
-    def __init__(self, agent, learn: bool = True, seed: Optional[int] = None, explore: bool = True):
-        self.agent = agent
-        self.learns = learn
-        self.explore = explore
-        self.rng = np.random.default_rng(agent.config.seed if seed is None else seed)
-        self._lock = threading.Lock()
-        self._pending: Optional[Tuple[np.ndarray, int, float]] = None
-        self._snapshot = agent.fast_decision()
-
-    def epsilon(self) -> float:
-        if not (self.learns and self.explore):
-            return 0.0
-        return 1.0 if self.agent.in_warm_up() else self.agent.config.epsilon
-
-    @property
-    def warming_up(self) -> bool:
-        return self.learns and self.agent.in_warm_up()
-
-    def decide(self, state):
-        greedy, q_local, q_cloud = self._snapshot.decide(state.input_size, state.cpu_availability,
-                                                         state.round_trip_s)
-        epsilon = self.epsilon()
-        action = int(self.rng.integers(0, 2)) if self.rng.random() < epsilon else greedy
-        propensity = epsilon / 2 + (1.0 - epsilon if action == greedy else 0.0)
-        return Decision(action, propensity, q_local, q_cloud)
-
-    def learn(self, state, action, reward_value):
-        """Store the transition and train on schedule. The next state of a transition is the state of
-        the next learned request (it does not depend on the action), so each transition is stored
-        when its successor arrives; flush() stores the last one with its own state."""
-        if not self.learns:
-            return None
-        with self._lock:
-            current = state.as_array()
-            loss = None
-            if self._pending is not None:
-                loss = self._observe(*self._pending, current)
-            self._pending = (current, action, reward_value)
-            return loss
-
-    def flush(self) -> Optional[float]:
-        with self._lock:
-            if self._pending is None:
-                return None
-            state, action, reward_value = self._pending
-            self._pending = None
-            return self._observe(state, action, reward_value, state)
-
-    def _observe(self, state, action, reward_value, next_state):
-        steps_before = self.agent.gradient_steps
-        loss = self.agent.observe(state, action, reward_value, next_state)
-        if self.agent.gradient_steps != steps_before or self.agent.steps == 1:
-            self._snapshot = self.agent.fast_decision()
-        return loss
-
-    @property
-    def steps(self):
-        return self.agent.steps
-
-    def stats(self):
-        return {"steps": self.agent.steps, "gradient_steps": self.agent.gradient_steps,
-                "replay_size": len(self.agent.memory), "epsilon": self.epsilon()}
 
 
 @dataclass
@@ -359,7 +224,7 @@ class OffloadRouter:
     `account(response)` (optional) gives (robot CPU-seconds, link bytes sent, link bytes received) that
     the serving node reported for one call."""
 
-    def __init__(self, policy: DecisionPolicy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
+    def __init__(self, policy: Policy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
                  on_outcome: Callable = None, clock: Callable[[], float] = time.perf_counter,
                  stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep,
