@@ -58,10 +58,10 @@ def test_the_checkpoint_is_what_the_learner_node_loads(run_bag, tmp_path):
 
 
 def test_the_node_loads_it_through_model(run_bag, tmp_path):
-    learner = pytest.importorskip("offload_learner_py.nodes.learner")
+    from offload_learner_py.online.session import SessionConfig, make_policy
     data = bags.read_bags([run_bag])
     retrain.retrain(data, str(tmp_path), DQNConfig(seed=1), gradient_steps=100)
-    policy, agent = learner.make_policy("dqn", "", str(tmp_path / "checkpoint.pt"), False, 1, {}, 1.1)
+    policy, agent = make_policy(SessionConfig(model=str(tmp_path / "checkpoint.pt"), learn=False))
     assert agent.steps >= 200 and policy.epsilon() == 0.0
     # and decides with it: the greedy action of the retrained network, propensity 1 (frozen, ~learn false)
     from offload_learner_py.core.state import State

@@ -628,3 +628,33 @@ def test_router_config_rejects_bad_modes_and_hedges():
                             ({"hedge_min_s": 0.0}, "hedge_min_s"), ({"hedge_deadline_s": -1.0}, "hedge_deadline_s")):
         with pytest.raises(ValueError, match=message):
             RouterConfig(**kwargs)
+
+
+def test_hedge_deadline_is_never_later_than_the_other_sides_median():
+    """A chosen side slower than the other usually is: the other starts once it would have been done."""
+    clock = VirtualClock()
+    router, _ = configured_router(AlwaysCloud("cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
+                                  clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
+    for k in range(60):
+        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.5 * (1.0 + 0.3 * (k % 3 - 1)))   # cloud slow, noisy
+    alone = router._deadline_s(CLOUD, STATE)
+    assert alone > 0.5
+    for k in range(60):
+        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.12)
+    assert router._deadline_s(CLOUD, STATE) == pytest.approx(0.12, rel=0.05)
+
+
+def test_a_warm_started_policy_probes_until_both_latency_models_are_ready():
+    """A trained DQN on a fresh node: no latency model has samples, so one-sided requests would teach nothing
+    and the hedge would wait its maximum; it probes until both models are ready, then at its rate."""
+    clock = VirtualClock()
+    policy = LearningRecorder(CLOUD)           # learns, never warming up
+    router, recorder = configured_router(policy, FakePlanner(clock, 0.2), FakePlanner(clock, 0.05), clock,
+                                         mode="deployed", probe_rate=0.0)
+    for _ in range(40):
+        router.route("req", STATE)
+    finish(router)
+    probes = [r.probe for r in recorder.routings]
+    min_samples = router.config.latency_model.min_samples
+    assert all(probes[:min_samples]) and not any(probes[min_samples:])
+    assert all(o.learned for o in recorder.outcomes)

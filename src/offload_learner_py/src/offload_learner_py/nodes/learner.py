@@ -4,13 +4,9 @@ offload_learner_py.online.router, and publishes every decision, outcome and trai
 rebuilds the transition table. Thin: all logic lives in the ROS-free router."""
 import json
 import math
-import os
-import threading
 import time
 from dataclasses import asdict
-from collections import deque
 
-import numpy as np
 import rospy
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
@@ -21,19 +17,20 @@ from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.online.breaker import BreakerConfig
-from offload_learner_py.core.checkpoint import IncompatibleCheckpointError, load_checkpoint, remove_orphaned_temps, \
-    save_checkpoint
-from offload_learner_py.core.config import DQNConfig
-from offload_learner_py.online.cpu import CgroupBudgetReader, LatestCpuAvailability, parse_cpu_list, read_proc_stat, \
-    read_proc_stat_cores
-from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
+from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.request_check import check_request
 from offload_learner_py.core.reward import CostWeights
-from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, RandomPolicy
+from offload_learner_py.online.session import LearnerSession, SessionConfig
 from offload_learner_py.online.router import OffloadRouter, RouterConfig, Statuses
 from offload_learner_py.core.state import State, input_size
 
-POLICIES = ("dqn", "local", "cloud", "random", "threshold")
+
+
+class RosLog:
+    """The session's logger, on rosout."""
+    debug, info, warning, error = (staticmethod(rospy.logdebug), staticmethod(rospy.loginfo),
+                                   staticmethod(rospy.logwarn), staticmethod(rospy.logerr))
 
 
 class PlannerProxy:
@@ -60,43 +57,6 @@ class PlannerProxy:
             self._proxy = None
 
 
-def make_cpu_sampler(cores: str, cgroup: str) -> LatestCpuAvailability:
-    """u_t of the robot: what is left of its cgroup CPU budget when it has one, else the idle share of
-    the cores it is pinned to, else of the whole host. Never waits on the request path."""
-    if cgroup:
-        reader = CgroupBudgetReader(cgroup)
-        return LatestCpuAvailability(reader, min_window=int(0.02 * 1e9 * reader.budget_cores))   # 20 ms
-    if cores:
-        pinned = parse_cpu_list(cores)
-        return LatestCpuAvailability(lambda: read_proc_stat_cores(pinned), min_window=2 * len(pinned))
-    return LatestCpuAvailability(read_proc_stat, min_window=2 * (os.cpu_count() or 1))
-
-
-def make_policy(name: str, checkpoint: str, model: str, learn: bool, seed: int, dqn_overrides: dict,
-                threshold: float, explore: bool = True):
-    if name == "local":
-        return AlwaysLocal("local"), None
-    if name == "cloud":
-        return AlwaysCloud("cloud"), None
-    if name == "random":
-        return RandomPolicy(seed), None
-    if name == "threshold":
-        return InputSizeThreshold(threshold, name="threshold"), None
-    config = DQNConfig.from_dict({"seed": seed, **dqn_overrides})
-    source = None
-    if checkpoint and os.path.exists(checkpoint):
-        source = checkpoint          # a restarted node resumes where it stopped
-    elif model:
-        source = model
-    if source:
-        agent = load_checkpoint(source, config)
-        rospy.loginfo("loaded %s: %d steps, %d gradient steps", source, agent.steps, agent.gradient_steps)
-    else:
-        agent = DQNAgent(config)
-        rospy.logwarn("no checkpoint at %r and no ~model: the DQN starts untrained", checkpoint)
-    return DQNPolicy(config, agent=agent, learn=learn, seed=seed + agent.steps, explore=explore), agent
-
-
 def recorder_connected(publisher, recorder: str) -> bool:
     """Whether the node `recorder` (a resolved name; "" for any node) has a connection to `publisher`.
     rospy keeps each subscriber's caller id on its connection (endpoint_id)."""
@@ -109,20 +69,16 @@ def recorder_connected(publisher, recorder: str) -> bool:
 class LearnerNode:
     def __init__(self):
         p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
-        self.policy_name = str(p("policy", "dqn"))
-        if self.policy_name not in POLICIES:
-            raise ValueError(f"~policy must be one of {', '.join(POLICIES)}, got {self.policy_name!r}")
-        self.checkpoint_path = os.path.expanduser(str(p("checkpoint", "")))
-        self.checkpoint_every = int(p("checkpoint_every", 50))
-        self.checkpoint_failures = 0
-        if self.checkpoint_path:
-            for name in remove_orphaned_temps(self.checkpoint_path):
-                rospy.logwarn("removed %s, left by a checkpoint save that was killed mid-write", name)
-        self.learn = bool(p("learn", True))
         seed = int(p("seed", 1))
-        dqn_overrides = p("dqn", {}) or {}
-        if not isinstance(dqn_overrides, dict):
-            raise ValueError(f"~dqn must be a dictionary of DQNConfig fields, got {dqn_overrides!r}")
+        self.session = LearnerSession(SessionConfig(
+            policy=str(p("policy", "dqn")), checkpoint=str(p("checkpoint", "")), model=str(p("model", "")),
+            checkpoint_every=int(p("checkpoint_every", 50)), learn=bool(p("learn", True)),
+            # Learning mode runs both sides anyway and deployed mode explores with its probes:
+            # epsilon-greedy exploration would only cost the robot time, so it is off unless asked for.
+            explore=bool(p("explore", False)), seed=seed, dqn=p("dqn", {}) or {},
+            threshold_input_size=float(p("threshold_input_size", 1.1)), stats_window=int(p("stats_window", 50)),
+            progress_every=int(p("progress_every", 25))), RosLog)
+        self.policy = self.session.policy
         alpha = float(p("alpha", 0.5))
         breaker = BreakerConfig(failures_to_open=int(p("breaker_failures", 3)),
                                 max_round_trip_s=float(p("breaker_max_round_trip_s", 1.0)),
@@ -135,12 +91,6 @@ class LearnerNode:
                                           hedge_quantile=float(p("hedge_quantile", 0.95)),
                                           hedge_min_s=float(p("hedge_min_s", 0.05)),
                                           hedge_max_s=float(p("hedge_max_s", 1.0)), breaker=breaker)
-        # Learning mode runs both sides anyway and deployed mode explores with its probes: epsilon-greedy
-        # exploration would only cost the robot time, so it is off unless asked for.
-        self.explore = bool(p("explore", False))
-        self.policy, self.agent = make_policy(self.policy_name, self.checkpoint_path, os.path.expanduser(
-            str(p("model", ""))), self.learn, seed, dqn_overrides, float(p("threshold_input_size", 1.1)),
-            explore=self.explore)
         self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
         # With a cgroup budget (nanosecond counters) u_t covers the time since the last request ended,
         # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
@@ -149,16 +99,9 @@ class LearnerNode:
         self.goal_tolerance = float(p("goal_tolerance", 0.5))
         self.start_xy = (float(p("start_x", float("nan"))), float(p("start_y", float("nan"))))
         self.base_frame = str(p("base_frame", "base_link"))
-        self.progress_every = int(p("progress_every", 25))
-        self.window = int(p("stats_window", 50))
         self.map_info = None
         self.map_frame = "map"
         self.round_trip_s = None
-        self._lock = threading.Lock()
-        self._recent = deque(maxlen=self.window)      # (loss or nan, correct or nan)
-        self._delivered_ms = deque(maxlen=self.window)
-        self._learned_since_checkpoint = 0
-        self._count = 0
         self.tf_buffer = self._tf_buffer()
 
         local = PlannerProxy(str(p("local_service", "/planner/plan")))
@@ -206,7 +149,7 @@ class LearnerNode:
         self.router.next_request_id = time.time_ns() // 1000
         rospy.on_shutdown(self.shutdown)
         rospy.loginfo("offload learner ready: %s mode, policy %s, learn %s, probe rate %.2f, hedge %s, routing "
-                      "between %s and %s", self.router_config.mode, self.policy_name, self.learn and self.policy.learns,
+                      "between %s and %s", self.router_config.mode, self.session.config.policy, self.session.learns,
                       1.0 if self.router_config.probes_every_request else self.router_config.probe_rate,
                       self.router_config.hedge, local.service, cloud.service)
 
@@ -361,7 +304,7 @@ class LearnerNode:
         msg = OffloadDecision(request_id=request_id, input_size=state.input_size,
                               cpu_availability=state.cpu_availability, round_trip_s=state.round_trip_s,
                               action=decision.action, action_propensity=decision.propensity,
-                              q_local=decision.q_local, q_cloud=decision.q_cloud, policy=self.policy_name,
+                              q_local=decision.q_local, q_cloud=decision.q_cloud, policy=self.session.config.policy,
                               model_steps=self.policy.steps, probe=probe, mode=routing.mode, routed=routing.action,
                               breaker=routing.breaker, deadline_s=routing.deadline_s)
         msg.header.stamp = rospy.Time.now()
@@ -402,32 +345,16 @@ class LearnerNode:
             empty.header.frame_id = self.map_frame
             empty.header.stamp = rospy.Time.now()
             self.path_pubs[action].publish(side.response.path if planned else empty)
-        correct = float("nan")
-        if outcome.reward is not None and outcome.imputed is None:
-            best = CLOUD if outcome.cloud_s < outcome.local_s else LOCAL
-            correct = float(outcome.decision.action == best or outcome.cloud_s == outcome.local_s)
-        with self._lock:
-            self._recent.append((outcome.loss if outcome.loss is not None else float("nan"), correct))
-            self._delivered_ms.append(1000.0 * outcome.delivered_s)
-            self._count += 1
-            if outcome.learned:
-                self._learned_since_checkpoint += 1
+        progress = self.session.record(outcome)
         self.publish_stats()
-        if self.agent is not None and self.checkpoint_every > 0 and \
-                self._learned_since_checkpoint >= self.checkpoint_every:
-            self.save()
-        if self.progress_every > 0 and len(self._delivered_ms) and self._count % self.progress_every == 0:
-            with self._lock:
-                recent = np.array(self._recent, dtype=np.float64).reshape(-1, 2)
-                delivered = float(np.mean(self._delivered_ms))
-            accuracy = np.nanmean(recent[:, 1]) if np.any(np.isfinite(recent[:, 1])) else float("nan")
-            rospy.loginfo("request %d: last %d mean %.1f ms to path, accuracy %.0f%% vs oracle, model steps %d",
-                          self._count, len(recent), delivered, 100 * accuracy, self.policy.steps)
+        if progress:
+            rospy.loginfo("%s", progress)
 
     def publish_config(self, seed: int, alpha: float):
-        config, dqn = self.router_config, getattr(self.agent, "config", None)
-        msg = LearnerConfig(policy=self.policy_name, mode=config.mode, learn=bool(self.learn and self.policy.learns),
-                            explore=self.explore, alpha=alpha, beta=1.0 - alpha,
+        config, session = self.router_config, self.session.config
+        dqn = getattr(self.session.agent, "config", None)
+        msg = LearnerConfig(policy=session.policy, mode=config.mode, learn=self.session.learns,
+                            explore=session.explore, alpha=alpha, beta=1.0 - alpha,
                             gamma=dqn.gamma if dqn else float("nan"), epsilon=dqn.epsilon if dqn else float("nan"),
                             learning_starts=dqn.learning_starts if dqn else 0,
                             probe_rate=1.0 if config.probes_every_request else config.probe_rate,
@@ -442,44 +369,19 @@ class LearnerNode:
         self.config_pub.publish(msg)
 
     def publish_stats(self):
-        stats = self.policy.stats()
-        with self._lock:
-            recent = np.array(self._recent, dtype=np.float64).reshape(-1, 2)
-        finite = lambda column: recent[:, column][np.isfinite(recent[:, column])]  # noqa: E731
-        msg = TrainingStats(policy=self.policy_name, learning=bool(self.policy.learns), steps=stats["steps"],
-                            gradient_steps=stats["gradient_steps"], replay_size=stats["replay_size"],
-                            epsilon=stats["epsilon"], recent_window=len(recent),
-                            recent_loss=float(finite(0).mean()) if len(finite(0)) else float("nan"),
-                            recent_accuracy=float(finite(1).mean()) if len(finite(1)) else float("nan"),
-                            checkpoint_failures=self.checkpoint_failures)
+        stats = self.session.stats()
+        msg = TrainingStats(policy=self.session.config.policy, learning=bool(self.policy.learns),
+                            steps=stats["steps"], gradient_steps=stats["gradient_steps"],
+                            replay_size=stats["replay_size"], epsilon=stats["epsilon"],
+                            recent_window=stats["recent_window"], recent_loss=stats["recent_loss"],
+                            recent_accuracy=stats["recent_accuracy"], checkpoint_failures=stats["checkpoint_failures"])
         msg.header.stamp = rospy.Time.now()
         self.stats_pub.publish(msg)
-
-    def save(self) -> bool:
-        """Write the checkpoint; a failure (a full disk, a diverged network) is logged at error level every
-        time, counted in ~stats, and the next learned step tries again."""
-        if not self.checkpoint_path or self.agent is None or not self.policy.learns:
-            return False
-        try:
-            with self.policy.lock:
-                save_checkpoint(self.agent, self.checkpoint_path)
-        except (OSError, ValueError) as error:
-            self.checkpoint_failures += 1
-            rospy.logerr("checkpoint %s not written (%d failures so far): %s", self.checkpoint_path,
-                         self.checkpoint_failures, error)
-            return False
-        with self._lock:
-            self._learned_since_checkpoint = 0
-        rospy.logdebug("checkpoint %s at %d steps", self.checkpoint_path, self.agent.steps)
-        return True
 
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
-        if isinstance(self.policy, DQNPolicy):
-            self.policy.flush()
-        if self.save():
-            rospy.loginfo("checkpoint %s: %d steps", self.checkpoint_path, self.agent.steps)
+        self.session.close()
         for side in self.sides:
             side.close()
 

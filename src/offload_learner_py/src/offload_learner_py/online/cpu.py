@@ -150,3 +150,15 @@ class LatestCpuAvailability:
 
     def sample(self) -> float:
         return self._measure()
+
+
+def make_cpu_sampler(cores: str, cgroup: str) -> LatestCpuAvailability:
+    """u_t of the robot: what is left of its cgroup CPU budget when it has one, else the idle share of
+    the cores it is pinned to, else of the whole host. Never waits on the request path."""
+    if cgroup:
+        reader = CgroupBudgetReader(cgroup)
+        return LatestCpuAvailability(reader, min_window=int(0.02 * 1e9 * reader.budget_cores))   # 20 ms
+    if cores:
+        pinned = parse_cpu_list(cores)
+        return LatestCpuAvailability(lambda: read_proc_stat_cores(pinned), min_window=2 * len(pinned))
+    return LatestCpuAvailability(read_proc_stat, min_window=2 * (os.cpu_count() or 1))

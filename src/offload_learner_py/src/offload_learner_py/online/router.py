@@ -121,9 +121,10 @@ class RouterConfig:
     probe_rate: float = 0.05
     """deployed: share of requests on which both sides run (learning mode probes every request)."""
     probe_while_warming_up: bool = True
-    """deployed: probe every request while the policy is still warming up (an untrained DQN); a trained or a
-    fixed policy probes at probe_rate only. Until the latency models have their first samples, one-sided
-    requests teach nothing (there is nothing to impute with)."""
+    """deployed: a learning policy probes every request while it is still warming up (an untrained DQN) or
+    while either side's latency model lacks its first samples (a warm-started DQN on a fresh node: a
+    one-sided request would teach nothing, there being nothing to impute with, and the hedge would have no
+    deadline); then, as a fixed policy always does, it probes at probe_rate only."""
     cloud_timeout_s: float = 5.0
     """l_cloud of a request the cloud did not answer (the paper's 5 s)."""
     weights: CostWeights = field(default_factory=CostWeights)
@@ -288,7 +289,7 @@ class OffloadRouter:
         config = self.config
         probe = config.probes_every_request or bool(self.rng.random() < config.probe_rate)
         if config.mode == DEPLOYED and config.probe_while_warming_up and not probe and self.policy.learns:
-            probe = self.policy.warming_up
+            probe = self.policy.warming_up or not (self.models[LOCAL].ready and self.models[CLOUD].ready)
         admitted = self.breaker.admit()
         action = decision.action
         if admitted == OPEN:
@@ -303,13 +304,20 @@ class OffloadRouter:
         return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s)
 
     def _deadline_s(self, side: int, state: State) -> float:
+        """How long the chosen side may take before the other starts: the hedge_quantile of its latency for
+        this state, clamped, and never longer than the other side's median for it. Past that, the other
+        side would most likely have been done already; started then, the request costs at most about that
+        median twice, which bounds the tail by the other side's typical latency, not the chosen side's worst."""
         config = self.config
         if config.hedge_deadline_s > 0:
             return config.hedge_deadline_s
-        quantile = self.models[side].quantile_s(_features(state), config.hedge_quantile)
-        if quantile is None:
-            return config.hedge_max_s
-        return min(max(quantile, config.hedge_min_s), config.hedge_max_s)
+        features = _features(state)
+        quantile = self.models[side].quantile_s(features, config.hedge_quantile)
+        deadline = config.hedge_max_s if quantile is None else quantile
+        other = self.models[OTHER[side]].impute_s(features)
+        if other is not None:
+            deadline = min(deadline, other)
+        return min(max(deadline, config.hedge_min_s), config.hedge_max_s)
 
     def _run(self, req: _Request, first, deadline_s: Optional[float], request=None):
         self._start(req, first, request)
