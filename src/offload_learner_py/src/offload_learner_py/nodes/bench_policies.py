@@ -62,13 +62,15 @@ def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yam
     return runs[-1]
 
 
-def measure(run_dir: pathlib.Path, cloud_timeout_s: float) -> dict:
-    data = read_bags([str(run_dir / "offload.bag")], workers=1)
+def measure(run_dirs, cloud_timeout_s: float) -> dict:
+    """The figures of one policy over its runs (repeats pooled: every request of every run counts once)."""
+    run_dirs = [run_dirs] if isinstance(run_dirs, pathlib.Path) else list(run_dirs)
+    data = read_bags([str(run_dir / "offload.bag") for run_dir in run_dirs], workers=1)
     if data.report.failed:
         raise RuntimeError(data.report.failed[0].error)
     figures = delivered_figures(data.log, cloud_timeout_s)
     if "mean_s" not in figures:
-        raise RuntimeError(f"no request was answered in {run_dir}: see demo.log beside it")
+        raise RuntimeError(f"no request was answered in {', '.join(map(str, run_dirs))}: see demo.log beside it")
     table = data.transition_table({})
     if len(table):
         figures["probe_oracle_mean_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
@@ -85,7 +87,10 @@ def measure(run_dir: pathlib.Path, cloud_timeout_s: float) -> dict:
         excess = delivered_s[after] - np.asarray(log["outcome_local_s"], dtype=np.float64)[after]
         figures["worst_wait_beyond_local_after_trip_s"] = float(np.nanmax(excess)) if len(excess) else 0.0
         figures["max_deadline_s"] = float(np.nanmax(np.asarray(log["deadline_s"], dtype=np.float64)))
-    figures["run_dir"] = str(run_dir)
+    figures["run_dir"] = ", ".join(map(str, run_dirs))
+    if len(run_dirs) > 1:     # each run's mean: the spread between repeats is the noise of the machine
+        figures["run_means_s"] = [delivered_figures(read_bags([str(run_dir / "offload.bag")], workers=1).log,
+                                                    cloud_timeout_s)["mean_s"] for run_dir in run_dirs]
     return figures
 
 
@@ -145,6 +150,9 @@ def main(argv=None) -> int:
     parser.add_argument("--outage-s", type=bounded_float("--outage-s", 0.0, low_open=True), default=30.0)
     parser.add_argument("--jump-trace", default="launch/config/rtt_jump.txt")
     parser.add_argument("--cloud-timeout-s", type=float, default=5.0)
+    parser.add_argument("--repeats", type=bounded_int("--repeats", 1, 100), default=1,
+                        help="runs per policy, interleaved (local, cloud, ..., local, cloud, ...) and pooled: on a "
+                             "shared machine one run's mean moves by several per cent")
     parser.add_argument("--runs-dir", default="runs")
     args = parser.parse_args(argv)
     policies = [name for name in args.policies.split(",") if name]
@@ -163,29 +171,35 @@ def main(argv=None) -> int:
         checkpoint = str(learning / "checkpoint.pt")
     results = {"map": map_yaml or "nav2_warehouse (bundled)", "map_name": pathlib.Path(map_yaml).stem or "warehouse",
                "link": args.link, "plan_unknown": args.plan_unknown,
-               "steps": args.steps, "seed": args.seed, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
+               "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None}
     model = ["--model", checkpoint] if checkpoint else []
-    total, began = len(policies) + len(outage), time.monotonic()
+    total, began = args.repeats * len(policies) + len(outage), time.monotonic()
 
     def progress(done: int) -> str:
         if not done:
             return f"{done + 1}/{total}"
         left_s = (time.monotonic() - began) / done * (total - done)
         return f"{done + 1}/{total}, about {left_s / 60:.0f} min left"
-    for index, name in enumerate(policies):
-        extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario
-        figures = measure(run_demo(args.launch, out / name, args.steps, args.seed, map_yaml, extra, progress(index)),
-                          args.cloud_timeout_s)
-        results["delivered_s"][name] = figures.pop("delivered_s")
-        results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
-                                     "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
-                                     "hedged": figures.get("hedged", 0)}
-        if name == "hedge":
-            results["oracle_mean_s"] = figures.get("probe_oracle_mean_s")
-        print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
+    run_dirs = {name: [] for name in policies}
+    for repeat in range(args.repeats):
+        for index, name in enumerate(policies):
+            extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario
+            where = out / name if args.repeats == 1 else out / name / f"repeat{repeat + 1}"
+            run_dirs[name].append(run_demo(args.launch, where, args.steps, args.seed, map_yaml, extra,
+                                           progress(repeat * len(policies) + index)))
+            if repeat + 1 < args.repeats:
+                continue
+            figures = measure(run_dirs[name], args.cloud_timeout_s)
+            results["delivered_s"][name] = figures.pop("delivered_s")
+            results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
+                                         "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
+                                         "hedged": figures.get("hedged", 0), "run_means_s": figures.get("run_means_s")}
+            if name == "hedge":
+                results["oracle_mean_s"] = figures.get("probe_oracle_mean_s")
+            print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
     results["outage"] = {}
-    for index, name in enumerate(outage, start=len(policies)):
+    for index, name in enumerate(outage, start=args.repeats * len(policies)):
         extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario + [
             "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
         figures = measure(run_demo(args.launch, out / f"outage-{name}", args.steps, args.seed, map_yaml, extra,
@@ -200,6 +214,9 @@ def main(argv=None) -> int:
         plot(results, out / "policies.png")
     print()
     print(format_table(results))
+    if args.repeats > 1:
+        for name, f in results["policies"].items():
+            print(f"{name}: run means " + ", ".join(f"{1e3 * m:.1f}" for m in f["run_means_s"]) + " ms")
     for name, f in results["outage"].items():
         print(f"link down {args.outage_s:g} s mid-run, {name}: {f['paths_delivered']}/{f['requests']} paths, worst "
               f"wait {1e3 * f['max_s']:.0f} ms, {f['waited_the_timeout']} waited the {args.cloud_timeout_s:g} s "
