@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bagtools import make_requests, write
-from offload_learner_py.data import bags
+from offload_learner_py.data import bags, records
 from offload_learner_py.data.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
                                            installed_definitions, typestore_for, unindex)
 from offload_learner_py.core.reward import reward
@@ -304,8 +304,8 @@ def test_values_outside_physical_bounds_are_counted_skips(tmp_path):
     report = data.report.bags[0]
     assert len(data.log) == 16 and report.invalid == 4
     assert any("action_propensity" in why for why in report.invalid_examples)
-    assert np.all(data.log["action_propensity"] >= bags.MIN_PROPENSITY)
-    assert np.nanmax(data.log["outcome_local_s"]) <= bags.MAX_LATENCY_S
+    assert np.all(data.log["action_propensity"] >= records.MIN_PROPENSITY)
+    assert np.nanmax(data.log["outcome_local_s"]) <= records.MAX_LATENCY_S
 
 
 @pytest.mark.parametrize("codec", ["lz4", "bz2"])

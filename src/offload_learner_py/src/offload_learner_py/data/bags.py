@@ -23,11 +23,10 @@ from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
 
 import numpy as np
 
-from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.data.records import DECISION_FIELDS, NO_PATH_DELIVERED, OUTCOME_FIELDS, RequestLog, \
-    transition_table
-from offload_learner_py.core.reward import CostWeights, reward
+from offload_learner_py.data.records import DECISION_DEFAULTS, OUTCOME_DEFAULTS, Pairing, PairingCounts, \
+    RequestLog, transition_table
 
 DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
@@ -42,25 +41,6 @@ MAX_CHUNK_BYTES = 64 * 1024 * 1024
 MAX_DEFINITION_BYTES = 64 * 1024
 MAX_DEFINITION_FIELDS = 256
 MAX_DEFINITIONS = 16
-NO_VALUE = object()
-# Physical bounds of a row: beyond them a value is damage or hostility, and one such row would own every
-# figure (an IPS weight of 1e300, a mean latency of 1e308 s, a NaN network). Such rows are counted skips.
-MAX_LATENCY_S = 3600.0      # a latency or round trip of an hour is no planning request
-MIN_PROPENSITY = 1e-3       # importance weights stay at most 1000
-MAX_INPUT_SIZE = 1e6        # d_t is normalised by the map's cell count (the paper's values are 0 to 5)
-
-# Per field: the default when a bag's message definition lacks it (None: the field is required).
-DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
-                     "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
-                     "policy": "", "model_steps": 0, "probe": NO_VALUE, "mode": "", "routed": NO_VALUE, "breaker": "",
-                    "deadline_s": math.nan}
-OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH_DELIVERED,
-                    "local_measured": NO_VALUE, "local_s": None, "local_status": 0, "cloud_measured": NO_VALUE,
-                    "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
-                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan,
-                    "hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED, "robot_cpu_s": math.nan,
-                    "bridge_cpu_s": math.nan, "link_bytes_sent": 0, "link_bytes_received": 0}
-assert tuple(DECISION_DEFAULTS) == DECISION_FIELDS and tuple(OUTCOME_DEFAULTS) == OUTCOME_FIELDS
 # The learner's latched settings (offload_msgs/LearnerConfig); every field optional.
 CONFIG_DEFAULTS = {"policy": "", "mode": "", "learn": False, "explore": False, "alpha": math.nan, "beta": math.nan,
                    "gamma": math.nan, "epsilon": math.nan, "learning_starts": 0, "probe_rate": math.nan,
@@ -75,39 +55,19 @@ class BagReadError(ValueError):
 
 
 @dataclass
-class BagReport:
-    """What one bag held and what became of it."""
-    path: str
+class BagReport(PairingCounts):
+    """What one bag held and what became of it (the pairing counts, and the reading's own)."""
+    path: str = ""
     ok: bool = True
     error: str = ""
     indexed: bool = True
     recovered_note: str = ""          # how an unindexed or cut-off bag was read
     topics: Dict[str, int] = field(default_factory=dict)   # messages per topic that was read
     ignored_topics: Dict[str, int] = field(default_factory=dict)
-    decisions: int = 0
-    outcomes: int = 0
-    requests: int = 0                 # decision + outcome pairs kept
-    probe_steps: int = 0
-    rewarded_steps: int = 0           # both latencies: rows of the transition table
-    one_latency_steps: int = 0        # kept for off-policy evaluation only
-    dropped_no_outcome: int = 0
-    orphan_outcomes: int = 0
-    duplicate_decisions: int = 0
-    duplicate_outcomes: int = 0
-    invalid: int = 0                  # pairs dropped for a value the table forbids
     undecodable: int = 0              # messages that do not decode with their own definition
     damaged_chunks: int = 0           # chunks that do not decompress (their messages are lost)
-    invalid_examples: List[str] = field(default_factory=list)
     definitions: Dict[str, str] = field(default_factory=dict)   # message type -> md5 of the bag's definition
     configs: List[dict] = field(default_factory=list)   # the learner's latched settings, one per session
-
-    def skip(self, why: str) -> None:
-        self.invalid += 1
-        self.note(why)
-
-    def note(self, example: str) -> None:
-        if len(self.invalid_examples) < 5:
-            self.invalid_examples.append(example)
 
 
 @dataclass
@@ -539,84 +499,6 @@ class _Decoder:
         return values, stamp
 
 
-def _finite(value) -> bool:
-    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
-
-
-def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[str]:
-    """Fill what an older outcome definition lacked and check the pair against the table's rules.
-    Returns why the pair is invalid, or None."""
-    if outcome["action"] is NO_VALUE:
-        outcome["action"] = decision["action"]
-    if decision["routed"] is NO_VALUE:
-        decision["routed"] = decision["action"]
-    if int(outcome["action"]) != int(decision["action"]):
-        return f"decision action {decision['action']}, outcome action {outcome['action']}"
-    if decision["action"] not in (LOCAL, CLOUD):
-        return f"action {decision['action']} is neither local nor cloud"
-    for name, low, high in (("input_size", 0.0, MAX_INPUT_SIZE), ("cpu_availability", 0.0, 1.0),
-                            ("round_trip_s", 0.0, MAX_LATENCY_S)):
-        value = decision[name]
-        if not (_finite(value) and low <= value <= high):
-            return f"{name} {value} outside [{low:g}, {high:g}]"
-    propensity = decision["action_propensity"]
-    if not (_finite(propensity) and MIN_PROPENSITY <= propensity <= 1.0):
-        return f"action_propensity {propensity} outside [{MIN_PROPENSITY:g}, 1]"
-    for side in ("local", "cloud"):
-        if outcome[f"{side}_measured"] is NO_VALUE:
-            value = outcome[f"{side}_s"]
-            outcome[f"{side}_measured"] = bool(_finite(value) and value > 0)
-    if decision["probe"] is NO_VALUE:
-        decision["probe"] = bool(outcome["local_measured"] and outcome["cloud_measured"])
-    # The side the router called first is measured, except on a probe, where the side that lost the race may
-    # have been dropped before it started (a newer request needed it); a probe still measured one side.
-    routed = "cloud" if decision["routed"] == CLOUD else "local"
-    if decision["probe"]:
-        if not (outcome["local_measured"] or outcome["cloud_measured"]):
-            return "a probe with no measured latency"
-    elif not outcome[f"{routed}_measured"]:
-        return f"the routed side ({routed}) has no measured latency"
-    for side in ("local", "cloud"):
-        value = outcome[f"{side}_s"]
-        if outcome[f"{side}_measured"] and not (_finite(value) and 0 < value <= MAX_LATENCY_S):
-            return f"{side}_s {value} outside (0, {MAX_LATENCY_S:g}]"
-    for side in ("local", "cloud"):
-        if not outcome[f"{side}_measured"]:
-            outcome[f"{side}_s"] = math.nan    # not measured: no number stands in for it
-    both = outcome["local_measured"] and outcome["cloud_measured"]
-    if outcome["reward"] is NO_VALUE:     # a definition without the reward: eq. 10 from both latencies
-        outcome["reward"] = reward(int(decision["action"]), outcome["local_s"], outcome["cloud_s"], weights) \
-            if both else math.nan
-    if outcome["reward_valid"] is NO_VALUE:
-        outcome["reward_valid"] = bool(both and _finite(outcome["reward"]))
-    if outcome["reward_valid"]:
-        if not both:
-            return "reward marked valid without both latencies"
-        if not (_finite(outcome["reward"]) and -1.0 <= outcome["reward"] <= 1.0):
-            return f"reward {outcome['reward']}"
-    return None
-
-
-def _columns(rows: List[Tuple[Dict, Dict, int]]) -> Dict[str, np.ndarray]:
-    columns = {name: [decision[name] for decision, _, _ in rows] for name in DECISION_FIELDS}
-    for name in OUTCOME_FIELDS:
-        if name not in ("request_id", "action"):
-            columns[f"outcome_{name}"] = [outcome[name] for _, outcome, _ in rows]
-    arrays = {}
-    for name, values in columns.items():
-        if name in ("policy", "mode", "breaker"):
-            arrays[name] = np.array([str(v) for v in values], dtype=object)
-        elif name in ("request_id", "model_steps"):
-            arrays[name] = np.array(values, dtype=np.uint64).astype(np.int64) if values else np.zeros(0, np.int64)
-        else:
-            arrays[name] = np.array(values, dtype=np.float64 if name.endswith("_s") or name in (
-                "input_size", "cpu_availability", "round_trip_s", "action_propensity", "q_local", "q_cloud",
-                "outcome_reward", "outcome_loss") else np.int64)
-    arrays["has_outcome"] = np.ones(len(rows), dtype=bool)
-    arrays["stamp_ns"] = np.array([stamp for _, _, stamp in rows], dtype=np.int64)
-    return arrays
-
-
 def read_bag(path: str, weights: CostWeights = CostWeights()) -> Tuple[Dict[str, np.ndarray], BagReport]:
     """One bag's requests as RequestLog columns (plus stamp_ns), and its report. Raises BagReadError
     naming the file when it cannot be read at all."""
@@ -681,8 +563,7 @@ def _filtered(messages, report: BagReport):
 
 def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[str, np.ndarray]:
     decoders: Dict[Tuple[str, str, str], _Decoder] = {}
-    decisions: Dict[int, Tuple[Dict, int]] = {}
-    outcomes: Dict[int, Dict] = {}
+    pairing = Pairing(report, weights)
     for connection, time_ns, raw in messages:
         key = (connection.msgtype, connection.md5sum, connection.msgdef)
         decoder = decoders.get(key)
@@ -713,38 +594,11 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
         if connection.msgtype == CONFIG_TYPE:
             report.configs.append(values)
             continue
-        request_id = int(values["request_id"])
         if connection.msgtype == DECISION_TYPE:
-            report.decisions += 1
-            if request_id in decisions:
-                report.duplicate_decisions += 1
-                continue
-            decisions[request_id] = (values, stamp or time_ns)
+            pairing.decision(values, stamp or time_ns)
         else:
-            report.outcomes += 1
-            if request_id in outcomes:
-                report.duplicate_outcomes += 1
-                continue
-            outcomes[request_id] = values
-    rows = []
-    for request_id, (decision, stamp) in decisions.items():
-        outcome = outcomes.pop(request_id, None)
-        if outcome is None:
-            report.dropped_no_outcome += 1
-            continue
-        why = _complete(decision, outcome, weights)
-        if why is not None:
-            report.skip(f"request {request_id}: {why}")
-            continue
-        rows.append((decision, outcome, stamp))
-    report.orphan_outcomes = len(outcomes)
-    rows.sort(key=lambda row: (row[2], row[0]["request_id"]))
-    columns = _columns(rows)
-    report.requests = len(rows)
-    report.probe_steps = int(np.sum(columns["probe"].astype(bool))) if rows else 0
-    report.rewarded_steps = int(np.sum(columns["outcome_reward_valid"].astype(bool))) if rows else 0
-    report.one_latency_steps = report.requests - report.rewarded_steps
-    return columns
+            pairing.outcome(values)
+    return pairing.log().columns
 
 
 # --- many bags ---------------------------------------------------------------------------------
@@ -799,7 +653,7 @@ def merge(results: Sequence[Tuple[Optional[Dict], BagReport]]) -> BagData:
         if columns is not None and len(columns["request_id"]):
             parts.append({**columns, "bag": np.full(len(columns["request_id"]), index, dtype=np.int64)})
     if not parts:
-        empty = _columns([])
+        empty = Pairing().log().columns
         empty["bag"] = np.zeros(0, dtype=np.int64)
         return BagData(RequestLog(empty), report)
     merged = {name: np.concatenate([part[name] for part in parts]) for name in parts[0]}

@@ -1,26 +1,42 @@
-"""The learner's decision and outcome records (OffloadDecision / OffloadOutcome messages, or anything
-with the same fields) turned back into the one transition table. No ROS import: the records may come
-from rosbag, from the rosbags library or from a test."""
-from dataclasses import dataclass
-from typing import Dict, Iterable
+"""The learner's decision and outcome records (OffloadDecision / OffloadOutcome messages, or anything with
+the same fields) paired by request id into the one request log, and that log turned into the transition
+table. One pairing serves every source: the bag reader (tolerant: what real bags hold is counted and
+skipped) and live messages or tests (`pair_records`, strict: any disagreement is an error). No ROS import.
+"""
+import math
+from dataclasses import dataclass, field
+from typing import Dict, Iterable, List, Optional, Tuple
 
 import numpy as np
 
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.reward import CostWeights, reward
 from offload_learner_py.data.dataset import TransitionTable
 
-NO_PATH_DELIVERED = 255
-# Fields added with the two modes and robot cost accounting, and their value in records made before them
-# ("routed" defaults to the decision's action).
-OPTIONAL_DECISION_FIELDS = {"mode": "", "routed": None, "breaker": "", "deadline_s": float("nan")}
-OPTIONAL_OUTCOME_FIELDS = {"hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED,
-                           "robot_cpu_s": float("nan"), "bridge_cpu_s": float("nan"), "link_bytes_sent": 0,
-                           "link_bytes_received": 0}
-DECISION_FIELDS = ("request_id", "input_size", "cpu_availability", "round_trip_s", "action",
-                   "action_propensity", "q_local", "q_cloud", "policy", "model_steps", "probe",
-                   *OPTIONAL_DECISION_FIELDS)
-OUTCOME_FIELDS = ("request_id", "action", "delivered", "local_measured", "local_s", "local_status",
-                  "cloud_measured", "cloud_s", "cloud_status", "cloud_timeout", "reward_valid", "reward",
-                  "loss_valid", "loss", "delivered_s", *OPTIONAL_OUTCOME_FIELDS)
+NO_PATH_DELIVERED = 255   # `delivered` when neither side produced a path
+NO_VALUE = object()       # a field the record lacks, derived from the others (see _complete)
+# Physical bounds of a row: beyond them a value is damage or hostility, and one such row would own every
+# figure (an IPS weight of 1e300, a mean latency of 1e308 s, a NaN network). Such rows are counted skips.
+MAX_LATENCY_S = 3600.0      # a latency or round trip of an hour is no planning request
+MIN_PROPENSITY = 1e-3       # importance weights stay at most 1000
+MAX_INPUT_SIZE = 1e6        # d_t is normalised by the map's cell count (the paper's values are 0 to 5)
+
+# Per field: the value when a record (an older message definition) lacks it; None: the field is required.
+DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
+                     "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
+                     "policy": "", "model_steps": 0, "probe": NO_VALUE, "mode": "", "routed": NO_VALUE, "breaker": "",
+                     "deadline_s": math.nan}
+OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH_DELIVERED,
+                    "local_measured": NO_VALUE, "local_s": None, "local_status": 0, "cloud_measured": NO_VALUE,
+                    "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
+                    "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan,
+                    "hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED, "robot_cpu_s": math.nan,
+                    "bridge_cpu_s": math.nan, "link_bytes_sent": 0, "link_bytes_received": 0}
+DECISION_FIELDS = tuple(DECISION_DEFAULTS)
+OUTCOME_FIELDS = tuple(OUTCOME_DEFAULTS)
+_TEXT = ("policy", "mode", "breaker")
+_FLOAT = ("input_size", "cpu_availability", "round_trip_s", "action_propensity", "q_local", "q_cloud", "reward",
+          "loss")
 
 
 class RecordMismatchError(ValueError):
@@ -29,8 +45,9 @@ class RecordMismatchError(ValueError):
 
 @dataclass
 class RequestLog:
-    """Every request of a run, in request-id order: the decision fields and the outcome fields as
-    numpy columns (outcome columns hold NaN / 0 where a decision has no outcome yet)."""
+    """Every request of a run, in time order: the decision fields and the outcome fields (`outcome_<name>`)
+    as numpy columns, `has_outcome` (false for a decision whose outcome never came, kept only by strict
+    pairing) and `stamp_ns`."""
     columns: Dict[str, np.ndarray]
 
     def __len__(self) -> int:
@@ -40,58 +57,216 @@ class RequestLog:
         return self.columns[name]
 
 
-def pair_records(decisions: Iterable, outcomes: Iterable) -> RequestLog:
-    """Pair by request id. Each outcome must have exactly one decision with the same action; a
-    decision without an outcome (the run stopped mid-request) is kept with `has_outcome` false."""
-    by_id = {}
-    for decision in decisions:
-        request_id = int(decision.request_id)
-        if request_id in by_id:
-            raise RecordMismatchError(f"two decisions for request {request_id}")
-        by_id[request_id] = (decision, None)
-    for outcome in outcomes:
-        request_id = int(outcome.request_id)
-        if request_id not in by_id:
-            raise RecordMismatchError(f"outcome for request {request_id} has no decision")
-        decision, previous = by_id[request_id]
-        if previous is not None:
-            raise RecordMismatchError(f"two outcomes for request {request_id}")
-        if int(outcome.action) != int(decision.action):
-            raise RecordMismatchError(f"request {request_id}: decision action {decision.action}, outcome action "
-                                      f"{outcome.action}")
-        by_id[request_id] = (decision, outcome)
-    ids = sorted(by_id)
-    columns = {name: [] for name in DECISION_FIELDS}
-    columns.update({f"outcome_{name}": [] for name in OUTCOME_FIELDS if name not in ("request_id", "action")})
-    columns["has_outcome"] = []
-    for request_id in ids:
-        decision, outcome = by_id[request_id]
-        for name in DECISION_FIELDS:
-            default = decision.action if name == "routed" else OPTIONAL_DECISION_FIELDS.get(name)
-            columns[name].append(getattr(decision, name, default) if name in OPTIONAL_DECISION_FIELDS
-                                 else getattr(decision, name))
-        columns["has_outcome"].append(outcome is not None)
-        for name in OUTCOME_FIELDS:
-            if name in ("request_id", "action"):
-                continue
-            missing = OPTIONAL_OUTCOME_FIELDS.get(name, float("nan") if name.endswith("_s") or name in ("reward", "loss")
-                                                  else 0)
-            columns[f"outcome_{name}"].append(getattr(outcome, name, missing) if outcome is not None else missing)
+@dataclass
+class PairingCounts:
+    """What pairing found and kept (a bag's report carries these)."""
+    decisions: int = 0
+    outcomes: int = 0
+    requests: int = 0                 # decision + outcome pairs kept
+    probe_steps: int = 0
+    rewarded_steps: int = 0           # both latencies: rows of the transition table
+    one_latency_steps: int = 0        # kept for off-policy evaluation only
+    dropped_no_outcome: int = 0
+    orphan_outcomes: int = 0
+    duplicate_decisions: int = 0
+    duplicate_outcomes: int = 0
+    invalid: int = 0                  # pairs dropped for a value the table forbids
+    invalid_examples: List[str] = field(default_factory=list)
+
+    def skip(self, why: str) -> None:
+        self.invalid += 1
+        self.note(why)
+
+    def note(self, example: str) -> None:
+        if len(self.invalid_examples) < 5:
+            self.invalid_examples.append(example)
+
+
+def _finite(value) -> bool:
+    return isinstance(value, (int, float, np.integer, np.floating)) and math.isfinite(value)
+
+
+def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[str]:
+    """Fill what an older record lacked and check the pair against the table's rules. Returns why the pair
+    is invalid, or None."""
+    if outcome["action"] is NO_VALUE:
+        outcome["action"] = decision["action"]
+    if decision["routed"] is NO_VALUE:
+        decision["routed"] = decision["action"]
+    if int(outcome["action"]) != int(decision["action"]):
+        return f"decision action {decision['action']}, outcome action {outcome['action']}"
+    if decision["action"] not in (LOCAL, CLOUD):
+        return f"action {decision['action']} is neither local nor cloud"
+    for name, low, high in (("input_size", 0.0, MAX_INPUT_SIZE), ("cpu_availability", 0.0, 1.0),
+                            ("round_trip_s", 0.0, MAX_LATENCY_S)):
+        value = decision[name]
+        if not (_finite(value) and low <= value <= high):
+            return f"{name} {value} outside [{low:g}, {high:g}]"
+    propensity = decision["action_propensity"]
+    if not (_finite(propensity) and MIN_PROPENSITY <= propensity <= 1.0):
+        return f"action_propensity {propensity} outside [{MIN_PROPENSITY:g}, 1]"
+    for side in ("local", "cloud"):
+        if outcome[f"{side}_measured"] is NO_VALUE:
+            value = outcome[f"{side}_s"]
+            outcome[f"{side}_measured"] = bool(_finite(value) and value > 0)
+    if decision["probe"] is NO_VALUE:
+        decision["probe"] = bool(outcome["local_measured"] and outcome["cloud_measured"])
+    # The side the router called first is measured, except on a probe, where the side that lost the race may
+    # have been dropped before it started (a newer request needed it); a probe still measured one side.
+    routed = "cloud" if decision["routed"] == CLOUD else "local"
+    if decision["probe"]:
+        if not (outcome["local_measured"] or outcome["cloud_measured"]):
+            return "a probe with no measured latency"
+    elif not outcome[f"{routed}_measured"]:
+        return f"the routed side ({routed}) has no measured latency"
+    for side in ("local", "cloud"):
+        value = outcome[f"{side}_s"]
+        if outcome[f"{side}_measured"] and not (_finite(value) and 0 < value <= MAX_LATENCY_S):
+            return f"{side}_s {value} outside (0, {MAX_LATENCY_S:g}]"
+    for side in ("local", "cloud"):
+        if not outcome[f"{side}_measured"]:
+            outcome[f"{side}_s"] = math.nan    # not measured: no number stands in for it
+    both = outcome["local_measured"] and outcome["cloud_measured"]
+    if outcome["reward"] is NO_VALUE:     # a record without the reward: eq. 10 from both latencies
+        outcome["reward"] = reward(int(decision["action"]), outcome["local_s"], outcome["cloud_s"], weights) \
+            if both else math.nan
+    if outcome["reward_valid"] is NO_VALUE:
+        outcome["reward_valid"] = bool(both and _finite(outcome["reward"]))
+    if outcome["reward_valid"]:
+        if not both:
+            return "reward marked valid without both latencies"
+        if not (_finite(outcome["reward"]) and -1.0 <= outcome["reward"] <= 1.0):
+            return f"reward {outcome['reward']}"
+    return None
+
+
+def _unanswered(decision: Dict) -> Dict:
+    """The outcome columns of a decision whose outcome never came: nothing measured, nothing delivered."""
+    values = {name: (math.nan if name.endswith("_s") or name in _FLOAT else 0) for name in OUTCOME_FIELDS}
+    values.update(delivered=NO_PATH_DELIVERED, imputed=NO_PATH_DELIVERED)
+    if decision["routed"] is NO_VALUE:
+        decision["routed"] = decision["action"]
+    if decision["probe"] is NO_VALUE:
+        decision["probe"] = False
+    return values
+
+
+def _columns(rows: List[Tuple[Dict, Optional[Dict], int]]) -> Dict[str, np.ndarray]:
+    columns = {name: [decision[name] for decision, _, _ in rows] for name in DECISION_FIELDS}
+    for name in OUTCOME_FIELDS:
+        if name not in ("request_id", "action"):
+            columns[f"outcome_{name}"] = [outcome[name] for _, outcome, _ in rows]
     arrays = {}
     for name, values in columns.items():
-        arrays[name] = np.array(values, dtype=object if name in ("policy", "mode", "breaker") else None)
-    if not ids:
-        arrays = {name: np.zeros(0) for name in columns}
-    return RequestLog(arrays)
+        if name in _TEXT:
+            arrays[name] = np.array([str(v) for v in values], dtype=object)
+        elif name in ("request_id", "model_steps"):
+            arrays[name] = np.array(values, dtype=np.uint64).astype(np.int64) if values else np.zeros(0, np.int64)
+        else:
+            plain = name[len("outcome_"):] if name.startswith("outcome_") else name
+            arrays[name] = np.array(values, dtype=np.float64 if plain.endswith("_s") or plain in _FLOAT
+                                    else np.int64)
+    return arrays
+
+
+class Pairing:
+    """Decisions and outcomes in any order, paired by request id.
+
+    Tolerant (a bag): duplicates, orphans, decisions without an outcome and pairs that break the table's
+    rules are counted in `counts` and dropped. Strict (`strict=True`): each of those is a
+    RecordMismatchError, except a decision whose outcome has not come yet, which is kept with
+    `has_outcome` false (a run stopped mid-request)."""
+
+    def __init__(self, counts: Optional[PairingCounts] = None, weights: CostWeights = CostWeights(),
+                 strict: bool = False):
+        self.counts = counts if counts is not None else PairingCounts()
+        self.weights, self.strict = weights, strict
+        self._decisions: Dict[int, Tuple[Dict, int]] = {}
+        self._outcomes: Dict[int, Dict] = {}
+
+    def _refuse(self, why: str) -> None:
+        if self.strict:
+            raise RecordMismatchError(why)
+
+    def decision(self, values: Dict, stamp_ns: int = 0) -> None:
+        self.counts.decisions += 1
+        request_id = int(values["request_id"])
+        if request_id in self._decisions:
+            self._refuse(f"two decisions for request {request_id}")
+            self.counts.duplicate_decisions += 1
+            return
+        self._decisions[request_id] = (values, stamp_ns)
+
+    def outcome(self, values: Dict) -> None:
+        self.counts.outcomes += 1
+        request_id = int(values["request_id"])
+        if request_id in self._outcomes:
+            self._refuse(f"two outcomes for request {request_id}")
+            self.counts.duplicate_outcomes += 1
+            return
+        self._outcomes[request_id] = values
+
+    def log(self) -> RequestLog:
+        counts, rows, answered = self.counts, [], []
+        outcomes = dict(self._outcomes)
+        if self.strict:
+            orphans = sorted(set(outcomes) - set(self._decisions))
+            if orphans:
+                raise RecordMismatchError(f"outcome for request {orphans[0]} has no decision")
+        for request_id, (decision, stamp) in self._decisions.items():
+            outcome = outcomes.pop(request_id, None)
+            if outcome is None:
+                if self.strict:
+                    rows.append((decision, _unanswered(decision), stamp))
+                    answered.append(False)
+                else:
+                    counts.dropped_no_outcome += 1
+                continue
+            why = _complete(decision, outcome, self.weights)
+            if why is not None:
+                self._refuse(f"request {request_id}: {why}")
+                counts.skip(f"request {request_id}: {why}")
+                continue
+            rows.append((decision, outcome, stamp))
+            answered.append(True)
+        counts.orphan_outcomes = len(outcomes)
+        order = sorted(range(len(rows)), key=lambda k: (rows[k][2], rows[k][0]["request_id"]))
+        columns = _columns([rows[k] for k in order])
+        columns["has_outcome"] = np.array([answered[k] for k in order], dtype=bool)
+        columns["stamp_ns"] = np.array([rows[k][2] for k in order], dtype=np.int64)
+        has = columns["has_outcome"]
+        counts.requests = int(has.sum())
+        counts.probe_steps = int(np.sum(columns["probe"].astype(bool) & has)) if rows else 0
+        counts.rewarded_steps = int(np.sum(columns["outcome_reward_valid"].astype(bool) & has)) if rows else 0
+        counts.one_latency_steps = counts.requests - counts.rewarded_steps
+        return RequestLog(columns)
+
+
+def _as_dict(record, defaults: Dict) -> Dict:
+    """A record's fields (an attribute object: a ROS message, a namespace) with the defaults of those it lacks."""
+    values = {}
+    for name, default in defaults.items():
+        if default is None:
+            values[name] = getattr(record, name)       # required: an AttributeError names it
+        else:
+            values[name] = getattr(record, name, default)
+    return values
+
+
+def pair_records(decisions: Iterable, outcomes: Iterable, weights: CostWeights = CostWeights()) -> RequestLog:
+    """Strict pairing of attribute records (live messages, tests): see Pairing."""
+    pairing = Pairing(weights=weights, strict=True)
+    for decision in decisions:
+        pairing.decision(_as_dict(decision, DECISION_DEFAULTS))
+    for outcome in outcomes:
+        pairing.outcome(_as_dict(outcome, OUTCOME_DEFAULTS))
+    return pairing.log()
 
 
 def transition_table(log: RequestLog, metadata: Dict = None) -> TransitionTable:
     """The transition-table rows of a run: every request whose reward is known (both latencies
     measured, the request plannable), t being its request id."""
-    if len(log) == 0:
-        keep = np.zeros(0, dtype=bool)
-    else:
-        keep = log["has_outcome"].astype(bool) & log["outcome_reward_valid"].astype(bool)
+    keep = rewarded_rows(log)
     pick = lambda name: np.asarray(log[name])[keep] if len(log) else np.zeros(0)  # noqa: E731
     rewards = pick("outcome_reward").astype(np.float64)
     if not np.all(np.isfinite(rewards)):
@@ -102,3 +277,9 @@ def transition_table(log: RequestLog, metadata: Dict = None) -> TransitionTable:
                            action=pick("action").astype(np.int64), action_propensity=pick("action_propensity"),
                            reward=rewards, metadata=dict(metadata or {}))
 
+
+def rewarded_rows(log: RequestLog) -> np.ndarray:
+    """The log rows that are transition-table rows (a reward from two measured latencies), as a mask."""
+    if len(log) == 0:
+        return np.zeros(0, dtype=bool)
+    return log["has_outcome"].astype(bool) & log["outcome_reward_valid"].astype(bool)

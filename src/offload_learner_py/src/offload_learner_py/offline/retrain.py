@@ -29,6 +29,7 @@ from offload_learner_py.data.bags import BagData, read_bags
 from offload_learner_py.core.checkpoint import save_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.data.records import rewarded_rows
 from offload_learner_py.core.dqn import DQNAgent, greedy_actions
 from offload_learner_py.core.evaluation import evaluate
 from offload_learner_py.core.normalisation import StateNormalisation
@@ -159,18 +160,10 @@ def chronological_split(n: int, test_fraction: float) -> int:
     return min(max(1, int(round(n * (1.0 - test_fraction)))), n - 1)
 
 
-def _rewarded_rows(data: BagData) -> np.ndarray:
-    """Log rows that became table rows (records.transition_table keeps these, in this order)."""
-    log = data.log
-    if len(log) == 0:
-        return np.zeros(0, dtype=bool)
-    return log["has_outcome"].astype(bool) & log["outcome_reward_valid"].astype(bool)
-
-
 def online_greedy(data: BagData) -> np.ndarray:
     """The online policy's greedy action on each table row, from the Q-values it logged (NaN-free
     rows only; -1 where the policy logged none)."""
-    rows = _rewarded_rows(data)
+    rows = rewarded_rows(data.log)
     q_local, q_cloud = data.log["q_local"][rows], data.log["q_cloud"][rows]
     known = np.isfinite(q_local) & np.isfinite(q_cloud)
     return np.where(known, greedy_actions(np.stack([q_local, q_cloud], axis=-1)), -1)
@@ -213,7 +206,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
         evaluation["baselines"] = {policy.name: evaluate(policy.fit(train).choose(test), test)
                                    for policy in baseline_policies(config.seed, progress)}
     # Off-policy: every held-out request (one latency or two) from the first held-out one on.
-    log_rows = np.flatnonzero(_rewarded_rows(data))
+    log_rows = np.flatnonzero(rewarded_rows(data.log))
     first_test_log_row = log_rows[cut]
     steps = LoggedSteps.from_log(data.log, np.arange(first_test_log_row, len(data.log)))
     predicted = fit_latency_model(steps.states, steps.action, steps.latency_s)

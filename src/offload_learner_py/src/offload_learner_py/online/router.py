@@ -36,6 +36,7 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.online.breaker import CLOSED, OPEN, TRIAL, BreakerConfig, LinkBreaker
 from offload_learner_py.online.latency_model import LatencyModel, LatencyModelConfig
 from offload_learner_py.core.policies import Decision, Policy
+from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.core.reward import CostWeights, cloud_latency_s, reward
 from offload_learner_py.core.state import State
 
@@ -43,7 +44,6 @@ LEARNING, DEPLOYED = "learning", "deployed"
 MODES = (LEARNING, DEPLOYED)
 OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 
-NO_PATH_DELIVERED = 255   # `delivered` when neither side produced a path
 
 
 @dataclass(frozen=True)

@@ -1,0 +1,110 @@
+"""Hostile bags read end to end by the command a user runs (`off_policy`), in a process of its own whose peak
+memory is measured: an indexed bag whose one chunk inflates to 1 GiB, and a learner message definition of
+200,000 fields. Each is refused with a line naming the bag and a non-zero exit, within the documented
+256 MiB per bag plus the interpreter (512 MiB in all)."""
+import bz2
+import struct
+import subprocess
+import sys
+
+import pytest
+
+from bagtools import make_requests, write
+from offload_learner_py.data.bag_writer import DECISION_TOPIC, BagWriter, installed_definitions, typestore_for
+from offload_learner_py.data.bags import DECISION_TYPE
+
+PEAK_RSS_BOUND_MIB = 512
+GIB = 1 << 30
+
+
+def _records(blob: bytes, at: int):
+    """(offset, header fields, data offset, data length) of each record from `at` on."""
+    while at + 4 <= len(blob):
+        (header_len,) = struct.unpack_from("<I", blob, at)
+        header = blob[at + 4:at + 4 + header_len]
+        (data_len,) = struct.unpack_from("<I", blob, at + 4 + header_len)
+        fields, k = {}, 0
+        while k < len(header):
+            (n,) = struct.unpack_from("<I", header, k)
+            name, _, value = header[k + 4:k + 4 + n].partition(b"=")
+            fields[name.decode()] = (value, at + 4 + k + 4 + len(name) + 1)   # value and its file offset
+            k += 4 + n
+        yield at, fields, at + 8 + header_len, data_len
+        at += 8 + header_len + data_len
+
+
+def _inflating(codec: str) -> bytes:
+    """1 GiB of zeros, compressed as rosbag compresses a chunk."""
+    import lz4.frame
+    compressor = lz4.frame.LZ4FrameCompressor() if codec == "lz4" else bz2.BZ2Compressor()
+    pieces = [compressor.begin()] if codec == "lz4" else []
+    zeros = bytes(64 << 20)
+    pieces += [compressor.compress(zeros) for _ in range(GIB // len(zeros))]
+    pieces.append(compressor.flush())
+    return b"".join(pieces)
+
+
+def bomb_bag(path, codec: str) -> str:
+    """A real indexed bag whose first chunk's data is replaced by a 1 GiB bomb, the chunk header declaring
+    that size honestly, and the index moved to match: an index reader sees a well-formed bag."""
+    write(path, make_requests(20), compression=codec, chunk_bytes=1 << 20)
+    blob = bytearray(open(path, "rb").read())
+    records = list(_records(bytes(blob), 13))
+    bag_header = next(fields for _, fields, _, _ in records if fields["op"][0] == b"\x03"[0])
+    chunk_at, chunk, data_at, data_len = next(r for r in records if r[1]["op"][0] == 0x05)
+    bomb = _inflating(codec)
+    struct.pack_into("<I", blob, chunk["size"][1], GIB)
+    delta = len(bomb) - data_len
+    (index_pos,) = struct.unpack_from("<Q", blob, bag_header["index_pos"][1])
+    struct.pack_into("<Q", blob, bag_header["index_pos"][1], index_pos + delta)
+    for at, fields, _, _ in records:      # later chunks' positions in the chunk infos move by delta
+        if fields["op"][0] == 0x06:
+            (chunk_pos,) = struct.unpack_from("<Q", blob, fields["chunk_pos"][1])
+            if chunk_pos > chunk_at:
+                struct.pack_into("<Q", blob, fields["chunk_pos"][1], chunk_pos + delta)
+    blob[data_at - 4:data_at + data_len] = struct.pack("<I", len(bomb)) + bomb
+    open(path, "wb").write(blob)
+    return str(path)
+
+
+def hostile_definition_bag(path, fields: int = 200_000) -> str:
+    """Real decisions under a definition text of `fields` fields (as a hostile author would store it)."""
+    decision_msg, outcome_msg = installed_definitions()
+    store = typestore_for(decision_msg, outcome_msg)
+    md5 = store.generate_msgdef(DECISION_TYPE)[1]
+    huge = decision_msg + "".join(f"float64 pad{k}\n" for k in range(fields))
+    with BagWriter(str(path), store) as bag:
+        bag.connections[(DECISION_TOPIC, DECISION_TYPE)] = bag.writer.add_connection(
+            DECISION_TOPIC, DECISION_TYPE, msgdef=huge, md5sum=md5)
+        for decision, _ in make_requests(5):
+            bag.write(DECISION_TOPIC, DECISION_TYPE, decision, 1_700_000_000 * 10 ** 9)
+    return str(path)
+
+
+def run_off_policy(bag: str):
+    """off_policy on one bag in a child of a fresh interpreter; (exit code, output, the child's peak RSS MiB)."""
+    wrapper = ("import resource, subprocess, sys\n"
+               "child = subprocess.run([sys.executable, '-m', 'offload_learner_py.offline.off_policy', sys.argv[1]],"
+               " capture_output=True, text=True)\n"
+               "sys.stdout.write(child.stdout + child.stderr)\n"
+               "print('PEAK_KIB', resource.getrusage(resource.RUSAGE_CHILDREN).ru_maxrss)\n"
+               "sys.exit(child.returncode)\n")
+    done = subprocess.run([sys.executable, "-c", wrapper, bag], capture_output=True, text=True, timeout=600)
+    peak_kib = int(done.stdout.rsplit("PEAK_KIB", 1)[1])
+    return done.returncode, done.stdout, peak_kib / 1024
+
+
+@pytest.mark.parametrize("codec", ["lz4", "bz2"])
+def test_an_indexed_bag_whose_chunk_inflates_to_a_gibibyte_is_refused_in_bounded_memory(tmp_path, codec):
+    bag = bomb_bag(tmp_path / f"bomb-{codec}.bag", codec)
+    code, output, peak_mib = run_off_policy(bag)
+    assert code != 0
+    assert f"bomb-{codec}.bag" in output and "more than" in output, output
+    assert peak_mib <= PEAK_RSS_BOUND_MIB, f"peak RSS {peak_mib:.0f} MiB"
+
+
+def test_a_two_hundred_thousand_field_definition_is_refused_in_bounded_memory(tmp_path):
+    bag = hostile_definition_bag(tmp_path / "hostile.bag")
+    code, output, peak_mib = run_off_policy(bag)
+    assert code != 0 and "hostile.bag" in output and "cap" in output, output
+    assert peak_mib <= PEAK_RSS_BOUND_MIB, f"peak RSS {peak_mib:.0f} MiB"
