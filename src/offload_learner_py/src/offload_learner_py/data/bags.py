@@ -11,19 +11,19 @@ left by a crashed `rosbag record`, or a bag whose index was cut off) is read rec
 `rosbag reindex` would, up to its last complete record. A file that cannot be read at all gets an
 error naming it; the other bags are still read. Many bags are read in parallel processes.
 """
-import bz2
 import glob
 import math
 import os
-import struct
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
 from dataclasses import asdict, dataclass, field
-from typing import Dict, Iterator, List, NamedTuple, Optional, Sequence, Tuple
+from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
 
 from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.data.bag_decoding import Decoder
+from offload_learner_py.data.bag_records import indexed_messages, scan_unindexed
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.data.records import DECISION_DEFAULTS, OUTCOME_DEFAULTS, Pairing, PairingCounts, \
     RequestLog, transition_table
@@ -32,10 +32,6 @@ DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
 CONFIG_TYPE = "offload_msgs/msg/LearnerConfig"
 BAG_SUFFIXES = (".bag", ".bag.active")
-# A chunk rosbag writes is 768 KiB by default; anything this large, compressed or not, is damage or
-# hostility, not data. Decompression stops at the chunk's declared size and at this cap, so a bomb (a small
-# chunk that inflates to gigabytes) costs at most this much memory, and the chunk is a counted skip.
-MAX_CHUNK_BYTES = 64 * 1024 * 1024
 # Our message definitions are a few kB with a few dozen fields; one far larger under our type names is
 # hostile (parsing a 200k-field definition took minutes and gigabytes), and so are many distinct ones.
 MAX_DEFINITION_BYTES = 64 * 1024
@@ -166,339 +162,6 @@ def expand_bag_paths(arguments: Sequence[str]) -> List[str]:
     return result
 
 
-# --- raw records -------------------------------------------------------------------------------
-class Connection(NamedTuple):
-    id: int
-    topic: str
-    msgtype: str          # normalised: pkg/msg/Name
-    msgdef: str
-    md5sum: str
-
-
-def _normalise_type(name: str) -> str:
-    package, _, message = name.partition("/")
-    return name if "/msg/" in name else f"{package}/msg/{message}"
-
-
-def _header_fields(data: bytes) -> Dict[str, bytes]:
-    """The name=value fields of a bag record header."""
-    fields, position = {}, 0
-    while position < len(data):
-        if position + 4 > len(data):
-            raise ValueError("header field length cut off")
-        (size,) = struct.unpack_from("<I", data, position)
-        position += 4
-        if position + size > len(data):
-            raise ValueError("header field longer than its header")
-        name, separator, value = data[position:position + size].partition(b"=")
-        if not separator:
-            raise ValueError("header field without '='")
-        fields[name.decode("ascii", "replace")] = value
-        position += size
-    return fields
-
-
-def _op(fields: Dict[str, bytes]) -> int:
-    value = fields.get("op", b"")
-    if len(value) != 1:
-        raise ValueError("record without an op code")
-    return value[0]
-
-
-def _decompressor(compression: str):
-    """The one codec dispatch of chunk data: bz2 and lz4 streams with a bounded output."""
-    if compression == "bz2":
-        return bz2.BZ2Decompressor()
-    if compression == "lz4":
-        import lz4.frame
-        return lz4.frame.LZ4FrameDecompressor()
-    raise ValueError(f"chunk compression {compression!r} is not supported")
-
-
-def _decompress_partial(compression: str, data: bytes) -> bytes:
-    """As much of a (possibly cut-off) chunk as can be decompressed, at most MAX_CHUNK_BYTES."""
-    if compression == "none":
-        return data
-    try:
-        return _decompressor(compression).decompress(data, max_length=MAX_CHUNK_BYTES)
-    except (OSError, RuntimeError, EOFError, ValueError):
-        return b""
-
-
-def _connection_from(fields: Dict[str, bytes], data) -> Connection:
-    details = _header_fields(bytes(data))
-    return Connection(struct.unpack("<I", fields["conn"])[0], fields["topic"].decode("utf-8", "replace"),
-                      _normalise_type(details["type"].decode("utf-8", "replace")),
-                      details.get("message_definition", b"").decode("utf-8", "replace"),
-                      details.get("md5sum", b"").decode("ascii", "replace"))
-
-
-def _scan_unindexed(path: str, report: BagReport, why: str = "") -> Iterator[Tuple[Connection, int, memoryview]]:
-    """Every complete message of a bag read front to back, ignoring its index: what `rosbag reindex`
-    does, without ROS. A chunk cut off by a crash yields the records it completed."""
-    with open(path, "rb") as source:
-        if source.readline() != b"#ROSBAG V2.0\n":
-            raise ValueError("not a ROS 1 bag (version 2.0)")
-        offset = source.tell()
-        connections: Dict[int, Connection] = {}
-        complete_chunks, partial = 0, False
-        while True:
-            source.seek(offset)
-            prefix = source.read(4)
-            if len(prefix) < 4:
-                break
-            (header_size,) = struct.unpack("<I", prefix)
-            if header_size > 1 << 20:
-                partial = True   # garbage or a cut: nothing after can be trusted
-                break
-            header = source.read(header_size)
-            size_bytes = source.read(4)
-            if len(header) < header_size or len(size_bytes) < 4:
-                partial = True
-                break
-            try:
-                fields = _header_fields(header)
-                op = _op(fields)
-            except ValueError as error:
-                report.note(f"unreadable record at offset {offset} ({error}): the rest of the file is skipped")
-                partial = True
-                break
-            (data_size,) = struct.unpack("<I", size_bytes)
-            data_start = offset + 8 + header_size
-            remaining = os.fstat(source.fileno()).st_size - data_start
-            if op == 5:   # chunk
-                # The chunk rosbag was writing when it died still has 0 (or more than the file) as size.
-                cut = data_size == 0 or data_size > remaining
-                to_read = min(remaining, MAX_CHUNK_BYTES) if cut else data_size
-                if to_read > MAX_CHUNK_BYTES:
-                    raise ValueError(f"a chunk of {data_size} bytes at offset {offset} is larger than "
-                                     f"{MAX_CHUNK_BYTES}")
-                compression = fields.get("compression", b"none").decode("ascii", "replace")
-                raw = source.read(to_read)
-                if cut:
-                    inner = _decompress_partial(compression, raw)
-                    partial = True
-                else:
-                    try:
-                        inner = _decompress_chunk(compression, raw, fields)
-                        complete_chunks += 1
-                    except Exception as error:   # lz4, bz2 raise their own types on damaged data
-                        report.damaged_chunks += 1
-                        report.note(f"chunk at offset {offset} does not decompress: {type(error).__name__}: {error}")
-                        inner = b""
-                yield from _chunk_messages(inner, connections, connections)
-                if cut:
-                    break
-                offset = data_start + data_size
-                continue
-            if data_size > remaining:
-                partial = True
-                break
-            if op == 7:
-                try:
-                    connection = _connection_from(fields, source.read(data_size))
-                    connections.setdefault(connection.id, connection)
-                except (KeyError, ValueError, struct.error):
-                    report.note(f"damaged connection record at offset {offset}")
-            offset = data_start + data_size
-    report.indexed = False
-    report.recovered_note = (f"not indexed (a .bag.active left by a stopped recorder, or a cut-off or damaged "
-                             f"index{why}): read record by record, {complete_chunks} complete chunks"
-                             + (", and the records completed in a cut-off last chunk" if partial else "")
-                             + f"; `rosbag reindex {path}` makes it an ordinary bag"
-                             + (" but drops the records of the cut-off last chunk, which this reader keeps"
-                                if partial else ""))
-
-
-def _decompress_chunk(compression: str, data: bytes, fields: Dict[str, bytes]) -> bytes:
-    """A whole chunk, decompressed to at most its declared size (and MAX_CHUNK_BYTES): one that would
-    inflate further is damage or a bomb, and raises."""
-    size = struct.unpack("<I", fields["size"])[0] if len(fields.get("size", b"")) == 4 else None
-    if size is not None and size > MAX_CHUNK_BYTES:
-        raise ValueError(f"chunk declares {size} bytes uncompressed, more than {MAX_CHUNK_BYTES}")
-    if compression == "none":
-        return data
-    bound = MAX_CHUNK_BYTES if size is None else size
-    decompressor = _decompressor(compression)
-    inner = decompressor.decompress(data, max_length=bound + 1)
-    if len(inner) > bound:
-        raise ValueError(f"chunk inflates past {'its declared ' if size is not None else ''}{bound} bytes")
-    return inner
-
-
-def _indexed_messages(reader, wanted: List, report: BagReport) -> Iterator[Tuple[Connection, int, memoryview]]:
-    """Messages of the wanted connections, chunk by chunk in file order; chunks that hold none of
-    them (maps, paths) are never read. One decompressed chunk in memory at a time."""
-    converted = {c.id: Connection(c.id, c.topic, c.msgtype, c.msgdef.data, c.digest) for c in wanted}
-    for info in sorted(reader.chunk_infos, key=lambda info: info.pos):
-        if not any(connection_id in converted for connection_id in info.connection_counts):
-            continue
-        chunk = reader.chunks[info.pos]
-        if chunk.datasize > MAX_CHUNK_BYTES:
-            report.damaged_chunks += 1
-            report.note(f"chunk at offset {info.pos}: {chunk.datasize} bytes, over the {MAX_CHUNK_BYTES}-byte cap")
-            continue
-        try:
-            # The chunk record's own header names its compression and uncompressed size (never trust rosbags'
-            # unbounded decompressor with them).
-            reader.bio.seek(info.pos)
-            (header_size,) = struct.unpack("<I", reader.bio.read(4))
-            if header_size > 1 << 16:
-                raise ValueError(f"a chunk header of {header_size} bytes")
-            fields = _header_fields(reader.bio.read(header_size))
-            compression = fields.get("compression", b"none").decode("ascii", "replace")
-            reader.bio.seek(chunk.datapos)
-            data = reader.bio.read(chunk.datasize)
-            if len(data) != chunk.datasize:
-                raise ValueError(f"the chunk at offset {info.pos} is cut off")
-            inner = _decompress_chunk(compression, data, fields)
-        except Exception as error:   # lz4, bz2 raise their own types on damaged data
-            report.damaged_chunks += 1
-            report.note(f"chunk at offset {info.pos} does not decompress: {type(error).__name__}: {error}")
-            continue
-        yield from _chunk_messages(inner, converted, None)
-
-
-def _chunk_messages(buffer: bytes, connections: Dict[int, Connection], found: Optional[Dict[int, Connection]]):
-    """(connection, time ns, data) of each message record in a decompressed chunk. With `found`,
-    connection records in the chunk are added to it (and looked up there)."""
-    unpack, view, position, end = struct.unpack_from, memoryview(buffer), 0, len(buffer)
-    table = found if found is not None else connections
-    while position + 4 <= end:
-        (header_size,) = unpack("<I", buffer, position)
-        start = position + 4
-        data_start = start + header_size + 4
-        if data_start > end:
-            return
-        (data_size,) = unpack("<I", buffer, data_start - 4)
-        if data_start + data_size > end:
-            return
-        position = data_start + data_size
-        op = conn = time_ns = None
-        field_at = start
-        while field_at + 4 <= start + header_size:
-            (size,) = unpack("<I", buffer, field_at)
-            name_at = field_at + 4
-            field_at = name_at + size
-            if buffer[name_at:name_at + 3] == b"op=":
-                op = buffer[name_at + 3]
-            elif buffer[name_at:name_at + 5] == b"conn=" and name_at + 9 <= end:
-                (conn,) = unpack("<I", buffer, name_at + 5)
-            elif buffer[name_at:name_at + 5] == b"time=":
-                if name_at + 13 > end:
-                    return
-                sec, nsec = unpack("<II", buffer, name_at + 5)
-                time_ns = sec * 1_000_000_000 + nsec
-        if op == 2:
-            connection = table.get(conn)
-            if connection is not None:
-                yield connection, time_ns, view[data_start:position]
-        elif op == 7 and found is not None:
-            try:
-                connection = _connection_from(_header_fields(buffer[start:start + header_size]),
-                                              view[data_start:position])
-            except (KeyError, ValueError, struct.error):
-                continue   # a damaged connection record: its messages cannot be decoded, the rest can
-            found[connection.id] = connection
-
-
-# --- decoding ----------------------------------------------------------------------------------
-_PRIMITIVES = {"bool": "?", "int8": "b", "uint8": "B", "byte": "B", "char": "B", "int16": "h", "uint16": "H",
-               "int32": "i", "uint32": "I", "int64": "q", "uint64": "Q", "float32": "f", "float64": "d"}
-
-
-def _layout(store, msgtype: str, prefix: str = ""):
-    """The message flattened to primitive fields in wire order, [(name, struct code or "string")], or
-    None when it holds arrays or anything else the fast path does not decode."""
-    layout = []
-    for name, (kind, spec) in store.fielddefs[msgtype][1]:
-        if kind.name == "BASE" and spec[0] == "string":
-            layout.append((prefix + name, "string"))
-        elif kind.name == "BASE" and spec[0] in _PRIMITIVES:
-            layout.append((prefix + name, _PRIMITIVES[spec[0]]))
-        elif kind.name == "NAME":
-            inner = _layout(store, spec, prefix + name + ".")
-            if inner is None:
-                return None
-            layout += inner
-        else:
-            return None
-    return layout
-
-
-def _compile(layout):
-    """Decoding steps for a flat layout: runs of fixed-size fields become one struct each."""
-    steps, run, names = [], "", []
-    for name, code in layout + [(None, "string")]:
-        if code == "string":
-            if run:
-                steps.append((struct.Struct("<" + run), tuple(names)))
-                run, names = "", []
-            if name is not None:
-                steps.append((None, name))
-        else:
-            run += code
-            names.append(name)
-    return steps
-
-
-_LENGTH = struct.Struct("<I")
-
-
-class _Decoder:
-    """Decodes one connection's messages with that bag's own definition and pulls out the fields the
-    table needs, filling a default for a field an older definition lacks. Flat messages (ours) are
-    decoded with precompiled structs; anything else goes through rosbags' deserializer."""
-
-    def __init__(self, connection: Connection, defaults: Dict[str, object]):
-        from rosbags.typesys import Stores, get_typestore, get_types_from_msg
-
-        self.msgtype = connection.msgtype
-        self.store = get_typestore(Stores.EMPTY)
-        self.store.register(get_types_from_msg(connection.msgdef, connection.msgtype))
-        present = {name for name, _ in self.store.fielddefs[connection.msgtype][1]}
-        missing = [name for name, default in defaults.items() if default is None and name not in present]
-        if missing:
-            raise ValueError(f"{connection.msgtype} on {connection.topic} lacks the fields {', '.join(missing)} "
-                             f"(its definition in the bag: md5 {connection.md5sum})")
-        self.names = [name for name in defaults if name in present]
-        self.fills = {name: default for name, default in defaults.items() if name not in present}
-        self.has_stamp = "header" in present
-        layout = _layout(self.store, connection.msgtype)
-        self.steps = _compile(layout) if layout is not None else None
-        self.deserialize = self.store.deserialize_ros1
-
-    def __call__(self, raw) -> Tuple[Dict[str, object], int]:
-        if self.steps is None:
-            return self._slow(raw)
-        values, position = {}, 0
-        for packer, names in self.steps:
-            if packer is None:
-                (size,) = _LENGTH.unpack_from(raw, position)
-                position += 4
-                if position + size > len(raw):
-                    raise ValueError(f"string {names} runs past the end of the message")
-                values[names] = bytes(raw[position:position + size]).decode("utf-8", "replace")
-                position += size
-            else:
-                values.update(zip(names, packer.unpack_from(raw, position)))
-                position += packer.size
-        if position != len(raw):
-            raise ValueError(f"{len(raw) - position} bytes left after the message")
-        result = {name: values[name] for name in self.names}
-        result.update(self.fills)
-        stamp = values["header.stamp.sec"] * 1_000_000_000 + values["header.stamp.nanosec"] \
-            if self.has_stamp and "header.stamp.sec" in values else 0
-        return result, stamp
-
-    def _slow(self, raw):
-        message = self.deserialize(raw, self.msgtype)
-        values = {name: getattr(message, name) for name in self.names}
-        values.update(self.fills)
-        stamp = message.header.stamp.sec * 1_000_000_000 + message.header.stamp.nanosec if self.has_stamp else 0
-        return values, stamp
-
-
 def read_bag(path: str, weights: CostWeights = CostWeights()) -> Tuple[Dict[str, np.ndarray], BagReport]:
     """One bag's requests as RequestLog columns (plus stamp_ns), and its report. Raises BagReadError
     naming the file when it cannot be read at all."""
@@ -530,10 +193,10 @@ def _read_bag(path: str, report: BagReport, weights: CostWeights) -> Dict[str, n
             reader.bio.close()
         why = "" if isinstance(error, ReaderError) and "not indexed" in str(error) else \
             f" ({type(error).__name__}: {error})"
-        return _pair(_filtered(_scan_unindexed(path, report, why), report), report, weights, path)
+        return _pair(_filtered(scan_unindexed(path, report, why), report), report, weights, path)
     try:
         wanted = _select(reader.connections, report)
-        return _pair(_indexed_messages(reader, wanted, report) if wanted else iter(()), report, weights, path)
+        return _pair(indexed_messages(reader, wanted, report) if wanted else iter(()), report, weights, path)
     finally:
         reader.close()
 
@@ -562,7 +225,7 @@ def _filtered(messages, report: BagReport):
 
 
 def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[str, np.ndarray]:
-    decoders: Dict[Tuple[str, str, str], _Decoder] = {}
+    decoders: Dict[Tuple[str, str, str], Decoder] = {}
     pairing = Pairing(report, weights)
     for connection, time_ns, raw in messages:
         key = (connection.msgtype, connection.md5sum, connection.msgdef)
@@ -579,7 +242,7 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
             defaults = {DECISION_TYPE: DECISION_DEFAULTS, CONFIG_TYPE: CONFIG_DEFAULTS}.get(connection.msgtype,
                                                                                           OUTCOME_DEFAULTS)
             try:
-                decoder = _Decoder(connection, defaults)
+                decoder = Decoder(connection, defaults)
             except ValueError as error:
                 raise BagReadError(f"{path}: {error}") from None
             decoders[key] = decoder
