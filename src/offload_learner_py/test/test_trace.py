@@ -54,6 +54,12 @@ def test_free_cells_skip_obstacles_and_unknown():
     assert not np.any(cells[:, 0] == 15) and not np.any(cells[:, 1] == 0)
 
 
+def test_free_cells_follow_the_planners_unknown_rule():
+    """The planner's own rule through its binding: with unknown cells free, the unknown row counts too."""
+    cells = free_cells(_grid(), unknown_is_obstacle=False)
+    assert len(cells) == 20 * 29 and np.any(cells[:, 1] == 0)
+
+
 def test_record_trace_with_an_injected_planner(tmp_path):
     planner = FakePlanner()
     trace = record_trace(planner, _grid(), 0.05, 40, np.random.default_rng(2), map_name="fake", clock=FakeClock(),

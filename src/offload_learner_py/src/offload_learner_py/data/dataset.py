@@ -10,7 +10,7 @@ from typing import Dict
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.data.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
+from offload_learner_py.data.npz_io import VersionedNpz
 
 COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
            "action_propensity", "reward")
@@ -64,7 +64,8 @@ def _require(table: "TransitionTable", name: str, ok: np.ndarray, rule: str) -> 
 
 
 @dataclass
-class TransitionTable:
+class TransitionTable(VersionedNpz):
+    NPZ_FORMAT, NPZ_ARRAYS, NPZ_WHAT = TABLE_FORMAT, COLUMNS, "transition table"
     t: np.ndarray
     input_size: np.ndarray
     cpu_availability: np.ndarray
@@ -102,15 +103,6 @@ class TransitionTable:
     def slice(self, start: int, stop: int) -> "TransitionTable":
         return TransitionTable(**{name: getattr(self, name)[start:stop] for name in COLUMNS},
                                metadata=dict(self.metadata))
-
-    def save_npz(self, path: str) -> None:
-        save_versioned_npz(path, TABLE_FORMAT, self.metadata, {name: getattr(self, name) for name in COLUMNS})
-
-    @classmethod
-    def load_npz(cls, path: str, max_member_bytes: int = MAX_MEMBER_BYTES) -> "TransitionTable":
-        """The table in an .npz written by save_npz. Any unreadable, foreign, invalid or oversized file
-        (a column over max_member_bytes uncompressed) raises ValueError naming the file."""
-        return load_versioned(cls, path, TABLE_FORMAT, COLUMNS, "transition table", max_member_bytes)
 
     def to_csv(self, path: str) -> None:
         with open(path, "w", newline="") as out:

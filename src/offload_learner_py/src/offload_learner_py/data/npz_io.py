@@ -145,3 +145,20 @@ def _json_depth(text: str) -> int:
         elif char in "]}":
             depth -= 1
     return deepest
+
+
+class VersionedNpz:
+    """save_npz / load_npz for a dataclass of named arrays with `metadata`: the class names its file format,
+    its arrays and what it is called in errors."""
+    NPZ_FORMAT = ""
+    NPZ_ARRAYS: tuple = ()
+    NPZ_WHAT = ""
+
+    def save_npz(self, path: str) -> None:
+        save_versioned_npz(path, self.NPZ_FORMAT, self.metadata, {name: getattr(self, name) for name in self.NPZ_ARRAYS})
+
+    @classmethod
+    def load_npz(cls, path: str, max_member_bytes: int = MAX_MEMBER_BYTES):
+        """The object in an .npz written by save_npz. Any unreadable, foreign, invalid or oversized file (an
+        array over max_member_bytes uncompressed) raises ValueError naming the file."""
+        return load_versioned(cls, path, cls.NPZ_FORMAT, cls.NPZ_ARRAYS, cls.NPZ_WHAT, max_member_bytes)

@@ -13,7 +13,7 @@ from typing import Callable, Dict, Optional
 
 import numpy as np
 
-from offload_learner_py.data.npz_io import MAX_MEMBER_BYTES, load_versioned, save_versioned_npz
+from offload_learner_py.data.npz_io import VersionedNpz
 from offload_learner_py.core.state import input_size_from_cells
 
 TRACE_FORMAT = "offload_learner_py.trace/1"
@@ -22,7 +22,8 @@ _INTEGER_ARRAYS = ("start_cell", "goal_cell", "expansions")
 
 
 @dataclass
-class PlanningTrace:
+class PlanningTrace(VersionedNpz):
+    NPZ_FORMAT, NPZ_ARRAYS, NPZ_WHAT = TRACE_FORMAT, _ARRAYS, "planning trace"
     start_cell: np.ndarray    # N x 2 int (x, y)
     goal_cell: np.ndarray     # N x 2 int (x, y)
     distance_m: np.ndarray    # |AB| in metres
@@ -68,19 +69,13 @@ class PlanningTrace:
     def __len__(self) -> int:
         return len(self.local_s)
 
-    def save_npz(self, path: str) -> None:
-        save_versioned_npz(path, TRACE_FORMAT, self.metadata, {name: getattr(self, name) for name in _ARRAYS})
-
-    @classmethod
-    def load_npz(cls, path: str, max_member_bytes: int = MAX_MEMBER_BYTES) -> "PlanningTrace":
-        """The trace in an .npz written by save_npz. Any unreadable, foreign, invalid or oversized file
-        (an array over max_member_bytes uncompressed) raises ValueError naming the file."""
-        return load_versioned(cls, path, TRACE_FORMAT, _ARRAYS, "planning trace", max_member_bytes)
 
 
-def free_cells(grid: np.ndarray, lethal_threshold: int = 50) -> np.ndarray:
-    """(x, y) of every known cell below the lethal threshold: where a robot or goal can be."""
-    ys, xs = np.nonzero((grid >= 0) & (grid < lethal_threshold))
+def free_cells(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
+    """(x, y) of every cell the planner may start or end on, by the planner's own rule (its binding)."""
+    from offload_planner_cpp import free_cells as planner_free_cells
+
+    ys, xs = np.nonzero(planner_free_cells(grid, lethal_threshold, unknown_is_obstacle))
     return np.stack([xs, ys], axis=1)
 
 
@@ -93,7 +88,7 @@ def record_trace(plan: Callable, grid: np.ndarray, resolution_m: float, queries:
     skipped and counted; bad input (ValueError) is a bug and propagates."""
     if queries < 1:
         raise ValueError(f"queries must be >= 1, got {queries}")
-    candidates = free_cells(grid, plan_options.get("lethal_threshold", 50))
+    candidates = free_cells(grid, plan_options.get("lethal_threshold", 50), plan_options.get("unknown_is_obstacle", True))
     if len(candidates) < 2:
         raise ValueError("the map has fewer than two free cells")
     cell_count = int(grid.shape[0] * grid.shape[1])
