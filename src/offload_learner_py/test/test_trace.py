@@ -57,7 +57,7 @@ def test_free_cells_skip_obstacles_and_unknown():
 def test_free_cells_follow_the_planners_unknown_rule():
     """The planner's own rule through its binding: with unknown cells free, the unknown row counts too."""
     cells = free_cells(_grid(), unknown_is_obstacle=False)
-    assert len(cells) == 20 * 29 and np.any(cells[:, 1] == 0)
+    assert len(cells) == 20 * 29 + 1 and np.any(cells[:, 1] == 0)   # + the wall cell the unknown row covers
 
 
 def test_record_trace_with_an_injected_planner(tmp_path):
