@@ -19,7 +19,8 @@ from offload_planner_cpp.cloud import keys, protocol
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
 from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Reply, Status
-from offload_planner_cpp.cloud.server import CloudServer, ServerConfig, parse_args
+from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
+from offload_planner_cpp.cloud.server_cli import parse_args
 
 from cloud_test_helpers import (LOOPBACK, curve_dealer, free_port, make_keys, random_map, rss_bytes, spawn_server,
                                 start_server, stop_process)

@@ -18,7 +18,7 @@ from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.client import CloudClient
 from offload_planner_cpp.cloud.map_cache import ENTRY_OVERHEAD_BYTES, MapCache
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, ProtocolError, Reply, Status
-from offload_planner_cpp.cloud.server import parse_args
+from offload_planner_cpp.cloud.server_cli import parse_args
 
 from cloud_test_helpers import curve_dealer, make_keys, random_map, start_server
 

@@ -16,7 +16,8 @@ import zmq
 import offload_planner_cpp
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
-from offload_planner_cpp.cloud.server import CloudServer, ServerConfig, parse_args
+from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
+from offload_planner_cpp.cloud.server_cli import parse_args
 from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Status
 
@@ -318,7 +319,7 @@ def test_busy_under_real_load_every_request_answered_once():
 def test_queued_bytes_budget_gives_busy_under_real_load():
     """Beyond the queued bytes budget an upload gets BUSY while the worker plans; pings never queue."""
     server = start_server(None, workers=1, max_queued=64, max_message_bytes=2 << 20, max_queued_bytes=4 << 20)
-    assert server.receive_hwm(server.config) == 2
+    assert server.config.receive_hwm == 2
     grid = np.zeros((1400, 1400), np.int8)
     digest = protocol.grid_hash(grid)
     try:

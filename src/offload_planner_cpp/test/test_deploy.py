@@ -13,7 +13,7 @@ import kubernetes_validate
 import pytest
 import yaml
 
-from offload_planner_cpp.cloud.server import parse_args as server_args
+from offload_planner_cpp.cloud.server_cli import parse_args as server_args
 from offload_planner_cpp.devtools.fleet import haproxy_config
 
 PACKAGE = Path(__file__).resolve().parents[1]

@@ -4,7 +4,6 @@ poses of a path) is the C++ core's, called through the binding exactly as the lo
 it, so both answer a request alike; only the planning runs in the cloud, and a silent cloud gives
 CLOUD_TIMEOUT."""
 import logging
-import math
 import threading
 import time
 from dataclasses import dataclass, field

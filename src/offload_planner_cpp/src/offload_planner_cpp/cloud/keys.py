@@ -208,7 +208,7 @@ def main(argv=None) -> int:
     for name in args.clients:
         print(f"client keys dir: {pathlib.Path(args.out_dir) / name} (copy to robot {name!r}, bridge ~keys_dir)")
     if args.add_to:
-        print(f"send the server SIGHUP to admit the new robots without a restart")
+        print("send the server SIGHUP to admit the new robots without a restart")
     return 0
 
 

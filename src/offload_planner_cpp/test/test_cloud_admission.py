@@ -1,0 +1,158 @@
+"""The cloud server's admission and connection guard as pure logic: fake requests, a fake clock, fake
+TCP counters; no socket, no thread."""
+import collections
+from dataclasses import dataclass
+
+import pytest
+
+from offload_planner_cpp.cloud.admission import Admission, AdmissionConfig
+from offload_planner_cpp.cloud.connection_guard import ConnectionGuard
+from offload_planner_cpp.cloud.protocol import ProtocolError, Status
+
+
+@dataclass(eq=False)
+class FakeRequest:
+    client: object
+    nbytes: int
+    uploads: object = None
+
+
+class Clock:
+    def __init__(self):
+        self.now = 0.0
+
+    def __call__(self):
+        return self.now
+
+
+def admission(**config):
+    return Admission(AdmissionConfig(**{"workers": 1, "max_queued": 8, "max_queued_bytes": 8000, "max_wait_s": 10.0,
+                                        "rate_per_client": 0.0, **config}), Clock())
+
+
+def wait(adm, queue, name, nbytes=100, idle=False):
+    """Admit one request of client `name` and queue it; the refusal's message, or None."""
+    client = adm.client(name)
+
+    def displace(victim, why):
+        queue.remove(victim)
+        adm.dequeued(victim)
+    try:
+        adm.admit(client, nbytes, queue, 0.0, idle, displace)
+    except ProtocolError as error:
+        assert error.status == Status.BUSY
+        return str(error)
+    request = FakeRequest(client, nbytes)
+    adm.enqueued(request)
+    queue.append(request)
+    return None
+
+
+def test_a_client_alone_may_fill_the_queue_then_gets_busy():
+    adm, queue = admission(), collections.deque()
+    assert all(wait(adm, queue, "robot1") is None for _ in range(8))
+    assert "all 1 workers busy and 8 requests" in wait(adm, queue, "robot1")
+    assert adm.waiting == 8 and adm.queued_bytes == 800 and adm.clients_waiting == 1
+
+
+def test_a_newcomer_takes_the_place_of_the_newest_request_of_the_heaviest_client():
+    adm, queue = admission(), collections.deque()
+    for _ in range(8):
+        wait(adm, queue, "robot1")
+    newest = queue[-1]
+    assert wait(adm, queue, "robot2") is None
+    assert newest not in queue and adm.clients["robot1"].fair_share_refused == 1
+    assert [request.client.name for request in queue].count("robot2") == 1 and adm.waiting == 8
+
+
+def test_fair_share_counts_places_and_bytes():
+    adm, queue = admission(), collections.deque()
+    wait(adm, queue, "robot2")                                  # two clients share the queue now
+    for _ in range(4):
+        assert wait(adm, queue, "robot1") is None               # places: 4 of 8 each
+    assert "fair share: client robot1 already has 4 requests" in wait(adm, queue, "robot1")
+    adm, queue = admission(), collections.deque()
+    wait(adm, queue, "robot2")
+    assert wait(adm, queue, "robot1", nbytes=3000) is None
+    refusal = wait(adm, queue, "robot1", nbytes=1500)           # 4500 bytes > its 4000-byte share
+    assert refusal and "(3000 bytes) queued" in refusal
+    assert wait(adm, queue, "robot2", nbytes=1500) is None      # the other robot still gets its share
+
+
+def test_the_rate_limit_applies_only_while_the_server_is_busy():
+    adm, queue = admission(rate_per_client=1.0, burst_per_client=1), collections.deque()
+    client = adm.client("robot1")
+    adm.admit(client, 10, queue, 0.0, True, None)               # the token
+    adm.admit(client, 10, queue, 0.0, True, None)               # no token, but a worker is idle: served
+    with pytest.raises(ProtocolError, match="rate limit"):
+        adm.admit(client, 10, queue, 0.0, False, None)
+    adm.clock.now += 1.0
+    adm.admit(client, 10, queue, 0.0, False, None)              # refilled
+
+
+def test_a_request_expected_to_wait_too_long_is_refused_at_once():
+    adm, queue = admission(max_wait_s=1.0), collections.deque()
+    for _ in range(3):
+        wait(adm, queue, "robot1")
+    with pytest.raises(ProtocolError, match="about 1.50 s of work"):
+        adm.admit(adm.client("robot1"), 10, queue, 0.5, False, None)
+
+
+def test_dequeued_and_resized_keep_the_accounting():
+    adm, queue = admission(), collections.deque()
+    wait(adm, queue, "robot1", nbytes=500)
+    wait(adm, queue, "robot2", nbytes=300)
+    adm.resized(queue[0], 100)
+    assert adm.queued_bytes == 400 and adm.clients["robot1"].waiting_bytes == 100
+    adm.dequeued(queue.popleft())
+    assert (adm.waiting, adm.queued_bytes, adm.clients_waiting) == (1, 300, 1)
+
+
+class FakeTcp:
+    def __init__(self):
+        self.received, self.cut = {}, []
+
+    def __call__(self, fd):
+        return self.received.get(fd)
+
+
+def guard(limit=1000, total=2500, per_key=1500):
+    tcp = FakeTcp()
+    return ConnectionGuard(limit, total, per_key, lambda *args: None, received=tcp, cut=tcp.cut.append), tcp
+
+
+def test_a_connection_over_its_own_bound_is_cut():
+    g, tcp = guard()
+    tcp.received.update({3: 0, 4: 0})
+    g.accepted(3)
+    g.accepted(4)
+    tcp.received.update({3: 1001, 4: 1000})
+    g.check()
+    assert tcp.cut == [3] and set(g.connections) == {4} and g.cuts == 1
+    g.delivered(4)                                              # a message came: the count starts again
+    tcp.received[4] = 1900
+    g.check()
+    assert tcp.cut == [3]
+
+
+def test_the_largest_holders_are_cut_until_all_are_under_the_total():
+    g, tcp = guard()
+    for fd in (3, 4, 5, 6):
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    tcp.received.update({3: 900, 4: 800, 5: 700, 6: 600})      # 3000 held, over 2500
+    g.check()
+    assert tcp.cut == [3] and set(g.connections) == {4, 5, 6}
+
+
+def test_one_keys_connections_are_bounded_together():
+    g, tcp = guard(total=10_000)
+    for fd in (3, 4, 5, 6):
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    for fd in (3, 4, 5):
+        g.connections[fd].user = b"robot1-key"
+    g.connections[6].user = b"robot2-key"
+    tcp.received.update({3: 900, 4: 500, 5: 400, 6: 900})      # robot1: 1800 held, over 1500
+    g.check()
+    assert tcp.cut == [3] and set(g.connections) == {4, 5, 6}   # robot2's 900 are its own business
