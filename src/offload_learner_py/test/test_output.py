@@ -1,9 +1,11 @@
 """Results written safely: untrusted text from bags, and an --out that holds results or is a trap."""
+import json
 import os
 
+import numpy as np
 import pytest
 
-from offload_learner_py.offline.output import OutputDirError, code_block, prepare_out_dir, terminal_text
+from offload_learner_py.offline.output import OutputDirError, code_block, prepare_out_dir, terminal_text, write_json
 
 
 def test_untrusted_text_cannot_drive_a_terminal_or_close_a_code_fence():
@@ -42,3 +44,10 @@ def test_retrain_and_report_refuse_to_overwrite_without_force(tmp_path, capsys):
         err = capsys.readouterr().err
         assert "--force" in err and err.count("\n") == 1
     assert os.listdir(out) == ["evaluation.json"]
+
+
+def test_json_writer_turns_every_non_finite_number_into_null(tmp_path):
+    path = tmp_path / "m.json"
+    write_json(str(path), {"a": float("nan"), "b": [np.float64("-inf"), 1.5], "c": {"d": np.inf},
+                                        "e": np.array([np.nan, 2.0]), "f": 3})
+    assert json.loads(path.read_text(), parse_constant=lambda name: pytest.fail(f'non-strict JSON: {name}')) == {"a": None, "b": [None, 1.5], "c": {"d": None}, "e": [None, 2.0], "f": 3}

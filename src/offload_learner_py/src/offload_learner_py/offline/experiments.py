@@ -20,7 +20,6 @@ import argparse
 import json
 import os
 import sys
-import tempfile
 from dataclasses import replace
 from typing import Dict, List, Optional
 
@@ -33,6 +32,7 @@ from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import evaluate, learned_cpu_threshold
 from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
+from offload_learner_py.offline.output import require_writable_dir, require_writable_file, write_json
 from offload_learner_py.offline.simulation import print_progress, run_online
 from offload_learner_py.offline.plots import (plot_accuracy_bars, plot_action_vs_cpu, plot_action_vs_input_size,
                                       plot_confusion_matrix, plot_training)
@@ -125,7 +125,7 @@ def run_synthetic(kind: str, steps: int, seed: int, out_dir: str, config: DQNCon
     if kind == "cpu":
         plot_action_vs_cpu(test.cpu_availability, run.greedy_action[half:], os.path.join(out_dir, "action_vs_cpu.png"),
                            metrics["learned_threshold"], settings.cpu_threshold, title)
-    _write_json(os.path.join(out_dir, "metrics.json"), metrics)
+    write_json(os.path.join(out_dir, "metrics.json"), metrics)
     return metrics
 
 
@@ -151,7 +151,7 @@ def run_sweep(kind: str, seeds: List[int], steps: int, out_dir: str, config: DQN
                                   for name in runs[0]["mean_latency_s"]}}
     if kind == "cpu":
         summary["learned_threshold"] = spread([r["learned_threshold"] for r in runs])
-    _write_json(os.path.join(out_dir, "summary.json"), summary)
+    write_json(os.path.join(out_dir, "summary.json"), summary)
     return summary
 
 
@@ -176,7 +176,7 @@ def run_compare(data_path: str, out_dir: str, config: DQNConfig, train_fraction:
               "mean_latency_s": {name: score["mean_latency_s"] for name, score in scores.items()}}
     if np.ptp(table.cpu_availability) > 0:
         result.update(_threshold_report(dqn.agent, train.states))
-    _write_json(os.path.join(out_dir, "comparison.json"), result)
+    write_json(os.path.join(out_dir, "comparison.json"), result)
     with open(os.path.join(out_dir, "comparison.md"), "w") as out:
         out.write(comparison_markdown(result))
     plot_accuracy_bars(result["accuracy"], os.path.join(out_dir, "accuracy.png"), os.path.basename(data_path))
@@ -203,32 +203,6 @@ def comparison_markdown(result: dict) -> str:
         lines += ["", f"DQN learned CPU threshold: {threshold:.4f}" if np.isfinite(threshold) else
                   "DQN learned CPU threshold: no threshold (the greedy policy never switches in the observed range)"]
     return "\n".join(lines) + "\n"
-
-
-def _write_json(path: str, values: dict) -> None:
-    """Strict JSON (RFC 8259 has no NaN or Infinity): a number that is not finite, such as the threshold
-    of a policy that never switches, is written as null."""
-    temp_path = path + ".tmp"
-    with open(temp_path, "w") as out:
-        json.dump(_finite_or_null(values), out, indent=2, allow_nan=False)
-        out.write("\n")
-    os.replace(temp_path, path)
-
-
-def _finite_or_null(value):
-    if isinstance(value, dict):
-        return {key: _finite_or_null(item) for key, item in value.items()}
-    if isinstance(value, (list, tuple, np.ndarray)):
-        return [_finite_or_null(item) for item in value]
-    if isinstance(value, (bool, np.bool_)):
-        return bool(value)
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        return float(value) if np.isfinite(value) else None
-    if value is None or isinstance(value, str):
-        return value
-    raise TypeError(f"cannot write {type(value).__name__} as JSON")
 
 
 def _config_from_args(args) -> DQNConfig:
@@ -273,27 +247,6 @@ def _resolve_seed(args) -> None:
     if isinstance(set_seed, bool) or not isinstance(set_seed, int) or set_seed < 0:
         raise ValueError(f"invalid DQN configuration: seed must be a non-negative integer, got {set_seed!r}")
     args.seed = set_seed
-
-
-def _require_writable_dir(path: str) -> None:
-    """Create the output directory and write a probe file in it, so a bad --out fails before the run."""
-    try:
-        os.makedirs(path, exist_ok=True)
-        with tempfile.TemporaryFile(dir=path):
-            pass
-    except OSError as error:
-        raise OSError(f"{path}: cannot write the output directory: {error}") from error
-
-
-def _require_writable_file(path: str) -> None:
-    if os.path.isdir(path):
-        raise OSError(f"{path}: cannot write the output file: it is a directory")
-    directory = os.path.dirname(os.path.abspath(path))
-    try:
-        with tempfile.TemporaryFile(dir=directory):
-            pass
-    except OSError as error:
-        raise OSError(f"{path}: cannot write the output file: {error}") from error
 
 
 def _count_type(minimum: int):
@@ -376,8 +329,8 @@ def _run(args) -> int:
         if not args.out.endswith(".npz"):
             raise ValueError(f"--out must end in .npz (the .csv is written beside it), got {args.out}")
         csv_path = args.out[:-len(".npz")] + ".csv"
-        _require_writable_file(args.out)
-        _require_writable_file(csv_path)
+        require_writable_file(args.out)
+        require_writable_file(csv_path)
         table = generate_synthetic(args.kind, PlanningTrace.load_npz(args.trace), args.steps, args.seed)
         table.save_npz(args.out)
         table.to_csv(csv_path)
@@ -385,7 +338,7 @@ def _run(args) -> int:
         return 0
     _resolve_seed(args)
     config = _config_from_args(args)
-    _require_writable_dir(args.out)
+    require_writable_dir(args.out)
     torch.set_num_threads(args.threads)
     if args.command == "synthetic":
         metrics = run_synthetic(args.kind, args.steps, args.seed, args.out, config, args.trace)
