@@ -10,7 +10,9 @@ from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.reward import CostWeights, reward
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision, DQNPolicy, InputSizeThreshold, \
     Policy, RandomPolicy
-from offload_learner_py.online.router import NO_PATH_DELIVERED, OffloadRouter, RouterConfig, Statuses
+from offload_learner_py.data.records import NO_PATH_DELIVERED
+from offload_learner_py.online.router import OffloadRouter
+from offload_learner_py.online.routing import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 
 OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10
