@@ -16,13 +16,9 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_planner_cpp.devtools.loopback import free_port
-from offload_learner_py.offline import plots
 from offload_learner_py.nodes.demo_keys import ensure_demo_keys
-from offload_learner_py.core.evaluation import confusion_matrix
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.offline.report import report_run
 from offload_learner_py.offline.summary import format_summary, summarise
@@ -104,7 +100,8 @@ def check_options(args) -> str:
 
 
 def analyse(out_dir: pathlib.Path, policy: str) -> dict:
-    """Bag -> transition table -> summary.json, table.npz, figures; prints the summary table."""
+    """Bag -> transition table -> summary.json and transitions.npz; prints the summary table. The figures are
+    the report's (report/figures/, drawn once by offline.report)."""
     from offload_learner_py.core.checkpoint import load_checkpoint
 
     bag = out_dir / "offload.bag"
@@ -129,18 +126,6 @@ def analyse(out_dir: pathlib.Path, policy: str) -> dict:
         q_values = load_checkpoint(str(checkpoint)).q_values
     summary = summarise(log, table, q_values)
     summary["bag_topics"] = topics
-    figures = out_dir / "figures"
-    figures.mkdir(exist_ok=True)
-    if len(table):
-        answered = log["has_outcome"].astype(bool)
-        losses = np.asarray(log["outcome_loss"][answered], dtype=np.float64)
-        rewards = np.asarray(log["outcome_reward"][answered], dtype=np.float64)
-        plots.plot_training(losses, np.nan_to_num(rewards), str(figures / "fig6_loss_reward.png"),
-                            title="online learning: loss and cumulative reward")
-        plots.plot_action_vs_input_size(table.input_size, table.action, str(figures / "fig7_action_vs_input_size.png"))
-        plots.plot_action_vs_cpu(table.cpu_availability, table.action, str(figures / "fig11_action_vs_cpu.png"),
-                                 learned_threshold=summary.get("learned_cpu_threshold"))
-        plots.plot_confusion_matrix(confusion_matrix(table.action, table), str(figures / "fig12_confusion.png"))
     with open(out_dir / "summary.json", "w") as out:
         json.dump(summary, out, indent=2, default=float)
     print(format_summary(summary))
