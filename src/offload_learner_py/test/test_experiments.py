@@ -113,7 +113,7 @@ def test_generate_command_writes_npz_and_csv(tmp_path):
     assert len(experiments.TransitionTable.from_csv(str(tmp_path / "cloud.csv"))) == 50
 
 
-# --- issue 10, findings 10 and 11: command-line values and strict JSON -----------------------------
+# --- command-line values and strict JSON -----------------------------
 
 def _no_work(*args, **kwargs):
     raise AssertionError("work started before the command-line values were checked")

@@ -1,4 +1,4 @@
-"""Crafted learner files (issue 10, finding 8): every loader bounds what it reads before reading it and
+"""Crafted learner files: every loader bounds what it reads before reading it and
 answers with its own error naming the file. The files are built small; memory is checked with tracemalloc
 (numpy and the zip layer report their buffers to it), never with a clock."""
 import io

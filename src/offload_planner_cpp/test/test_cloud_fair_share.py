@@ -1,4 +1,4 @@
-"""Server observability and fair share (issue 11, items 5 and 6): STATS counts a known sequence of requests
+"""Server observability and fair share: STATS counts a known sequence of requests
 from two robots, per robot by key name; the health check prints them; a greedy robot is rate limited and
 held to its share of the queue while a polite robot's plans are all planned; a robot uploading many maps
 evicts its own, never another robot's map. Servers on random loopback ports; no timed assertions."""

@@ -1,4 +1,4 @@
-"""Plans through the real cloud server checked against an independent oracle (issue 12, items 3 and 5):
+"""Plans through the real cloud server checked against an independent oracle:
 scipy's Dijkstra on the planner's move graph (devtools.grid_graph), and values known by construction.
 Each request option must reach the planner: the lethal threshold, unknown_is_obstacle and stop_at_goal."""
 import itertools

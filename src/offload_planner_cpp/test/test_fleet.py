@@ -1,4 +1,4 @@
-"""A fleet through HAProxy with a server killed mid-run (issue: fleet scale): every request answered,
+"""A fleet through HAProxy with a server killed mid-run: every request answered,
 every answer right for the robot's own map, the killed server's robots re-routed and their maps
 uploaded again. The 50-robot version is `make bench-fleet`."""
 import pytest

@@ -1,5 +1,5 @@
-"""The WAN emulator's loss, bandwidth and reset-on-outage through real loopback TCP (issue 12, item 8), and
-its refusal of absurd values (issue 10, finding 10). Timing checks are lower bounds only: a loaded machine
+"""The WAN emulator's loss, bandwidth and reset-on-outage through real loopback TCP, and
+its refusal of absurd values. Timing checks are lower bounds only: a loaded machine
 can only make things slower."""
 import socket
 import socketserver
