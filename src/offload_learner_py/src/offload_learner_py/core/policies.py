@@ -66,30 +66,26 @@ class Policy(ABC):
         return {"steps": self.steps, "gradient_steps": 0, "replay_size": 0, "epsilon": 0.0}
 
 
-class AlwaysLocal(Policy):
-    name = "always_local"
+class FixedPolicy(Policy):
+    """The same action for every request."""
+    action = LOCAL
 
     def __init__(self, name: Optional[str] = None):
         self.name = name or self.name
 
     def choose(self, table):
-        return np.full(len(table), LOCAL, dtype=np.int64)
+        return np.full(len(table), self.action, dtype=np.int64)
 
     def decide(self, state):
-        return Decision(LOCAL, 1.0)
+        return Decision(self.action, 1.0)
 
 
-class AlwaysCloud(Policy):
-    name = "always_cloud"
+class AlwaysLocal(FixedPolicy):
+    name, action = "always_local", LOCAL
 
-    def __init__(self, name: Optional[str] = None):
-        self.name = name or self.name
 
-    def choose(self, table):
-        return np.full(len(table), CLOUD, dtype=np.int64)
-
-    def decide(self, state):
-        return Decision(CLOUD, 1.0)
+class AlwaysCloud(FixedPolicy):
+    name, action = "always_cloud", CLOUD
 
 
 class RandomPolicy(Policy):

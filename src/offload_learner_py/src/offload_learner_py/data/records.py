@@ -189,22 +189,20 @@ class Pairing:
             raise RecordMismatchError(why)
 
     def decision(self, values: Dict, stamp_ns: int = 0) -> None:
-        self.counts.decisions += 1
-        request_id = int(values["request_id"])
-        if request_id in self._decisions:
-            self._refuse(f"two decisions for request {request_id}")
-            self.counts.duplicate_decisions += 1
-            return
-        self._decisions[request_id] = (values, stamp_ns)
+        self._keep(self._decisions, values, (values, stamp_ns), "decision")
 
     def outcome(self, values: Dict) -> None:
-        self.counts.outcomes += 1
+        self._keep(self._outcomes, values, values, "outcome")
+
+    def _keep(self, store: Dict, values: Dict, kept, kind: str) -> None:
+        """The first record of each request id; a second one is a duplicate."""
+        setattr(self.counts, f"{kind}s", getattr(self.counts, f"{kind}s") + 1)
         request_id = int(values["request_id"])
-        if request_id in self._outcomes:
-            self._refuse(f"two outcomes for request {request_id}")
-            self.counts.duplicate_outcomes += 1
+        if request_id in store:
+            self._refuse(f"two {kind}s for request {request_id}")
+            setattr(self.counts, f"duplicate_{kind}s", getattr(self.counts, f"duplicate_{kind}s") + 1)
             return
-        self._outcomes[request_id] = values
+        store[request_id] = kept
 
     def log(self) -> RequestLog:
         counts, rows, answered = self.counts, [], []

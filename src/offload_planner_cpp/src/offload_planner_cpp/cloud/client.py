@@ -310,27 +310,20 @@ def main(argv=None) -> int:
         return 2
     unanswered = (f"error: no answer from {args.endpoint} within {args.timeout:g} s: server down, wrong endpoint, "
                   f"blocked port, or this client's key is not on the server's allowlist")
+    calls = [(client.ping, lambda rtt: f"pong from {args.endpoint}: round trip {rtt * 1e3:.3f} ms")] * \
+        (max(1, args.count) if args.ping else 0)
+    if args.stats:
+        calls.append((client.stats, lambda stats: json.dumps(stats, indent=2, sort_keys=True)))
     with client:
-        for _ in range(max(1, args.count) if args.ping else 0):
+        for call, show in calls:
             try:
-                round_trip_s = client.ping()
+                print(show(call()))
             except CloudTimeout:
                 print(unanswered, file=sys.stderr)
                 return 1
-            except (RuntimeError, zmq.ZMQError) as error:
+            except (RuntimeError, ProtocolError, zmq.ZMQError) as error:
                 print(f"error: {error}", file=sys.stderr)
                 return 1
-            print(f"pong from {args.endpoint}: round trip {round_trip_s * 1e3:.3f} ms")
-        if args.stats:
-            try:
-                stats = client.stats()
-            except CloudTimeout:
-                print(unanswered, file=sys.stderr)
-                return 1
-            except (ProtocolError, zmq.ZMQError) as error:
-                print(f"error: {error}", file=sys.stderr)
-                return 1
-            print(json.dumps(stats, indent=2, sort_keys=True))
     return 0
 
 

@@ -1,0 +1,220 @@
+"""The offload_learner node's ROS side that is not the node itself: the planner proxies, the messages it
+publishes built from the router's and the session's records, the wait for the recorder, and RViz goals
+(a 2D Nav Goal planned from the robot's pose)."""
+import json
+import math
+import time
+from dataclasses import asdict
+
+import rospy
+from geometry_msgs.msg import PoseStamped
+from offload_msgs.msg import LearnerConfig, OffloadDecision, OffloadOutcome, TrainingStats
+from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+
+from offload_learner_py.online.request_check import check_request
+
+
+class RosLog:
+    """The session's logger, on rosout."""
+    debug, info, warning, error = (staticmethod(rospy.logdebug), staticmethod(rospy.loginfo),
+                                   staticmethod(rospy.logwarn), staticmethod(rospy.logerr))
+
+
+class PlannerProxy:
+    """A persistent connection to one planner's ~plan, reopened after any failure. Each side is
+    called by one thread at a time (the router serialises requests), so one connection suffices."""
+
+    def __init__(self, service: str):
+        self.service = service
+        self._proxy = None
+
+    def __call__(self, request):
+        if self._proxy is None:
+            self._proxy = rospy.ServiceProxy(self.service, PlanPath, persistent=True)
+        try:
+            response = self._proxy(request)
+        except Exception:
+            self.close()
+            raise
+        return response.status, response
+
+    def close(self):
+        if self._proxy is not None:
+            self._proxy.close()
+            self._proxy = None
+
+
+def account(response):
+    """(robot CPU-seconds, link bytes sent, received) the serving node reported for one call."""
+    return response.cpu_s, response.bytes_sent, response.bytes_received
+
+
+def recorder_connected(publisher, recorder: str) -> bool:
+    """Whether the node `recorder` (a resolved name; "" for any node) has a connection to `publisher`.
+    rospy keeps each subscriber's caller id on its connection (endpoint_id)."""
+    impl = publisher.impl
+    with impl.c_lock:
+        subscribers = [getattr(connection, "endpoint_id", "") for connection in impl.connections]
+    return bool(subscribers) if not recorder else recorder in subscribers
+
+
+def wait_for_recorder(publishers, timeout_s: float, recorder: str) -> None:
+    """Before serving, wait until the recorder (the node `recorder`, or with "" any subscriber) is connected
+    to every publisher, so a recording starts with the first request. Another subscriber (a monitor, a
+    test, `rostopic echo`) does not count: serving as soon as it connected lost the first records when
+    rosbag connected later (found by the fault matrix)."""
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline and not rospy.is_shutdown():
+        if all(recorder_connected(publisher, recorder) for publisher in publishers):
+            return
+        time.sleep(0.05)
+    if timeout_s > 0:
+        rospy.logwarn("%s not connected to %s within %g s: serving anyway", recorder or "no subscriber",
+                      publishers[0].resolved_name, timeout_s)
+
+
+class StaleMapCheck:
+    """Why a path was planned on a map older than the latest map_metadata announced, or None. The map in
+    force is the one whose load time map_metadata carries (map_server and map_publisher stamp the grid at or
+    after it). A load time of zero (a publisher that does not set it) or in the future (a clock gone wrong:
+    no planner's map could ever match it) cannot tell an old map from the one in force: the check is off
+    for that map, with one warning, rather than a wait on every request."""
+
+    def __init__(self, map_info):
+        self.map_info = map_info          # callable: the latest MapMetaData or None
+        self._warned = set()
+
+    def __call__(self, response):
+        info = self.map_info()
+        if info is None or response.map_stamp >= info.map_load_time:
+            return None
+        load_time = info.map_load_time
+        if load_time.is_zero() or load_time > rospy.Time.now() + rospy.Duration(5.0):
+            if load_time not in self._warned:
+                self._warned.add(load_time)
+                rospy.logwarn("map_metadata's load time %.3f is %s: paths cannot be checked against the map in "
+                              "force", load_time.to_sec(), "zero" if load_time.is_zero() else "in the future")
+            return None
+        return (f"planned on the map of {response.map_stamp.to_sec():.3f}, the map in force was loaded at "
+                f"{info.map_load_time.to_sec():.3f}")
+
+
+def rejection(info, request):
+    """The planners' verdict on a request refused for its input (no planner is called), or None."""
+    if info is None:
+        return None
+    a, b, q = request.start, request.goal, info.origin.orientation
+    return check_request(info.width, info.height, info.resolution, (info.origin.position.x, info.origin.position.y),
+                         (q.x, q.y, q.z, q.w), a.header.frame_id, (a.pose.position.x, a.pose.position.y),
+                         b.header.frame_id, (b.pose.position.x, b.pose.position.y), request.tolerance)
+
+
+def stamped(msg):
+    msg.header.stamp = rospy.Time.now()
+    return msg
+
+
+def decision_msg(routing, policy: str, model_steps: int) -> OffloadDecision:
+    state, decision = routing.state, routing.decision
+    return stamped(OffloadDecision(
+        request_id=routing.request_id, input_size=state.input_size, cpu_availability=state.cpu_availability,
+        round_trip_s=state.round_trip_s, action=decision.action, action_propensity=decision.propensity,
+        q_local=decision.q_local, q_cloud=decision.q_cloud, policy=policy, model_steps=model_steps,
+        probe=routing.probe, mode=routing.mode, routed=routing.action, breaker=routing.breaker,
+        deadline_s=routing.deadline_s))
+
+
+def outcome_msg(outcome) -> OffloadOutcome:
+    msg = stamped(OffloadOutcome(request_id=outcome.request_id, action=outcome.decision.action,
+                                 delivered=outcome.delivered, delivered_s=outcome.delivered_s))
+    if outcome.local is not None:
+        msg.local_measured, msg.local_s, msg.local_status = True, outcome.local_s, outcome.local.status
+    if outcome.cloud is not None:
+        msg.cloud_measured, msg.cloud_s, msg.cloud_status = True, outcome.cloud_s, outcome.cloud.status
+        msg.cloud_timeout = outcome.cloud_timeout
+    # reward_valid marks a reward from two measured latencies (a transition-table row); an imputed one is
+    # recorded too, with the side it imputed.
+    msg.reward_valid = outcome.reward is not None and outcome.imputed is None
+    msg.reward = outcome.reward if outcome.reward is not None else float("nan")
+    msg.imputed = OffloadOutcome.NONE if outcome.imputed is None else outcome.imputed
+    msg.transitions, msg.hedged = outcome.transitions, outcome.hedged
+    msg.robot_cpu_s, msg.bridge_cpu_s = outcome.robot_cpu_s, outcome.bridge_cpu_s
+    msg.link_bytes_sent, msg.link_bytes_received = outcome.bytes_sent, outcome.bytes_received
+    msg.loss_valid = outcome.loss is not None
+    msg.loss = outcome.loss if outcome.loss is not None else float("nan")
+    return msg
+
+
+def config_msg(router_config, session, seed: int, alpha: float) -> LearnerConfig:
+    config, dqn = router_config, getattr(session.agent, "config", None)
+    return stamped(LearnerConfig(
+        policy=session.config.policy, mode=config.mode, learn=session.learns, explore=session.config.explore,
+        alpha=alpha, beta=1.0 - alpha, gamma=dqn.gamma if dqn else float("nan"),
+        epsilon=dqn.epsilon if dqn else float("nan"), learning_starts=dqn.learning_starts if dqn else 0,
+        probe_rate=1.0 if config.probes_every_request else config.probe_rate, cloud_timeout_s=config.cloud_timeout_s,
+        hedge=config.hedge, hedge_deadline_s=config.hedge_deadline_s, hedge_quantile=config.hedge_quantile,
+        hedge_min_s=config.hedge_min_s, hedge_max_s=config.hedge_max_s,
+        breaker_failures=config.breaker.failures_to_open, breaker_max_round_trip_s=config.breaker.max_round_trip_s,
+        breaker_retry_s=config.breaker.retry_after_s, seed=seed,
+        dqn_config_json=json.dumps(asdict(dqn), default=list) if dqn else ""))
+
+
+def stats_msg(session) -> TrainingStats:
+    stats = session.stats()
+    return stamped(TrainingStats(
+        policy=session.config.policy, learning=bool(session.policy.learns), steps=stats["steps"],
+        gradient_steps=stats["gradient_steps"], replay_size=stats["replay_size"], epsilon=stats["epsilon"],
+        recent_window=stats["recent_window"], recent_loss=stats["recent_loss"],
+        recent_accuracy=stats["recent_accuracy"], checkpoint_failures=stats["checkpoint_failures"]))
+
+
+class RvizGoals:
+    """RViz 2D Nav Goal: plan from the robot's pose (tf map -> base frame when tf2_ros has it, else
+    /initialpose or ~start_x/~start_y, else the map centre) through `serve`, like any other request."""
+
+    def __init__(self, serve, tolerance: float, start_xy, base_frame: str, map_info):
+        self.serve, self.tolerance, self.start_xy, self.base_frame = serve, tolerance, start_xy, base_frame
+        self.map_info = map_info        # callable: the latest MapMetaData or None
+        self.tf_buffer = None
+        try:
+            import tf2_ros
+            self.tf_buffer = tf2_ros.Buffer()
+            tf2_ros.TransformListener(self.tf_buffer)
+        except ImportError:
+            rospy.loginfo("tf2_ros not installed: RViz goals start from ~start_x/~start_y or /initialpose")
+
+    def on_initial_pose(self, msg):
+        self.start_xy = (msg.pose.pose.position.x, msg.pose.pose.position.y)
+
+    def robot_start(self, goal: PoseStamped) -> PoseStamped:
+        start = PoseStamped()
+        start.header.frame_id = goal.header.frame_id or "map"
+        start.pose.orientation.w = 1.0
+        if self.tf_buffer is not None:
+            try:
+                transform = self.tf_buffer.lookup_transform(start.header.frame_id, self.base_frame, rospy.Time(0),
+                                                            rospy.Duration(0.2))
+                start.pose.position.x = transform.transform.translation.x
+                start.pose.position.y = transform.transform.translation.y
+                return start
+            except Exception as error:  # tf raises several lookup errors; any means "no pose"
+                rospy.logdebug("no robot pose in tf: %s", error)
+        x, y = self.start_xy
+        if not (math.isfinite(x) and math.isfinite(y)):
+            info = self.map_info()
+            if info is None:
+                raise ValueError("no start: no tf pose, no ~start_x/~start_y and no map yet")
+            x = info.origin.position.x + 0.5 * info.width * info.resolution
+            y = info.origin.position.y + 0.5 * info.height * info.resolution
+        start.pose.position.x, start.pose.position.y = x, y
+        return start
+
+    def on_goal(self, goal: PoseStamped):
+        try:
+            start = self.robot_start(goal)
+        except ValueError as error:
+            rospy.logwarn("goal ignored: %s", error)
+            return
+        response = self.serve(PlanPathRequest(start=start, goal=goal, tolerance=self.tolerance))
+        if response.status != PlanPathResponse.OK:
+            rospy.logwarn("no path to the RViz goal (status %d): %s", response.status, response.message)
