@@ -632,18 +632,18 @@ def test_router_config_rejects_bad_modes_and_hedges():
             RouterConfig(**kwargs)
 
 
-def test_hedge_deadline_is_never_later_than_the_other_sides_median():
-    """A chosen side slower than the other usually is: the other starts once it would have been done."""
+def test_a_long_local_plan_is_hedged_once_the_clouds_median_has_passed():
+    """A local plan slower than the cloud usually is: the cloud starts once it would have been done. A cloud
+    call is never hedged that early: a local plan cannot be interrupted."""
     clock = VirtualClock()
-    router, _ = configured_router(AlwaysCloud("cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
+    router, _ = configured_router(AlwaysLocal("local"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
                                   clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
     for k in range(60):
-        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.5 * (1.0 + 0.3 * (k % 3 - 1)))   # cloud slow, noisy
-    alone = router._deadline_s(CLOUD, STATE)
-    assert alone > 0.5
-    for k in range(60):
-        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.12)
-    assert router._deadline_s(CLOUD, STATE) == pytest.approx(0.12, rel=0.05)
+        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.5 * (1.0 + 0.3 * (k % 3 - 1)))   # local slow, noisy
+        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.12 * (1.0 + 0.3 * (k % 3 - 1)))
+    assert router._deadline_s(LOCAL, STATE) == pytest.approx(0.12, rel=0.05)
+    assert router._deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].quantile_s((1.2, 0.6, 0.05), 0.95))
+    assert router._deadline_s(CLOUD, STATE) > 0.12
 
 
 def test_a_warm_started_policy_probes_until_both_latency_models_are_ready():

@@ -179,18 +179,20 @@ class OffloadRouter:
 
     def _deadline_s(self, side: int, state: State) -> float:
         """How long the chosen side may take before the other starts: the hedge_quantile of its latency for
-        this state, clamped, and never longer than the other side's median for it. Past that, the other
-        side would most likely have been done already; started then, the request costs at most about that
-        median twice, which bounds the tail by the other side's typical latency, not the chosen side's worst."""
+        this state, clamped. A local plan that runs long is hedged sooner, once the cloud's median for the
+        state has passed: the cloud would most likely have been done already, it costs the robot only the
+        bridge, and started then the request costs at most about that median twice. A cloud call is not
+        hedged that early: the local planner cannot be interrupted, so a local plan started for nothing
+        would hold the robot's CPU and the next requests (the breaker handles a dead link)."""
         config = self.config
         if config.hedge_deadline_s > 0:
             return config.hedge_deadline_s
         features = _features(state)
         quantile = self.models[side].quantile_s(features, config.hedge_quantile)
         deadline = config.hedge_max_s if quantile is None else quantile
-        other = self.models[OTHER[side]].impute_s(features)
-        if other is not None:
-            deadline = min(deadline, other)
+        cloud = self.models[CLOUD].impute_s(features) if side == LOCAL else None
+        if cloud is not None:
+            deadline = min(deadline, cloud)
         return min(max(deadline, config.hedge_min_s), config.hedge_max_s)
 
     def _run(self, req: _Request, first, deadline_s: Optional[float], request=None):
