@@ -1,8 +1,8 @@
-"""online/workload.py: the demo robot's seeded load schedule, burnt for real."""
+"""demo/workload.py: the demo robot's seeded load schedule, burnt for real."""
 import numpy as np
 import pytest
 
-from offload_learner_py.online.workload import LoadSchedule, run_workload
+from offload_learner_py.demo.workload import LoadSchedule, run_workload
 
 
 def test_load_schedule_is_a_seeded_function_of_time():

@@ -18,7 +18,7 @@ import time
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_planner_cpp.devtools.loopback import free_port
-from offload_learner_py.nodes.demo_keys import ensure_demo_keys
+from offload_learner_py.demo.keys import ensure_demo_keys
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.offline.report import report_run
 from offload_learner_py.offline.summary import format_summary, summarise
