@@ -50,15 +50,16 @@ def bomb_bag(path, codec: str) -> str:
     write(path, make_requests(20), compression=codec, chunk_bytes=1 << 20)
     blob = bytearray(open(path, "rb").read())
     records = list(_records(bytes(blob), 13))
-    bag_header = next(fields for _, fields, _, _ in records if fields["op"][0] == b"\x03"[0])
-    chunk_at, chunk, data_at, data_len = next(r for r in records if r[1]["op"][0] == 0x05)
+    op = lambda fields: fields["op"][0][0]   # noqa: E731  (value, offset): the value's one byte
+    bag_header = next(fields for _, fields, _, _ in records if op(fields) == 0x03)
+    chunk_at, chunk, data_at, data_len = next(r for r in records if op(r[1]) == 0x05)
     bomb = _inflating(codec)
     struct.pack_into("<I", blob, chunk["size"][1], GIB)
     delta = len(bomb) - data_len
     (index_pos,) = struct.unpack_from("<Q", blob, bag_header["index_pos"][1])
     struct.pack_into("<Q", blob, bag_header["index_pos"][1], index_pos + delta)
     for at, fields, _, _ in records:      # later chunks' positions in the chunk infos move by delta
-        if fields["op"][0] == 0x06:
+        if op(fields) == 0x06:
             (chunk_pos,) = struct.unpack_from("<Q", blob, fields["chunk_pos"][1])
             if chunk_pos > chunk_at:
                 struct.pack_into("<Q", blob, fields["chunk_pos"][1], chunk_pos + delta)
