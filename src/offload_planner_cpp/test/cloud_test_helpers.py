@@ -16,6 +16,9 @@ from offload_planner_cpp.devtools.loopback import free_port  # noqa: F401  (re-e
 from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
 
 LOOPBACK = "tcp://127.0.0.1"
+MIB = 1 << 20
+# The attack tests at full scale (200,000 uploads, a 20-robot storm on a 2000 x 2000 map): OFFLOAD_ATTACK_SCALE=full
+FULL = os.environ.get("OFFLOAD_ATTACK_SCALE") == "full"
 
 
 def make_keys(directory: pathlib.Path, clients=("robot",)) -> pathlib.Path:

@@ -17,3 +17,11 @@ def shared_maps() -> Path:
 @pytest.fixture(scope="session")
 def bundled_maps() -> Path:
     return BUNDLED_MAPS
+
+
+@pytest.fixture
+def key_root(tmp_path):
+    """Server keys with an allowlist of two robots (robot, robot2) and their client keys, under tmp_path."""
+    from cloud_test_helpers import make_keys
+    make_keys(tmp_path, ["robot", "robot2"])
+    return tmp_path

@@ -16,8 +16,6 @@ import zmq
 import offload_planner_cpp
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
-from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
-from offload_planner_cpp.cloud.server_cli import parse_args
 from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Status
 
@@ -262,85 +260,6 @@ def test_oversized_message_is_refused_and_server_survives(server, key_dirs, clie
         socket.close(0)
         context.term()
     assert client.ping() > 0
-
-
-def _flood(endpoint, messages, wait_s=60.0):
-    """Sends every message at once on one DEALER, then collects the replies: {request id: [statuses]}."""
-    context = zmq.Context()
-    socket = context.socket(zmq.DEALER)
-    socket.linger = 0
-    socket.connect(endpoint)
-    replies = collections.defaultdict(list)
-    try:
-        for message in messages:
-            socket.send_multipart(message)
-        deadline = time.monotonic() + wait_s
-        while sum(map(len, replies.values())) < len(messages) and time.monotonic() < deadline:
-            if socket.poll(200):
-                reply = protocol.decode_reply(socket.recv_multipart())
-                replies[reply.request_id].append(reply)
-        while socket.poll(300):   # nothing more may come
-            reply = protocol.decode_reply(socket.recv_multipart())
-            replies[reply.request_id].append(reply)
-    finally:
-        socket.close(0)
-        context.term()
-    return replies
-
-
-def test_busy_under_real_load_every_request_answered_once():
-    """A real server, one worker, a queue of 2: a burst of 60 long plans gets BUSY for all but the few the
-    worker and the queue hold, at once, and each of the others a correct plan."""
-    server = start_server(None, workers=1, max_queued=2, max_message_bytes=4 << 20, max_queued_bytes=4 << 20)
-    grid = np.zeros((1200, 1200), np.int8)
-    grid[600, 1:] = 100
-    digest = protocol.grid_hash(grid)
-    try:
-        with CloudClient(server.endpoint, insecure=True, timeout_s=10.0) as client:
-            assert client.upload(grid).status == Status.OK
-        options = PlanOptions(stop_at_goal=False)
-        plans = [protocol.encode_plan(k, digest, (0, 0), (1199, 1199), options) for k in range(60)]
-        replies = _flood(server.endpoint, plans)
-    finally:
-        server.stop()
-    assert sorted(replies) == list(range(60)) and all(len(r) == 1 for r in replies.values())
-    statuses = collections.Counter(r[0].status for r in replies.values())
-    assert set(statuses) == {Status.OK, Status.BUSY} and 3 <= statuses[Status.OK] <= 30, statuses
-    expected = offload_planner_cpp.plan_raw(grid, (0, 0), (1199, 1199), stop_at_goal=False)
-    for (reply,) in replies.values():
-        if reply.status == Status.BUSY:
-            assert "queued" in reply.message and len(reply.path) == 0
-        else:
-            assert reply.cost_cells == pytest.approx(1199 * np.sqrt(2.0) + 2 * 1.0, abs=1e-6) or \
-                reply.cost_cells == expected["cost"]
-            np.testing.assert_array_equal(reply.path, expected["path"])
-
-
-def test_queued_bytes_budget_gives_busy_under_real_load():
-    """Beyond the queued bytes budget an upload gets BUSY while the worker plans; pings never queue."""
-    server = start_server(None, workers=1, max_queued=64, max_message_bytes=2 << 20, max_queued_bytes=4 << 20)
-    assert server.config.receive_hwm == 2
-    grid = np.zeros((1400, 1400), np.int8)
-    digest = protocol.grid_hash(grid)
-    try:
-        with CloudClient(server.endpoint, insecure=True, timeout_s=10.0) as client:
-            assert client.upload(grid).status == Status.OK
-        long_plans = [protocol.encode_plan(k, digest, (0, 0), (1399, 1399), PlanOptions(stop_at_goal=False))
-                      for k in range(4)]
-        uploads = [protocol.encode_upload(100 + k, random_map(1200, 1200, 0.1, seed=k)) for k in range(5)]
-        replies = _flood(server.endpoint, long_plans + uploads + [protocol.encode_ping(200)])
-    finally:
-        server.stop()
-    assert all(len(replies[k]) == 1 for k in [0, 1, 2, 3, 100, 101, 102, 103, 104, 200])
-    assert all(replies[k][0].status == Status.OK for k in range(4)) and replies[200][0].message == "pong"
-    upload_statuses = [replies[100 + k][0].status for k in range(5)]
-    # 1.44 MB each: two fit the 4 MiB budget beside the queued plans, the rest are refused at once.
-    assert upload_statuses.count(Status.OK) == 2 and upload_statuses.count(Status.BUSY) == 3, upload_statuses
-    assert "bytes) queued" in next(r[0].message for k, r in replies.items() if r[0].status == Status.BUSY)
-    with pytest.raises(ValueError):
-        CloudServer(ServerConfig(insecure=True, max_message_bytes=64 << 20, max_queued_bytes=32 << 20))
-    assert parse_args(["--max-queued-mib", "32", "--max-message-mib", "16"]).max_queued_mib == 32
-    assert parse_args([]).max_queued_mib == 256
 
 
 def test_sigterm_stops_the_server_cleanly(tmp_path):

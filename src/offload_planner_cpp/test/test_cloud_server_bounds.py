@@ -1,13 +1,8 @@
-"""Issue 10 ("Hold under attack"), the cloud link's findings: each test reproduces one attack at a scale
-that runs in seconds and checks the property the fix must hold. Larger runs: OFFLOAD_ATTACK_SCALE=full
-(200,000 uploads, a 20-robot storm on a 2000 x 2000 map)."""
+"""The cloud server and client under hostile input: memory bounded by the cache cap and the connection
+guard, replies bounded and checked by the client, absurd flags refused before any work, warnings rate
+limited. Each test reproduces an attack at a scale that runs in seconds; OFFLOAD_ATTACK_SCALE=full runs the
+larger versions (200,000 uploads)."""
 import logging
-import os
-import pathlib
-import signal
-import stat
-import subprocess
-import sys
 import threading
 import time
 
@@ -15,28 +10,15 @@ import numpy as np
 import pytest
 import zmq
 
-from offload_planner_cpp.cloud import keys, protocol
+from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
-from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Reply, Status
-from offload_planner_cpp.cloud.server import CloudServer, ServerConfig
 from offload_planner_cpp.cloud.server_cli import parse_args
 
-from cloud_test_helpers import (LOOPBACK, curve_dealer, free_port, make_keys, random_map, rss_bytes, spawn_server,
-                                start_server, stop_process)
+from cloud_test_helpers import (FULL, MIB, LOOPBACK, curve_dealer, free_port, rss_bytes, spawn_server, start_server, stop_process)
 
 pytestmark = pytest.mark.timeout(180)
-FULL = os.environ.get("OFFLOAD_ATTACK_SCALE") == "full"
-MIB = 1 << 20
 
-
-@pytest.fixture
-def key_root(tmp_path):
-    make_keys(tmp_path, ["robot", "robot2"])
-    return tmp_path
-
-
-# -- finding 1: the cache cap holds for many tiny maps -------------------------------------------------
 
 def test_many_tiny_maps_keep_server_rss_within_twice_the_cache_cap(key_root):
     uploads = 200_000 if FULL else 6000
@@ -70,8 +52,6 @@ def test_many_tiny_maps_keep_server_rss_within_twice_the_cache_cap(key_root):
     print(f"{uploads} distinct 1 x 8 maps, --cache-mib 1: RSS {idle / MIB:.1f} MiB -> +{grown / MIB:.2f} MiB")
     assert grown <= 2 * MIB   # the bar: within twice the cap above the idle size (landed code: +27 MiB)
 
-
-# -- finding 2: a message of many frames is bounded per connection --------------------------------------
 
 def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_path):
     frames, frame_bytes = (24, 50 * MIB - 4096) if FULL else (200, MIB - 4096)
@@ -114,274 +94,6 @@ def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_pat
     # The per-connection bound is (receive HWM + 1) x max message + 1 MiB: 4 MiB here (landed code: +143 MiB).
     assert grown <= (8 if not FULL else 400) * MIB
 
-
-# -- finding 3: SIGHUP reloads the allowlist -------------------------------------------------------------
-
-def _answers(key_dir, endpoint, timeout_s=1.0) -> bool:
-    with CloudClient(endpoint, keys_dir=str(key_dir), timeout_s=timeout_s, retries=0) as client:
-        try:
-            client.ping()
-            return True
-        except CloudTimeout:
-            return False
-
-
-def test_sighup_reloads_the_allowlist_revoking_and_admitting(key_root, tmp_path):
-    server_keys = key_root / "server"
-    port = free_port()
-    process = spawn_server(port, server_keys, log_path=tmp_path / "server.log")
-    endpoint = f"{LOOPBACK}:{port}"
-    try:
-        revoked = CloudClient(endpoint, keys_dir=str(key_root / "robot2"), timeout_s=1.0, retries=0)
-        assert revoked.ping() > 0          # connected and served before the revocation
-        (server_keys / "clients" / "robot2.key").unlink()
-        keys.generate(key_root, ["robot3"], add_to=server_keys)
-        process.send_signal(signal.SIGHUP)
-        deadline = time.monotonic() + 10
-        while not _answers(key_root / "robot3", endpoint) and time.monotonic() < deadline:
-            pass
-        assert _answers(key_root / "robot3", endpoint), "an admitted robot is refused after SIGHUP"
-        with pytest.raises(CloudTimeout):
-            revoked.ping()                 # its open connection was closed, its key is refused
-        revoked.close()
-        assert not _answers(key_root / "robot2", endpoint)
-        assert _answers(key_root / "robot", endpoint)
-        # A bad allowlist on reload keeps the previous one and the server running.
-        (server_keys / "clients" / "junk.key").write_text("not a key\n")
-        process.send_signal(signal.SIGHUP)
-        time.sleep(0.5)
-        assert process.poll() is None and _answers(key_root / "robot3", endpoint)
-    finally:
-        stop_process(process)
-    log = (tmp_path / "server.log").read_text()
-    assert "allowlist reloaded" in log and "allowlist NOT reloaded" in log and "junk.key" in log
-    assert "refused a CURVE handshake from 127.0.0.1" in log     # finding 11: refusals at WARNING, with address
-
-
-# -- finding 4: a key file without its secret line ------------------------------------------------------
-
-def _strip_secret(path: pathlib.Path) -> None:
-    path.write_text("".join(line for line in path.read_text().splitlines(True) if "secret-key" not in line))
-
-
-def test_key_file_without_secret_fails_fast_with_one_line(key_root):
-    robot_secret = key_root / "robot" / keys.CLIENT_SECRET
-    _strip_secret(robot_secret)
-    started = time.monotonic()
-    check = subprocess.run([sys.executable, "-m", "offload_planner_cpp.cloud.client", "tcp://127.0.0.1:9", "--ping",
-                            "--keys-dir", str(key_root / "robot"), "--timeout", "1"],
-                           capture_output=True, text=True, timeout=60)
-    assert check.returncode == 2 and time.monotonic() - started < 30
-    assert check.stderr.count("\n") == 1 and str(robot_secret) in check.stderr and "Traceback" not in check.stderr
-    server_secret = key_root / "server" / keys.SERVER_SECRET
-    _strip_secret(server_secret)
-    server = subprocess.run([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
-                             f"{LOOPBACK}:{free_port()}", "--keys-dir", str(key_root / "server")],
-                            capture_output=True, text=True, timeout=60)
-    assert server.returncode == 2 and "Traceback" not in server.stderr
-    assert server.stderr.count("\n") == 1 and str(server_secret) in server.stderr
-    with pytest.raises(ValueError, match=str(robot_secret)):
-        CloudClient("tcp://127.0.0.1:9", keys_dir=str(key_root / "robot"))
-
-
-# The node's start-up path without a ROS master: rospy's calls replaced by stand-ins, spin() for 3 s.
-NODE_START = """
-import sys, time, types, rospy
-params = {"~endpoint": "tcp://127.0.0.1:9", "~keys_dir": sys.argv[1], "~heartbeat_period_s": 0.2}
-rospy.init_node = rospy.on_shutdown = rospy.loginfo = rospy.logwarn = lambda *a, **k: None
-rospy.get_param = lambda name, default=None: params.get(name, default)
-rospy.logfatal = lambda fmt, *a: print("FATAL " + fmt % a, file=sys.stderr)
-rospy.Publisher = lambda *a, **k: types.SimpleNamespace(publish=lambda msg: None)
-rospy.Subscriber = lambda *a, **k: types.SimpleNamespace(resolved_name="map")
-rospy.Service = lambda *a, **k: None
-rospy.spin = lambda: time.sleep(3)
-from offload_planner_cpp.nodes import cloud_bridge
-cloud_bridge.main()
-"""
-
-
-def test_bridge_node_start_up_fails_fast_naming_the_key_file(key_root):
-    robot_secret = key_root / "robot" / keys.CLIENT_SECRET
-    _strip_secret(robot_secret)
-    node = subprocess.run([sys.executable, "-c", NODE_START, str(key_root / "robot")], capture_output=True,
-                          text=True, timeout=60)
-    assert node.returncode == 1, node.stderr
-    assert node.stderr.startswith("FATAL ") and str(robot_secret) in node.stderr and "Traceback" not in node.stderr
-
-
-# -- findings 5 and 6: the keys tool ----------------------------------------------------------------------
-
-def test_add_to_refuses_an_admitted_name_and_names_that_are_not_file_names(key_root):
-    server_keys = key_root / "server"
-    before = (server_keys / "clients" / "robot.key").read_bytes()
-    other = key_root / "elsewhere"
-    with pytest.raises(FileExistsError, match="already admitted"):
-        keys.generate(other, ["robot"], add_to=server_keys)
-    assert (server_keys / "clients" / "robot.key").read_bytes() == before and not (other / "robot").exists()
-    assert keys.main([str(other), "--clients", "robot", "--add-to", str(server_keys)]) == 1
-    keys.generate(other, ["robot"], add_to=server_keys, replace=True)
-    assert (server_keys / "clients" / "robot.key").read_bytes() != before
-    for name in ("..", ".", "a/b", "", "server", "clients", "-x", "x" * 65):
-        with pytest.raises(ValueError, match="bad client name"):
-            keys.generate(other, [name], add_to=server_keys)
-    assert not (key_root / "client.key").exists() and not (key_root.parent / "client.key_secret").exists()
-
-
-def test_secret_files_are_600_even_under_umask_000_and_loose_ones_are_refused(tmp_path):
-    old_umask = os.umask(0)
-    try:
-        server_keys = keys.generate(tmp_path, ["robot"])
-    finally:
-        os.umask(old_umask)
-    for secret in (server_keys / keys.SERVER_SECRET, tmp_path / "robot" / keys.CLIENT_SECRET):
-        assert stat.S_IMODE(secret.stat().st_mode) == 0o600
-    assert not stat.S_IMODE((server_keys / "clients").stat().st_mode) & 0o022
-    os.chmod(tmp_path / "robot" / keys.CLIENT_SECRET, 0o644)
-    with pytest.raises(keys.KeyFileError, match="readable by others"):
-        load_client_keys(tmp_path / "robot")
-    os.chmod(server_keys / keys.SERVER_SECRET, 0o640)
-    with pytest.raises(keys.KeyFileError, match="readable by others"):
-        keys.load_server_keys(server_keys)
-    os.chmod(server_keys / keys.SERVER_SECRET, 0o600)
-    os.chmod(server_keys / "clients", 0o777)
-    with pytest.raises(keys.KeyFileError, match="writable by others"):
-        keys.load_server_keys(server_keys)
-    os.chmod(server_keys / "clients", 0o755)
-    os.chmod(server_keys / "clients" / "robot.key", 0o666)
-    with pytest.raises(keys.KeyFileError, match="writable by others"):
-        keys.load_server_keys(server_keys)
-
-
-# -- finding 7: a fleet starting together on one large map ---------------------------------------------
-
-def test_upload_storm_uploads_the_map_once_and_every_plan_is_answered(key_root, monkeypatch):
-    robots, side, plans_each = (20, 2000, 6) if FULL else (10, 1000, 3)
-    names = [f"r{k}" for k in range(robots)]
-    keys.generate(key_root, names, add_to=key_root / "server")
-    decoded = []
-    real_decode_map = protocol.decode_map
-
-    def counting_decode_map(metadata, data, max_cells):
-        result = real_decode_map(metadata, data, max_cells)
-        decoded.append(result[0])
-        return result
-
-    monkeypatch.setattr(protocol, "decode_map", counting_decode_map)
-    grid = random_map(side, side, 0.05, seed=11)
-    digest = protocol.grid_hash(grid)
-    rng = np.random.default_rng(12)
-    free = np.argwhere(grid == 0)
-    server = start_server(key_root / "server", workers=2)
-    statuses, barrier = {name: [] for name in names}, threading.Barrier(robots)
-    pairs = [[tuple(tuple(int(v) for v in free[k][::-1]) for k in rng.integers(0, len(free), 2))
-              for _ in range(plans_each)] for _ in names]
-
-    def robot(index, name):
-        with CloudClient(server.endpoint, keys_dir=str(key_root / name), timeout_s=5.0, retries=1) as client:
-            barrier.wait()
-            for start, goal in pairs[index]:
-                try:
-                    statuses[name].append(client.plan(grid, start, goal).reply.status)
-                except CloudTimeout:
-                    statuses[name].append("timeout")
-
-    try:
-        threads = [threading.Thread(target=robot, args=(k, name)) for k, name in enumerate(names)]
-        for thread in threads:
-            thread.start()
-        for thread in threads:
-            thread.join(120)
-    finally:
-        server.stop()
-    every = [status for name in names for status in statuses[name]]
-    print(f"{robots} robots x {plans_each} plans on {side} x {side}: {every.count(Status.OK)} OK, "
-          f"{every.count(Status.BUSY)} BUSY, {every.count('timeout')} timeouts, map decoded {decoded.count(digest)} times")
-    assert len(every) == robots * plans_each
-    assert decoded.count(digest) == 1      # one upload for the whole fleet (landed code: one per robot)
-    # Every plan answered: planned, or BUSY at once when the two workers cannot plan it within --max-wait-s
-    # (the robot then plans locally); never left to time out. The large run may lose a first plan to the
-    # 80 MB of simultaneous first uploads on a loaded machine, never a later one.
-    assert all(status in (Status.OK, Status.BUSY) for name in names for status in statuses[name][1 if FULL else 0:])
-    assert every.count(Status.OK) >= len(every) // 4, statuses
-
-
-def test_waiting_requests_of_a_client_that_gave_up_are_dropped(key_root):
-    server = start_server(key_root / "server", workers=1)
-    grid = np.zeros((30, 30), np.int8)
-    digest = protocol.grid_hash(grid)
-    release, stuck, planned = threading.Event(), threading.Event(), []
-    real_handle = server.handle
-
-    def slow_handle(payload):   # the only worker is stuck on a long plan until released
-        stuck.set()
-        release.wait(30)
-        planned.append(protocol.request_id_of(payload[0].buffer))
-        return real_handle(payload)
-
-    server.handle = slow_handle
-    context = zmq.Context()
-    try:
-        with CloudClient(server.endpoint, keys_dir=str(key_root / "robot"), timeout_s=30.0) as busy:
-            busy_plan = threading.Thread(target=busy.plan, args=(grid, (0, 0), (29, 29)))
-            busy_plan.start()
-            assert stuck.wait(10)
-            quitter = curve_dealer(context, key_root / "robot2", server.endpoint)
-            for request_id in range(5):
-                quitter.send_multipart(protocol.encode_plan(request_id, digest, (0, 0), (29, 29)))
-            deadline = time.monotonic() + 10
-            while server.queued_bytes < 5 * 57 and time.monotonic() < deadline:
-                time.sleep(0.02)
-            quitter.close(0)          # gave up, as Lazy Pirate does after a timeout
-            while server.abandoned_dropped < 5 and time.monotonic() < deadline:
-                time.sleep(0.02)
-            release.set()
-            busy_plan.join(30)
-            assert busy.plan(grid, (0, 0), (29, 29)).reply.status == Status.OK
-        assert server.abandoned_dropped == 5 and not set(planned) & set(range(5)), planned
-    finally:
-        release.set()
-        context.term()
-        server.stop()
-
-
-def test_requests_that_waited_past_max_wait_get_busy_instead_of_a_late_plan(key_root):
-    server = start_server(None, workers=1, max_wait_s=0.5)
-    grid = np.zeros((30, 30), np.int8)
-    release, stuck = threading.Event(), threading.Event()
-    real_handle = server.handle
-
-    def slow_handle(payload):
-        stuck.set()
-        release.wait(30)
-        return real_handle(payload)
-
-    server.handle = slow_handle
-    context = zmq.Context()
-    socket = context.socket(zmq.DEALER)
-    socket.linger = 0
-    socket.connect(server.endpoint)
-    try:
-        with CloudClient(server.endpoint, insecure=True, timeout_s=30.0) as client:
-            first = threading.Thread(target=client.upload, args=(grid,))
-            first.start()
-            assert stuck.wait(10)
-            digest = protocol.grid_hash(grid)
-            for request_id in range(3):
-                socket.send_multipart(protocol.encode_plan(request_id, digest, (0, 0), (29, 29)))
-            time.sleep(1.0)          # they wait twice --max-wait-s behind the stuck worker
-            release.set()
-            first.join(30)
-            replies = [protocol.decode_reply(socket.recv_multipart()) for _ in range(3) if socket.poll(10000)]
-    finally:
-        release.set()
-        socket.close(0)
-        context.term()
-        server.stop()
-    assert sorted(reply.request_id for reply in replies) == [0, 1, 2]
-    assert all(reply.status == Status.BUSY and "--max-wait-s" in reply.message for reply in replies)
-
-
-# -- finding 9: the client does not trust the server's reply ----------------------------------------------
 
 class FakeServer:
     """A ROUTER that answers every request with reply_for(request_id)."""
@@ -457,8 +169,6 @@ def test_client_bounds_reply_size_and_checks_the_path_against_the_map_it_sent():
         fake.close()
 
 
-# -- finding 10: command-line values -------------------------------------------------------------------------
-
 @pytest.mark.parametrize("argv, expected", [
     (["--bind", "tcp://127.0.0.1:99999", "--insecure"], "port in 0..65535"),
     (["--bind", "tcp://127.0.0.1", "--insecure"], "tcp://HOST:PORT"),
@@ -473,17 +183,6 @@ def test_server_refuses_absurd_flags_before_any_work(argv, expected, capsys):
     with pytest.raises(SystemExit) as exit_info:
         parse_args(argv)
     assert exit_info.value.code == 2 and expected in capsys.readouterr().err
-
-
-# -- finding 11: smaller things a fleet would see ---------------------------------------------------------
-
-def test_garbage_key_in_the_allowlist_stops_the_server_at_start_up(key_root):
-    junk = key_root / "server" / "clients" / "junk.key"
-    junk.write_text("garbage\n")
-    server = subprocess.run([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
-                             f"{LOOPBACK}:{free_port()}", "--keys-dir", str(key_root / "server")],
-                            capture_output=True, text=True, timeout=60)
-    assert server.returncode == 2 and str(junk) in server.stderr and "Traceback" not in server.stderr
 
 
 def test_busy_warnings_are_rate_limited(caplog):
