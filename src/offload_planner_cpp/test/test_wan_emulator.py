@@ -130,8 +130,9 @@ def test_reset_on_outage_drops_connections_and_refuses_new_ones():
 
 @pytest.mark.parametrize("args, expected", [
     (["--outage=-5:3"], "outage needs"), (["--outage=nan:3"], "outage needs"), (["--outage=5:-1"], "outage needs"),
-    (["--loss=2"], "share in 0..1"), (["--loss=nan"], "finite"), (["--rtt-ms=-10"], ">= 0"),
-    (["--bandwidth-mbps=-1"], ">= 0"), (["--jitter-ms=inf"], "finite"),
+    (["--loss=2"], "--loss must be in [0, 1]"), (["--loss=nan"], "--loss must be in"),
+    (["--rtt-ms=-10"], "--rtt-ms must be in [0, "), (["--bandwidth-mbps=-1"], "--bandwidth-mbps must be in [0, "),
+    (["--jitter-ms=inf"], "--jitter-ms must be in"),
     (["--listen", "tcp://127.0.0.1:99999"], "0..65535"),
 ])
 def test_absurd_values_are_refused_before_any_work(args, expected):

@@ -1,5 +1,5 @@
-"""argparse value checkers shared by every command-line tool of the workspace (cloud server, WAN emulator,
-the learner's experiments and retraining): one wording of a bound, and NaN never slips through."""
+"""argparse value checkers shared by the workspace's command-line tools (cloud server, WAN emulator, the
+learner's demo and benchmarks): one wording of a bound, and NaN never slips through."""
 import argparse
 import math
 

@@ -21,6 +21,8 @@ import threading
 from dataclasses import dataclass, field
 from typing import List, Optional, Sequence, Tuple
 
+from offload_planner_cpp.cli_args import bounded_float
+
 LOG = logging.getLogger("offload_planner_cpp.devtools.wan_emulator")
 _CHUNK_BYTES = 65536
 _QUEUED_CHUNKS = 1024      # per direction: at most 64 MiB held during a stall
@@ -268,31 +270,14 @@ def parse_outage(text: str) -> Tuple[float, float]:
     return start_s, duration_s
 
 
-def _non_negative(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected a number, got {text!r}") from None
-    if not math.isfinite(value) or value < 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return value
-
-
-def _share(text: str) -> float:
-    value = _non_negative(text)
-    if value > 1:
-        raise argparse.ArgumentTypeError(f"expected a share in 0..1, got {text!r}")
-    return value
-
-
 def main(argv: Sequence[str] = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--listen", default="tcp://127.0.0.1:6000", help="where the bridge connects")
     parser.add_argument("--upstream", required=True, help="the cloud server's endpoint")
-    parser.add_argument("--rtt-ms", type=_non_negative, default=0.0, help="base round trip added (ms)")
-    parser.add_argument("--jitter-ms", type=_non_negative, default=0.0, help="one-way delay spread, uniform (ms)")
-    parser.add_argument("--bandwidth-mbps", type=_non_negative, default=0.0, help="per direction, 0 unlimited (Mbit/s)")
-    parser.add_argument("--loss", type=_share, default=0.0, help="share of chunks delayed by a 200 ms retransmission")
+    parser.add_argument("--rtt-ms", type=bounded_float("--rtt-ms", 0.0, 1e9), default=0.0, help="base round trip added (ms)")
+    parser.add_argument("--jitter-ms", type=bounded_float("--jitter-ms", 0.0, 1e9), default=0.0, help="one-way delay spread, uniform (ms)")
+    parser.add_argument("--bandwidth-mbps", type=bounded_float("--bandwidth-mbps", 0.0, 1e9), default=0.0, help="per direction, 0 unlimited (Mbit/s)")
+    parser.add_argument("--loss", type=bounded_float("--loss", 0.0, 1.0), default=0.0, help="share of chunks delayed by a 200 ms retransmission")
     parser.add_argument("--outage", type=parse_outage, action="append", default=[], metavar="START_S:DURATION_S",
                         help="stall the link for DURATION_S from START_S (repeatable)")
     parser.add_argument("--reset-on-outage", action="store_true", help="drop connections during outages instead")
