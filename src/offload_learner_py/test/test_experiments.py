@@ -39,7 +39,9 @@ def test_config_overrides_reach_the_learner(tmp_path):
 
 
 def _cli(*args, cwd):
-    env = {**os.environ, "PYTHONPATH": os.path.join(os.path.dirname(__file__), "..", "src")}
+    # the learner's sources first, then what the workspace provides (the planner package it depends on)
+    env = {**os.environ, "PYTHONPATH": os.pathsep.join([os.path.join(os.path.dirname(__file__), "..", "src"),
+                                                        os.environ.get("PYTHONPATH", "")])}
     return subprocess.run([sys.executable, "-m", "offload_learner_py.offline.experiments", *args], cwd=cwd, env=env,
                           capture_output=True, text=True, timeout=120)
 
@@ -66,7 +68,7 @@ def test_bad_user_input_is_an_error_message_and_exit_2(tmp_path, capsys):
         assert err.startswith("error: ") and message in err, (args, err)
     with pytest.raises(SystemExit) as exit_info:  # argparse: usage error, exit 2
         experiments.main(["generate", "--kind", "cpu", "--steps", "0", "--out", "x.npz"])
-    assert exit_info.value.code == 2 and "must be >= 1" in capsys.readouterr().err
+    assert exit_info.value.code == 2 and "--steps must be in 1.." in capsys.readouterr().err
 
 
 def test_compare_command_scores_every_policy_on_one_table(tmp_path, bundled_trace, capsys):

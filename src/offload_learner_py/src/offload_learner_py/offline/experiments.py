@@ -26,6 +26,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
+from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_learner_py.core.checkpoint import save_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.data.dataset import TransitionTable
@@ -42,6 +43,7 @@ from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.data.synthetic import SYNTHETIC_KINDS, SyntheticSettings, generate_synthetic
 from offload_learner_py.data.trace import PlanningTrace
 
+MAX_COUNT = 10 ** 12   # steps, seeds and threads: any value a machine could run
 BUNDLED_TRACE = os.path.join(os.path.dirname(__file__), "..", "data", "husky_playpen_trace.npz")
 
 
@@ -249,29 +251,6 @@ def _resolve_seed(args) -> None:
     args.seed = set_seed
 
 
-def _count_type(minimum: int):
-    """argparse type: an integer >= minimum (a bad value is a usage error, exit 2)."""
-    def parse(text: str) -> int:
-        try:
-            value = int(text)
-        except ValueError:
-            raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-        if value < minimum:
-            raise argparse.ArgumentTypeError(f"must be >= {minimum}, got {value}")
-        return value
-    return parse
-
-
-def _fraction(text: str) -> float:
-    try:
-        value = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
-    if not 0.0 < value < 1.0:
-        raise argparse.ArgumentTypeError(f"must be in (0, 1), got {value}")
-    return value
-
-
 def main(argv: Optional[List[str]] = None) -> int:
     """Run one command. Bad user input (a missing or invalid data, trace or config) prints
     `error: ...` on stderr and returns 2, as argparse does for bad arguments."""
@@ -283,35 +262,36 @@ def main(argv: Optional[List[str]] = None) -> int:
         sub.add_argument("--out", required=True, help="output directory")
         sub.add_argument("--gamma", type=float, default=None, help="discount (default 0: contextual bandit)")
         sub.add_argument("--set", action="append", metavar="FIELD=VALUE", help="override any DQNConfig field")
-        sub.add_argument("--threads", type=_count_type(1), default=1,
+        sub.add_argument("--threads", type=bounded_int("--threads", 1, MAX_COUNT), default=1,
                          help="torch threads; 1 is fastest for these small networks")
 
     synthetic = commands.add_parser("synthetic", help="train online on one synthetic dataset")
     synthetic.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
-    synthetic.add_argument("--steps", type=_count_type(1), default=1000)
-    synthetic.add_argument("--seed", type=_count_type(0), default=None, help="seed of the data and the DQN "
+    synthetic.add_argument("--steps", type=bounded_int("--steps", 1, MAX_COUNT), default=1000)
+    synthetic.add_argument("--seed", type=bounded_int("--seed", 0, MAX_COUNT), default=None, help="seed of the data and the DQN "
                            "(default 1, or --set seed=S)")
     synthetic.add_argument("--trace", default=BUNDLED_TRACE, help="planning trace .npz (default: bundled)")
     add_common(synthetic)
 
     sweep = commands.add_parser("sweep", help="`synthetic` over several seeds, with mean and spread")
     sweep.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
-    sweep.add_argument("--seeds", type=_count_type(0), nargs="+", required=True)
-    sweep.add_argument("--steps", type=_count_type(1), default=1000)
+    sweep.add_argument("--seeds", type=bounded_int("--seeds", 0, MAX_COUNT), nargs="+", required=True)
+    sweep.add_argument("--steps", type=bounded_int("--steps", 1, MAX_COUNT), default=1000)
     sweep.add_argument("--trace", default=BUNDLED_TRACE)
     add_common(sweep)
 
     compare = commands.add_parser("compare", help="every policy on one transition table")
     compare.add_argument("--data", required=True, help="transition table (.npz or .csv)")
-    compare.add_argument("--train-fraction", type=_fraction, default=0.5)
-    compare.add_argument("--seed", type=_count_type(0), default=None, help="seed of the DQN and the baselines "
+    compare.add_argument("--train-fraction", type=bounded_float("--train-fraction", 0.0, 1.0, low_open=True, high_open=True),
+                         default=0.5)
+    compare.add_argument("--seed", type=bounded_int("--seed", 0, MAX_COUNT), default=None, help="seed of the DQN and the baselines "
                          "(default 1, or --set seed=S)")
     add_common(compare)
 
     generate = commands.add_parser("generate", help="write a synthetic transition table (.npz, and .csv beside it)")
     generate.add_argument("--kind", choices=SYNTHETIC_KINDS, required=True)
-    generate.add_argument("--steps", type=_count_type(1), default=1000)
-    generate.add_argument("--seed", type=_count_type(0), default=1)
+    generate.add_argument("--steps", type=bounded_int("--steps", 1, MAX_COUNT), default=1000)
+    generate.add_argument("--seed", type=bounded_int("--seed", 0, MAX_COUNT), default=1)
     generate.add_argument("--trace", default=BUNDLED_TRACE)
     generate.add_argument("--out", required=True, help="output .npz (the .csv is written beside it)")
 
