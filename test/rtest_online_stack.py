@@ -36,6 +36,18 @@ def launch_file(name):
     raise FileNotFoundError(f"launch/{name} not found from {WORKSPACE}")
 
 
+def start_learner_node(checkpoint: str, *params: str) -> subprocess.Popen:
+    """The learner node in learning mode with a small warm-up, checkpointing every 5 steps, waiting for the
+    recorder; `params` add or override private parameters (`_name:=value`). Returns once it serves."""
+    learner = subprocess.Popen(
+        [sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
+         f"_checkpoint:={checkpoint}", "_checkpoint_every:=5", f"_cloud_timeout_s:={CLOUD_TIMEOUT_S}",
+         "_mode:=learning", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}", *params],
+        stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    rospy.wait_for_service("/offload_learner/plan", timeout=90)
+    return learner
+
+
 def spawn_cloud_server(port: int = 0):
     """The cloud server as its own process, plaintext, one worker, on a loopback port (0: any free one);
     (process, endpoint) once it listens."""
@@ -96,12 +108,7 @@ class OnlineStackTest(unittest.TestCase):
 
     @classmethod
     def start_learner(cls):
-        cls.processes["learner"] = subprocess.Popen(
-            [sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
-             f"_checkpoint:={cls.checkpoint}", "_checkpoint_every:=5", f"_cloud_timeout_s:={CLOUD_TIMEOUT_S}",
-             "_mode:=learning", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}"],
-            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
-        rospy.wait_for_service("/offload_learner/plan", timeout=90)
+        cls.processes["learner"] = start_learner_node(cls.checkpoint)
 
     @classmethod
     def stop_all(cls):
