@@ -112,7 +112,7 @@ demo: demo-options build
 	@$(ROSENV) $(if $(and $(MAP),$(RVIZ)$(HEADLESS)),mkdir -p .ros; $(PY) tools/rviz_view.py fit --map $(MAP) \
 		--out .ros/offload.rviz; export OFFLOAD_RVIZ_CONFIG=$(ROOT)/.ros/offload.rviz;) \
 		$(if $(HEADLESS),$(PY) tools/rviz_view.py headless --runs-dir runs --) \
-		$(PY) -m offload_learner_py.demo.driver --launch launch/offload_demo.launch --steps $(STEPS) \
+		$(PY) -m offload_demos.driver --launch launch/offload_demo.launch --steps $(STEPS) \
 		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
 		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL)) $(if $(LINK),--link $(LINK)) \
 		$(if $(filter free,$(UNKNOWN)),--plan-unknown)
@@ -120,12 +120,12 @@ demo: demo-options build
 # Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
 # STEPS=200, plus a learning run for the DQN and the link-failure scenario).
 bench-policies: build
-	@$(ROSENV) $(PY) -m offload_learner_py.demo.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
+	@$(ROSENV) $(PY) -m offload_demos.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
 		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
 		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown) $(if $(REPEATS),--repeats $(REPEATS))
 
 bench-online: build
-	@$(ROSENV) $(PY) -m offload_learner_py.demo.bench_online
+	@$(ROSENV) $(PY) -m offload_demos.bench_online
 
 bench-offline: build
 	@$(ROSENV) $(PY) -m offload_learner_py.bench.offline

@@ -48,30 +48,30 @@ def test_planner_python_core_imports_without_ros():
 
 
 def test_learner_core_imports_without_rospy():
-    """Every module outside the `nodes` and `demo` subpackages (core, data, offline, online, bench, devtools) is
-    ROS-free; rospy lives in the nodes and the demo's orchestration only."""
+    """Every module outside the `nodes` subpackage (core, data, offline, online, bench, devtools) is ROS-free;
+    rospy lives in `nodes` only (and in the offload_demos package, which does not ship to a robot)."""
     package = WORKSPACE / "src" / "offload_learner_py" / "src" / "offload_learner_py"
-    files = [p for p in package.rglob("*.py") if not {"nodes", "demo"} & set(p.relative_to(package).parts)
-             and p.stem != "__init__"]
+    files = [p for p in package.rglob("*.py") if "nodes" not in p.relative_to(package).parts and p.stem != "__init__"]
     modules = sorted(".".join(p.relative_to(package).with_suffix("").parts) for p in files)
     assert {"core.dqn", "data.bags", "offline.retrain", "online.router"} <= set(modules), modules
     done = run_without_ros("".join(f"import offload_learner_py.{m}\n" for m in modules
                                    if not m.startswith("devtools")))   # devtools need atheris
     assert done.returncode == 0, done.stderr
     outside = [p.name for p in files if re.search(r"^\s*(import|from)\s+rospy", p.read_text(), re.M)]
-    assert not outside, f"rospy imported outside offload_learner_py.nodes and .demo: {outside}"
+    assert not outside, f"rospy imported outside offload_learner_py.nodes: {outside}"
     nodes = sorted((package / "nodes").glob("*.py"))
     assert any("import rospy" in p.read_text() for p in nodes), "the nodes subpackage holds the rospy nodes"
 
 
-def test_learner_scripts_are_two_line_entry_points():
-    scripts = WORKSPACE / "src" / "offload_learner_py" / "scripts"
+@pytest.mark.parametrize("package", ["offload_learner_py", "offload_demos"])
+def test_python_node_scripts_are_two_line_entry_points(package):
+    scripts = WORKSPACE / "src" / package / "scripts"
     for script in scripts.iterdir():
         lines = script.read_text().splitlines()
         if lines[0] != "#!/usr/bin/env python3":
             continue   # robot_confine is a shell launch-prefix, not a node
         assert len(lines) == 3, f"{script.name} is more than an import and a call"
-        assert re.fullmatch(r"from offload_learner_py\.(nodes|demo)\.\w+ import (\w+)", lines[1]), lines[1]
+        assert re.fullmatch(r"from (offload_learner_py\.nodes|offload_demos)\.\w+ import (\w+)", lines[1]), lines[1]
         assert lines[2] == lines[1].split()[-1] + "()"
 
 
@@ -112,7 +112,7 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-
                "offload_learner_py": "offload_learner_py", "rosgraph_msgs": "rosgraph_msgs",
                "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph",
                "atheris": "python3-atheris-pip", "rospkg": "python3-rospkg", "rosunit": "rosunit",
-               "lz4": "python3-lz4"}
+               "lz4": "python3-lz4", "offload_demos": "offload_demos"}
 
 
 def imported_modules(source: Path):

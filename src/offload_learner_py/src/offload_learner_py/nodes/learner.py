@@ -18,7 +18,7 @@ from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.core.state import State, input_size
 from offload_learner_py.nodes.learner_io import PlannerProxy, RosLog, RvizGoals, StaleMapCheck, account, \
-    config_msg, decision_msg, outcome_msg, rejection, stamped, stats_msg, wait_for_recorder
+    config_msg, decision_msg, exit_fatal, outcome_msg, rejection, stamped, stats_msg, wait_for_recorder
 from offload_learner_py.online.breaker import BreakerConfig
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
@@ -178,14 +178,13 @@ class LearnerNode:
 
 
 def main():
+    """Runs the node; a setting, key or checkpoint it cannot use is one FATAL line and exit status 1."""
     rospy.init_node("offload_learner")
     try:
-        node = LearnerNode()
+        LearnerNode()
     except (ValueError, OSError, IncompatibleCheckpointError, rospy.ROSException) as error:
-        rospy.logfatal("%s", error)
-        raise SystemExit(1) from None
+        exit_fatal(error)
     rospy.spin()
-    return node
 
 
 if __name__ == "__main__":

@@ -44,6 +44,12 @@ class PlannerProxy:
             self._proxy = None
 
 
+def exit_fatal(error) -> None:
+    """One FATAL line naming the cause, then exit status 1: never a node that runs half set up."""
+    rospy.logfatal("%s", error)
+    raise SystemExit(1) from None
+
+
 def account(response):
     """(robot CPU-seconds, link bytes sent, received) the serving node reported for one call."""
     return response.cpu_s, response.bytes_sent, response.bytes_received

@@ -29,7 +29,7 @@ import numpy as np
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_learner_py.data.bags import read_bags
-from offload_learner_py.demo.driver import LINK_PROFILES
+from offload_demos.driver import LINK_PROFILES
 from offload_learner_py.offline.summary import delivered_figures
 
 POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
@@ -49,7 +49,7 @@ def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yam
              progress: str = "") -> pathlib.Path:
     """One live run of the demo stack; the run directory it wrote. `progress` ("3/8, about 6 min left")
     heads the line that announces it."""
-    command = [sys.executable, "-m", "offload_learner_py.demo.driver", "--launch", launch, "--steps", str(steps),
+    command = [sys.executable, "-m", "offload_demos.driver", "--launch", launch, "--steps", str(steps),
                "--seed", str(seed), "--runs-dir", str(runs_dir), "--no-report", *extra]
     if map_yaml:
         command += ["--map", map_yaml]

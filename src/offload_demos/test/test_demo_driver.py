@@ -8,7 +8,7 @@ import textwrap
 import time
 from types import SimpleNamespace
 
-from offload_learner_py.demo import driver as demo
+from offload_demos import driver as demo
 
 MAPS = os.path.join(os.path.dirname(__file__), "..", "..", "offload_planner_cpp", "maps")
 
@@ -46,7 +46,7 @@ def test_the_launch_ends_when_the_driver_is_killed(tmp_path):
     pid_file = tmp_path / "child.pid"
     driver = subprocess.Popen([sys.executable, "-c", textwrap.dedent(f"""
         import subprocess, time
-        from offload_learner_py.demo.driver import end_with_parent
+        from offload_demos.driver import end_with_parent
         child = subprocess.Popen(["sleep", "60"], start_new_session=True, preexec_fn=end_with_parent)
         open({str(pid_file)!r}, "w").write(str(child.pid))
         time.sleep(60)

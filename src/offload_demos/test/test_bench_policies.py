@@ -4,7 +4,7 @@ import numpy as np
 import pytest
 
 from bagtools import make_requests, write
-from offload_learner_py.demo.bench_policies import measure
+from offload_demos.bench_policies import measure
 
 
 def test_repeated_runs_are_pooled_and_each_runs_mean_is_kept(tmp_path):

@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from offload_learner_py.demo.workload import LoadSchedule, run_workload
+from offload_demos.workload import LoadSchedule, run_workload
 
 
 def test_load_schedule_is_a_seeded_function_of_time():

@@ -8,8 +8,8 @@ import threading
 import rospy
 from std_msgs.msg import Float64
 
-from offload_learner_py.demo.keys import ensure_demo_keys
-from offload_learner_py.demo.workload import LoadSchedule, parse_levels, run_workload
+from offload_demos.keys import ensure_demo_keys
+from offload_demos.workload import LoadSchedule, parse_levels, run_workload
 
 
 def cloud_server_main():

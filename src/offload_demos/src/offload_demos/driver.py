@@ -18,7 +18,7 @@ import time
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_planner_cpp.devtools.loopback import free_port
-from offload_learner_py.demo.keys import ensure_demo_keys
+from offload_demos.keys import ensure_demo_keys
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.offline.report import report_run
 from offload_learner_py.offline.summary import format_summary, summarise
@@ -182,7 +182,7 @@ def main(argv=None) -> int:
         except OSError as error:
             print(f"warning: no robot CPU budget ({error}); local planning runs at full speed of core "
                   f"{args.robot_core}", file=sys.stderr)
-    confine = os.path.join(os.path.dirname(os.path.abspath(args.launch)), "..", "src", "offload_learner_py",
+    confine = os.path.join(os.path.dirname(os.path.abspath(args.launch)), "..", "src", "offload_demos",
                            "scripts", "robot_confine")
     robot_prefix = f"{os.path.abspath(confine)} {args.robot_core} {cgroup if budget else '-'}"
     master_port = free_port()
