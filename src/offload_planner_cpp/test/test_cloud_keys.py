@@ -57,7 +57,7 @@ def test_sighup_reloads_the_allowlist_revoking_and_admitting(key_root, tmp_path)
         stop_process(process)
     log = (tmp_path / "server.log").read_text()
     assert "allowlist reloaded" in log and "allowlist NOT reloaded" in log and "junk.key" in log
-    assert "refused a CURVE handshake from 127.0.0.1" in log     # finding 11: refusals at WARNING, with address
+    assert "refused a CURVE handshake from 127.0.0.1" in log     # refusals at WARNING, with the address
 
 
 def _strip_secret(path: pathlib.Path) -> None:

@@ -131,7 +131,7 @@ def test_map_cache_is_lru_and_bounded():
 
 
 def test_map_cache_counts_per_map_overhead_so_tiny_maps_cannot_grow_it_without_bound():
-    """Issue 10, finding 1: 200,000 maps of 8 cells each fit a cap that counted cells only."""
+    """200,000 maps of 8 cells each fitted a cap that counted cells only: each map counts its overhead too."""
     cap = 1 << 20
     cache = MapCache(cap)
     source = bytearray(64)   # every map a view of one big received buffer, as the server gets them
