@@ -5,6 +5,8 @@
    own process, both with CURVE and both in plaintext. Median and p99.
 2. Bytes on the wire per request after the upload: TCP payload counted by the WAN emulator (no delay).
 3. Throughput with 1 and 2 workers: plans/s from concurrent clients on a 2000 x 2000 map.
+4. One robot's ping round trip, idle and while another client key sends 64 MiB plans (a new 8000 x 8000
+   map each), with 1 libzmq I/O thread (the baseline) and with the server's default of 2.
 """
 import argparse
 import os
@@ -44,11 +46,11 @@ def spawn(args) -> subprocess.Popen:
     return process
 
 
-def spawn_cloud(port: int, server_keys, workers: int) -> subprocess.Popen:
+def spawn_cloud(port: int, server_keys, workers: int, io_threads: int = 2) -> subprocess.Popen:
     # The benchmark's clients wait up to 60 s, so the server may let requests wait as long: throughput is
     # measured at saturation, where the default --max-wait-s would answer part of the queue BUSY.
     args = ["-m", "offload_planner_cpp.cloud.server", "--bind", f"tcp://{LOOPBACK}:{port}", "--workers",
-            str(workers), "--log-level", "WARNING", "--max-wait-s", "60"]
+            str(workers), "--io-threads", str(io_threads), "--log-level", "WARNING", "--max-wait-s", "60"]
     return spawn(args + (["--keys-dir", str(server_keys)] if server_keys else ["--insecure"]))
 
 
@@ -146,6 +148,35 @@ def throughput(endpoint: str, grid, jobs, clients: int, client_keys) -> float:
     return len(done) / (time.perf_counter() - started)
 
 
+def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: float = 15.0):
+    """One robot's ping round trips (s) idle for `seconds`, then while another key sends 64 MiB plans."""
+    def ping_for(client, duration_s):
+        samples, end = [], time.monotonic() + duration_s
+        while time.monotonic() < end:
+            samples.append(client.ping())
+            time.sleep(0.01)
+        return np.array(samples)
+    stop, sent = threading.Event(), [0]
+
+    def large_plans():
+        with CloudClient(endpoint, keys_dir=other_keys, timeout_s=120) as other:
+            rng = np.random.default_rng(1)
+            while not stop.is_set():
+                grid = np.zeros((8000, 8000), np.int8)
+                grid[0, rng.integers(2, 8000)] = 100     # a new map each time: 64 MiB up, hashed and cached
+                other.plan(grid, (0, 1), (1, 1))
+                sent[0] += 1
+    with CloudClient(endpoint, keys_dir=robot_keys, timeout_s=30) as robot:
+        idle = ping_for(robot, seconds / 3)
+        sender = threading.Thread(target=large_plans, daemon=True)
+        sender.start()
+        time.sleep(2.0)
+        loaded = ping_for(robot, seconds)
+        stop.set()
+        sender.join(120)
+    return idle, loaded, sent[0]
+
+
 def summary(samples: np.ndarray) -> str:
     return f"median {np.median(samples) * 1e3:.3f} ms, p99 {np.percentile(samples, 99) * 1e3:.3f} ms"
 
@@ -168,7 +199,7 @@ def main(argv=None) -> int:
           f"{args.requests} round trips each; {os.cpu_count()} cores")
     processes = []
     with tempfile.TemporaryDirectory() as tmp:
-        server_keys = keys.generate(pathlib.Path(tmp), ["bench"])
+        server_keys = keys.generate(pathlib.Path(tmp), ["bench", "other"])
         client_keys = str(pathlib.Path(tmp) / "bench")
         try:
             for label, skeys, ckeys in (("CURVE", server_keys, client_keys), ("plaintext", None, None)):
@@ -209,6 +240,14 @@ def main(argv=None) -> int:
                 rate = throughput(f"tcp://{LOOPBACK}:{port}", grid, jobs, clients=4, client_keys=client_keys)
                 print(f"[throughput] {workers} worker(s), 4 clients, random start/goal on the 2000 x 2000 map: "
                       f"{rate:.1f} plans/s")
+            for io_threads in (1, 2):
+                port = free_port()
+                processes.append(spawn_cloud(port, server_keys, 1, io_threads))
+                idle, loaded, sent = pings_under_large_plans(f"tcp://{LOOPBACK}:{port}", client_keys,
+                                                             str(pathlib.Path(tmp) / "other"))
+                print(f"[fairness] {io_threads} I/O thread(s): one robot's ping idle {summary(idle)}; while another "
+                      f"key sent {sent} plans of 64 MiB {summary(loaded)}, max {loaded.max() * 1e3:.1f} ms "
+                      f"(p99 {np.percentile(loaded, 99) / np.percentile(idle, 99):.1f}x idle; bar: 3x)")
         finally:
             for process in processes:
                 process.kill()

@@ -59,7 +59,7 @@ class CloudServer:
         self._stop = threading.Event()
         self._reload = threading.Event()
         self._ready = threading.Event()
-        self._context = zmq.Context()
+        self._context = zmq.Context(io_threads=config.io_threads)
         self._auth = None
         self._backend_address = f"inproc://workers-{id(self)}"
         self._log_limited = RateLimitedLog(LOG)

@@ -25,6 +25,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--bind", type=_endpoint, default="tcp://0.0.0.0:5555",
                         help="ZeroMQ endpoint to listen on; port 0 picks a free one (default tcp://0.0.0.0:5555)")
     parser.add_argument("--workers", type=bounded_int("--workers", 1, 256), default=2, help="planner threads (default 2)")
+    parser.add_argument("--io-threads", type=bounded_int("--io-threads", 1, 64), default=2,
+                        help="libzmq I/O threads, where CURVE is decrypted: one client's large message then stalls "
+                             "only the clients on its thread (default 2)")
     parser.add_argument("--keys-dir", help="server keys dir from offload_planner_cpp.cloud.keys (server.key_secret, clients/)")
     parser.add_argument("--insecure", action="store_true", help="plaintext, no client allowlist (tests, trusted LAN)")
     parser.add_argument("--cache-mib", type=bounded_int("--cache-mib", 0, 1 << 20), default=1024,
@@ -69,7 +72,8 @@ def main(argv=None) -> int:
         return 2
     try:
         server = CloudServer(ServerConfig(
-            bind=args.bind, workers=args.workers, keys_dir=args.keys_dir, insecure=args.insecure,
+            bind=args.bind, workers=args.workers, io_threads=args.io_threads, keys_dir=args.keys_dir,
+            insecure=args.insecure,
             cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
             max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
             max_pending_bytes=args.max_pending_mib << 20, max_pending_bytes_per_key=args.max_pending_per_key_mib << 20,

@@ -7,6 +7,8 @@ from typing import Optional
 class ServerConfig:
     bind: str = "tcp://127.0.0.1:5555"
     workers: int = 2
+    io_threads: int = 2                   # libzmq I/O threads: CURVE is decrypted there, so with one a client's
+                                          # 64 MiB plan stalls everyone's pings for seconds
     keys_dir: Optional[str] = None        # CURVE keys and client allowlist; required unless insecure
     insecure: bool = False                # plaintext, no client authentication
     cache_bytes: int = 1 << 30            # map cache memory cap (cells + ENTRY_OVERHEAD_BYTES per map)
@@ -39,6 +41,8 @@ class ServerConfig:
             raise ValueError("a keys dir is required unless --insecure is given")
         if self.workers < 1:
             raise ValueError("at least one worker is needed")
+        if not 1 <= self.io_threads <= 64:
+            raise ValueError(f"the I/O threads must be 1..64, got {self.io_threads}")
         if self.max_message_bytes < 1 or self.cache_bytes < 0:
             raise ValueError("the max message size must be >= 1 byte and the cache cap >= 0")
         if not (0 <= self.rate_per_client <= 1e6 and 1 <= self.burst_per_client <= 1e6):
