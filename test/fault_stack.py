@@ -9,7 +9,6 @@ import sys
 import tempfile
 import threading
 import time
-import unittest
 import xml.etree.ElementTree as ElementTree
 
 import numpy as np
@@ -23,7 +22,8 @@ os.environ["ROS_IP"] = "127.0.0.1"
 # The master is the test's own (the last fault restarts it), named before rospy reads ROS_MASTER_URI;
 # every node the test starts inherits it.
 sys.path.insert(0, os.path.dirname(os.path.realpath(__file__)))
-from rtest_online_stack import CLOUD_TIMEOUT_S, launch_file, spawn_cloud_server, start_learner_node, stop  # noqa: E402
+from rtest_online_stack import CLOUD_TIMEOUT_S, WaitsForRecords, launch_file, spawn_cloud_server, start_learner_node, \
+    stop  # noqa: E402
 
 import rosgraph  # noqa: E402
 import rospy  # noqa: E402
@@ -84,9 +84,10 @@ def replacement_map(original: OccupancyMap, start, goal) -> OccupancyMap:
     return new
 
 
-class FaultStack(unittest.TestCase):
+class FaultStack(WaitsForRecords):
     """The whole online system on a master of the test's own, its processes restartable one by one, and
     what it publishes kept by request id."""
+    wait_timeout_s = 60
 
     @classmethod
     def setUpClass(cls):
@@ -192,15 +193,6 @@ class FaultStack(unittest.TestCase):
     def keep_timing(cls, msg):
         with cls.lock:
             cls.cloud_timings.append(msg)
-
-    def wait_for(self, predicate, timeout_s=60, what="condition"):
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            with self.lock:
-                if predicate():
-                    return
-            time.sleep(0.05)
-        self.fail(f"timed out waiting for {what}")
 
     def request(self, goal_xy) -> PlanPathRequest:
         request = PlanPathRequest(tolerance=0.3)

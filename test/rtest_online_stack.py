@@ -70,7 +70,21 @@ def stop(process, sig=signal.SIGINT, timeout_s=20):
         process.wait()
 
 
-class OnlineStackTest(unittest.TestCase):
+class WaitsForRecords(unittest.TestCase):
+    """A test whose subscribers fill records under `lock`: wait until a predicate on them holds."""
+    wait_timeout_s = 90
+
+    def wait_for(self, predicate, timeout_s=None, what="condition"):
+        deadline = time.monotonic() + (timeout_s or self.wait_timeout_s)
+        while time.monotonic() < deadline:
+            with self.lock:
+                if predicate():
+                    return
+            time.sleep(0.05)
+        self.fail(f"timed out waiting for {what}")
+
+
+class OnlineStackTest(WaitsForRecords):
     @classmethod
     def setUpClass(cls):
         rospy.init_node("rtest_online_stack")
@@ -116,14 +130,6 @@ class OnlineStackTest(unittest.TestCase):
             stop(cls.processes.get(name))
         cls.tmp.cleanup()
 
-    def wait_for(self, predicate, timeout_s=90, what="condition"):
-        deadline = time.monotonic() + timeout_s
-        while time.monotonic() < deadline:
-            with self.lock:
-                if predicate():
-                    return
-            time.sleep(0.05)
-        self.fail(f"timed out waiting for {what}")
 
     def call(self, goal_xy):
         plan = rospy.ServiceProxy("/offload_learner/plan", PlanPath)
