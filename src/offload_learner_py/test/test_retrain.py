@@ -49,7 +49,7 @@ def test_the_checkpoint_is_what_the_learner_node_loads(run_bag, tmp_path):
     assert agent.normalisation_frozen and len(agent.memory) == 0
     states = data.transition_table().states
     fast = agent.fast_decision()
-    greedy = retrain.agent_greedy_actions(agent, states)
+    greedy = agent.greedy_actions(states)
     assert [fast.decide(*s)[0] for s in states[:50]] == list(greedy[:50])
     # it keeps learning online after loading: the optimizer state loads and steps
     for s in states[:70]:
@@ -67,7 +67,7 @@ def test_the_node_loads_it_through_model(run_bag, tmp_path):
     from offload_learner_py.core.state import State
 
     table = data.transition_table()
-    greedy = retrain.agent_greedy_actions(agent, table.states[:20])
+    greedy = agent.greedy_actions(table.states[:20])
     for state, expected in zip(table.states[:20], greedy):
         decision = policy.decide(State(*state))
         assert (decision.action, decision.propensity) == (expected, 1.0)

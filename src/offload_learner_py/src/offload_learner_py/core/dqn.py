@@ -80,6 +80,12 @@ class DQNAgent:
     def greedy_action(self, state) -> int:
         return int(greedy_actions(self.q_values(state)))
 
+    def greedy_actions(self, states) -> np.ndarray:
+        """The greedy action of each of N raw states (none for none)."""
+        if len(states) == 0:
+            return np.zeros(0, dtype=np.int64)
+        return greedy_actions(self.q_values(states))
+
     def in_warm_up(self) -> bool:
         return self.steps < self.config.learning_starts
 

@@ -14,7 +14,7 @@ import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
-from offload_learner_py.core.dqn import DQNAgent, epsilon_greedy, greedy_actions
+from offload_learner_py.core.dqn import DQNAgent, epsilon_greedy
 from offload_learner_py.core.evaluation import oracle_actions
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.core.state import State
@@ -201,7 +201,7 @@ class DQNPolicy(Policy):
     def choose(self, table):
         if self.agent is None:
             raise RuntimeError("fit the DQN policy (or pass a trained agent) first")
-        return greedy_actions(self.agent.q_values(table.states))
+        return self.agent.greedy_actions(table.states)
 
     # -- online ----------------------------------------------------------------------------------------
     def epsilon(self) -> float:

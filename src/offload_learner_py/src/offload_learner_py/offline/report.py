@@ -34,7 +34,7 @@ from offload_learner_py.core.evaluation import accuracy, confusion_matrix, evalu
 from offload_learner_py.core.lstm_baseline import LSTMConfig, LSTMPolicy
 from offload_learner_py.offline.output import OutputDirError, code_block, prepare_out_dir, terminal_text
 from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results
-from offload_learner_py.offline.retrain import agent_greedy_actions, chronological_split, train_offline
+from offload_learner_py.offline.retrain import chronological_split, train_offline
 from offload_learner_py.offline.summary import learned_offload_input_size
 
 # Section V of the paper (real data unless said otherwise).
@@ -62,7 +62,7 @@ def _fit_pair(rows: TransitionTable, seed: int, gradient_steps: Optional[int], l
     train, test = rows.slice(0, cut), rows.slice(cut, len(rows))
     agent = train_offline(train, DQNConfig(seed=seed), gradient_steps).agent
     lstm = LSTMPolicy(LSTMConfig(seed=seed, epochs=lstm_epochs)).fit(train)
-    return {"dqn": accuracy(agent_greedy_actions(agent, test.states), test), "lstm": accuracy(lstm.choose(test), test),
+    return {"dqn": accuracy(agent.greedy_actions(test.states), test), "lstm": accuracy(lstm.choose(test), test),
             "train_rows": len(train), "test_rows": len(test)}
 
 
@@ -200,7 +200,7 @@ def report(bags: Sequence[str] = (), out_dir: str = "report", model: Optional[st
     # Off-policy estimates: what a deployed robot's bags say about other policies
     steps = LoggedSteps.from_log(log)
     predicted = fit_latency_model(steps.states, steps.action, steps.latency_s)
-    candidates = {"greedy DQN": agent_greedy_actions(agent, steps.states), "always local": np.full(len(steps), 0),
+    candidates = {"greedy DQN": agent.greedy_actions(steps.states), "always local": np.full(len(steps), 0),
                   "always cloud": np.full(len(steps), 1)}
     ope = {name: evaluate_policy(steps, actions, predicted) for name, actions in candidates.items()}
     numbers["off_policy"] = {name: {key: (value.__dict__ if hasattr(value, "__dict__") else value)

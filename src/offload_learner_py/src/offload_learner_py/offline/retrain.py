@@ -147,12 +147,6 @@ def recorded_weights(data: BagData) -> CostWeights:
     return CostWeights(alpha, 1.0 - alpha)
 
 
-def agent_greedy_actions(agent: DQNAgent, states: np.ndarray) -> np.ndarray:
-    if len(states) == 0:
-        return np.zeros(0, dtype=np.int64)
-    return greedy_actions(agent.q_values(states))
-
-
 def chronological_split(n: int, test_fraction: float) -> int:
     """Rows [0, cut) train, [cut, n) test; both non-empty when n >= 2."""
     if not 0.0 < test_fraction < 1.0:
@@ -191,7 +185,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     checkpoint = os.path.join(out_dir, "checkpoint.pt")
     save_checkpoint(agent, checkpoint)
     table.save_npz(os.path.join(out_dir, "transitions.npz"))
-    retrained = agent_greedy_actions(agent, test.states)
+    retrained = agent.greedy_actions(test.states)
     evaluation = {"rows": len(table), "train_rows": len(train), "test_rows": len(test),
                   "test_from_request": int(test.t[0]), "gradient_steps": gradient_steps, "seed": config.seed,
                   "taken_only": taken_only, "final_loss": float(result.losses[-100:].mean()) if gradient_steps else None,
@@ -210,7 +204,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     first_test_log_row = log_rows[cut]
     steps = LoggedSteps.from_log(data.log, np.arange(first_test_log_row, len(data.log)))
     predicted = fit_latency_model(steps.states, steps.action, steps.latency_s)
-    candidates = {"retrained": agent_greedy_actions(agent, steps.states), "always_local": np.full(len(steps), LOCAL),
+    candidates = {"retrained": agent.greedy_actions(steps.states), "always_local": np.full(len(steps), LOCAL),
                   "always_cloud": np.full(len(steps), CLOUD)}
     ope = {name: evaluate_policy(steps, actions, predicted) for name, actions in candidates.items()}
     evaluation["off_policy"] = {name: to_jsonable(value) for name, value in ope.items()}
