@@ -35,8 +35,13 @@ void DijkstraPlanner::beginSearch() {
 // Dial's bucket queue with bucket width 1, the smallest step cost (Dinitz): every cell in the lowest
 // non-empty bucket already has its final distance, so buckets are settled in any order with O(1) queue
 // work. Steps cost at most sqrt(2) < 2, so three buckets in a ring hold everything pending.
-bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
+bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
   beginSearch();
+  // Checked once every kCancelCheck settled cells: a relaxed load costs nothing at that rate, and even a
+  // slow robot settles that many cells in well under a millisecond.
+  constexpr std::uint64_t kCancelCheck = 4096;
+  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
+  if (cancelled_) return false;
   const int w = width_;
   const int h = height_;
   double* const dist = dist_.data();
@@ -65,6 +70,11 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target) {
       if (std::signbit(d)) continue;  // stale duplicate of an improved entry
       dist[i] = -d;
       ++expansions_;
+      if (cancel != nullptr && expansions_ % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
+        cancelled_ = true;
+        pending = 0;
+        break;
+      }
       const int y = i / w;
       const int x = i - y * w;
       row_min = std::min(row_min, y);
@@ -229,10 +239,13 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   // answer; if not, the search has exhausted the start's component and the nearest settled cell within
   // the tolerance is the nearest reachable one.
   int reached = target;
-  if (!search(index(start), target, options.stop_at_goal)) {
-    reached = radius > 0.0 ? nearestWithin(goal, radius, true) : -1;
-  }
+  const bool found = search(index(start), target, options.stop_at_goal, options.cancel);
   result.expansions = expansions_;
+  if (cancelled_) {
+    return finish(PlanStatus::kCancelled, "cancelled by the caller after " + std::to_string(expansions_) +
+                                              " expansions");
+  }
+  if (!found) reached = radius > 0.0 ? nearestWithin(goal, radius, true) : -1;
   if (reached < 0) {
     std::string msg = "goal " + cellText(goal) + " is unreachable from start " + cellText(start);
     if (radius > 0.0) msg += ", and so is every free cell within the tolerance";

@@ -29,6 +29,7 @@ const char* statusName(PlanStatus status) {
     case PlanStatus::kCloudError: return "CLOUD_ERROR";
     case PlanStatus::kInvalidRequest: return "INVALID_REQUEST";
     case PlanStatus::kStaleMap: return "STALE_MAP";
+    case PlanStatus::kCancelled: return "CANCELLED";
   }
   return "";
 }

@@ -2,6 +2,7 @@
 
 #include <time.h>
 
+#include <algorithm>
 #include <chrono>
 #include <stdexcept>
 
@@ -26,6 +27,7 @@ OFFLOAD_SAME_CODE(CLOUD_TIMEOUT, kCloudTimeout);
 OFFLOAD_SAME_CODE(CLOUD_ERROR, kCloudError);
 OFFLOAD_SAME_CODE(INVALID_REQUEST, kInvalidRequest);
 OFFLOAD_SAME_CODE(STALE_MAP, kStaleMap);
+OFFLOAD_SAME_CODE(CANCELLED, kCancelled);
 #undef OFFLOAD_SAME_CODE
 
 StampedPoint pointOf(const geometry_msgs::PoseStamped& pose) {
@@ -81,7 +83,8 @@ nav_msgs::OccupancyGrid::ConstPtr PlanRequestHandler::map() const {
   return map_;
 }
 
-void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response* res) const {
+void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response* res,
+                                const std::atomic<bool>* cancel) const {
   nav_msgs::OccupancyGrid::ConstPtr map;
   MapGeometry geometry;
   std::string rejected;
@@ -100,6 +103,7 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
 
   PlannerOptions options = options_;
   options.goal_tolerance_cells = request.tolerance_cells;
+  options.cancel = cancel;
   static thread_local DijkstraPlanner planner;
   const PlanResult result = planner.plan(map->data.data(), map->data.size(), geometry.width, geometry.height,
                                          request.start, request.goal, options);
@@ -127,6 +131,39 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
   }
 }
 
+std::shared_ptr<std::atomic<bool>> CancelRegistry::begin(std::uint64_t id) {
+  auto flag = std::make_shared<std::atomic<bool>>(false);
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto early = std::find(early_.begin(), early_.end(), id);
+  if (early != early_.end()) {
+    early_.erase(early);
+    flag->store(true);
+  }
+  running_[id] = flag;
+  return flag;
+}
+
+void CancelRegistry::end(std::uint64_t id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  running_.erase(id);
+}
+
+void CancelRegistry::cancel(std::uint64_t id) {
+  std::lock_guard<std::mutex> lock(mutex_);
+  const auto running = running_.find(id);
+  if (running != running_.end()) {
+    running->second->store(true);
+    return;
+  }
+  early_.push_back(id);
+  if (early_.size() > kRemembered) early_.pop_front();
+}
+
+std::size_t CancelRegistry::running() const {
+  std::lock_guard<std::mutex> lock(mutex_);
+  return running_.size();
+}
+
 PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   PlannerOptions options;
   int max_map_cells = 0;
@@ -151,6 +188,10 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   ros::SubscribeOptions map_options = ros::SubscribeOptions::create<nav_msgs::OccupancyGrid>(
       "map", 1, boost::bind(&PlannerNode::onMap, this, boost::placeholders::_1), ros::VoidPtr(), &map_queue_);
   map_sub_ = nh.subscribe(map_options);
+  ros::SubscribeOptions cancel_options = ros::SubscribeOptions::create<std_msgs::UInt64>(
+      "cancel", 100, boost::bind(&PlannerNode::onCancel, this, boost::placeholders::_1), ros::VoidPtr(),
+      &cancel_queue_);
+  cancel_sub_ = pnh.subscribe(cancel_options);
   plan_srv_ = pnh.advertiseService("plan", &PlannerNode::onPlan, this);
   make_plan_srv_ = pnh.advertiseService("make_plan", &PlannerNode::onMakePlan, this);
   ROS_INFO("planner ready: lethal_threshold %d, unknown cells %s, %d planning threads, maps up to %d cells; "
@@ -161,10 +202,16 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
 
 void PlannerNode::spin() {
   ros::AsyncSpinner map_spinner(1, &map_queue_);
+  ros::AsyncSpinner cancel_spinner(1, &cancel_queue_);
   ros::AsyncSpinner plan_spinner(planning_threads_);
   map_spinner.start();
+  cancel_spinner.start();
   plan_spinner.start();
   ros::waitForShutdown();
+}
+
+void PlannerNode::onCancel(const std_msgs::UInt64::ConstPtr& msg) {
+  if (msg->data != 0) cancels_.cancel(msg->data);
 }
 
 void PlannerNode::onMap(const nav_msgs::OccupancyGrid::ConstPtr& map) {
@@ -189,7 +236,13 @@ double threadCpuSeconds() {
 void PlannerNode::serve(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res) {
   const auto started = std::chrono::steady_clock::now();
   const double cpu_started = threadCpuSeconds();
-  handler_->handle(req, res);
+  if (req.cancel_id == 0) {
+    handler_->handle(req, res);
+  } else {
+    const auto cancel = cancels_.begin(req.cancel_id);
+    handler_->handle(req, res, cancel.get());
+    cancels_.end(req.cancel_id);
+  }
   res->cpu_s = threadCpuSeconds() - cpu_started;
   offload_msgs::PlanTiming timing;
   timing.header.stamp = ros::Time::now();
@@ -206,6 +259,8 @@ void PlannerNode::serve(const offload_msgs::PlanPath::Request& req, offload_msgs
     path_pub_.publish(res->path);
     ROS_DEBUG("planned %zu poses, %.2f m, in %.2f ms", res->path.poses.size(), res->cost_m,
               res->planning_time_s * 1e3);
+  } else if (res->status == offload_msgs::PlanPath::Response::CANCELLED) {
+    ROS_DEBUG("plan %llu cancelled: %s", static_cast<unsigned long long>(req.cancel_id), res->message.c_str());
   } else {
     ROS_WARN("plan failed (%s): %s", statusName(static_cast<PlanStatus>(res->status)), res->message.c_str());
   }

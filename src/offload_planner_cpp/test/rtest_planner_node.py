@@ -14,6 +14,7 @@ import rostest
 from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid, Path
 from nav_msgs.srv import GetPlan
+from std_msgs.msg import UInt64
 from offload_msgs.msg import PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 import rospkg
@@ -241,6 +242,52 @@ class PlannerNodeTest(unittest.TestCase):
             publisher.join()
         self.assertEqual(seen, {0, 1}, "both maps reached the node during the requests")
         np_pub.publish(to_message(self.map, "map", rospy.Time(5000)))   # leave the real map in place
+
+    def publish_map(self, grid, stamp_s):
+        """Publishes the test map with `grid` and waits until the node plans on it."""
+        pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2)
+        deadline = rospy.Time.now() + rospy.Duration(30)
+        while pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
+            rospy.sleep(0.05)
+        pub.publish(to_message(dataclasses.replace(self.map, grid=grid), "map", rospy.Time(stamp_s)))
+        while self.call(self.home, self.home).map_stamp != rospy.Time(stamp_s) and rospy.Time.now() < deadline:
+            rospy.sleep(0.1)
+        return pub
+
+    def test_zy_cancel_stops_a_running_plan_and_one_not_yet_begun(self):
+        """Of two identical long plans started together, the one cancelled on ~cancel answers CANCELLED
+        first; a cancel that arrives before its request makes that request answer CANCELLED at once."""
+        self.publish_map(np.zeros((5000, 5000), np.int8), 9000)
+        cancel = rospy.Publisher("/planner/cancel", UInt64, queue_size=10)
+        deadline = rospy.Time.now() + rospy.Duration(30)
+        while cancel.get_num_connections() == 0 and rospy.Time.now() < deadline:
+            rospy.sleep(0.05)
+        corner, far = self.world((0, 0)), self.world((4999, 4999))
+        finished = {}
+
+        def long_plan(cancel_id):
+            req = PlanPathRequest(start=self.pose(corner), goal=self.pose(far), cancel_id=cancel_id)
+            res = rospy.ServiceProxy("/planner/plan", PlanPath)(req)
+            finished[cancel_id] = (rospy.get_time(), res)
+
+        threads = [threading.Thread(target=long_plan, args=(cancel_id,)) for cancel_id in (4242, 4243)]
+        for thread in threads:
+            thread.start()
+        rospy.sleep(0.2)
+        cancel.publish(UInt64(4242))
+        for thread in threads:
+            thread.join(120)
+        self.assertEqual(finished[4242][1].status, R.CANCELLED, finished[4242][1].message)
+        self.assertEqual(len(finished[4242][1].path.poses), 0)
+        self.assertEqual(finished[4243][1].status, R.OK)
+        self.assertLess(finished[4242][0], finished[4243][0], "the cancelled plan ran to its end")
+        self.assertLess(finished[4242][1].expansions, finished[4243][1].expansions)
+
+        cancel.publish(UInt64(4344))
+        rospy.sleep(0.5)
+        early = self.plan(PlanPathRequest(start=self.pose(corner), goal=self.pose(far), cancel_id=4344))
+        self.assertEqual((early.status, early.expansions), (R.CANCELLED, 0), early.message)
+        self.publish_map(self.map.grid, 9001)
 
     def test_zz_long_plans_starve_neither_short_plans_nor_map_updates(self):
         """Two long plans on a large map run while a new map arrives and a short plan is asked: the

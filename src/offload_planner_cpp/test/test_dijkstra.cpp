@@ -3,10 +3,13 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <atomic>
+#include <chrono>
 #include <cmath>
 #include <queue>
 #include <random>
 #include <string>
+#include <thread>
 #include <vector>
 
 #include "offload_planner_cpp/dijkstra.h"
@@ -225,6 +228,50 @@ TEST(Dijkstra, StopAtGoalSettlesFewerCells) {
   EXPECT_EQ(full.expansions, 2500u);
   EXPECT_LT(early.expansions, 100u);
   EXPECT_DOUBLE_EQ(early.cost, full.cost);
+}
+
+TEST(Dijkstra, ACancelSetBeforehandStopsThePlanAtOnce) {
+  Grid g(std::vector<std::string>(50, std::string(50, '.')));
+  std::atomic<bool> cancel{true};
+  PlannerOptions o;
+  o.cancel = &cancel;
+  const auto r = g.plan({0, 0}, {49, 49}, o);
+  EXPECT_EQ(r.status, PlanStatus::kCancelled);
+  EXPECT_EQ(r.expansions, 0u);
+  EXPECT_TRUE(r.path.empty());
+  EXPECT_NE(r.message.find("cancelled"), std::string::npos);
+  cancel = false;   // a flag that is never set changes nothing, and the buffers are clean for the next plan
+  const auto again = g.plan({0, 0}, {49, 49}, o);
+  ASSERT_TRUE(again.ok()) << again.message;
+  EXPECT_NEAR(again.cost, 49 * kSqrt2, 1e-9);
+}
+
+TEST(Dijkstra, ACancelFromAnotherThreadStopsARunningPlan) {
+  // A full wave over 4 M cells takes tens of milliseconds; the cancel comes once it has started.
+  const int n = 2000;
+  std::vector<std::int8_t> grid(static_cast<std::size_t>(n) * n, 0);
+  DijkstraPlanner planner;
+  ASSERT_TRUE(planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {2, 2}).ok());   // buffers allocated
+  PlannerOptions o;
+  o.stop_at_goal = false;
+  std::atomic<bool> cancel{false};
+  o.cancel = &cancel;
+  std::thread canceller([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(5));
+    cancel = true;
+  });
+  const auto r = planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {n - 1, n - 1}, o);
+  canceller.join();
+  ASSERT_EQ(r.status, PlanStatus::kCancelled) << r.message;
+  EXPECT_GT(r.expansions, 0u);
+  EXPECT_LT(r.expansions, grid.size());
+  EXPECT_EQ(r.expansions % 4096, 0u) << "stopped at a check";
+  // The next plan on the same planner is exact: the cancelled search's rows were reset.
+  cancel = false;
+  const auto after = planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {10, 3}, o);
+  ASSERT_TRUE(after.ok()) << after.message;
+  EXPECT_NEAR(after.cost, 7 + 3 * kSqrt2, 1e-9);
+  EXPECT_EQ(after.expansions, grid.size());
 }
 
 TEST(Dijkstra, Errors) {

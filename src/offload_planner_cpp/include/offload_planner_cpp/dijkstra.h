@@ -7,6 +7,7 @@
 // theirs exactly.
 #pragma once
 
+#include <atomic>
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
@@ -33,6 +34,9 @@ struct PlannerOptions {
   double goal_tolerance_cells = 0.0;
   // Stop as soon as the goal is settled; false explores the whole reachable component (benchmarks).
   bool stop_at_goal = true;
+  // Set to true by another thread, it stops the plan within a few thousand expansions with kCancelled:
+  // a caller that already has its path (from the other side) frees the CPU for the next request.
+  const std::atomic<bool>* cancel = nullptr;
 };
 
 // The planner's one rule of which cells it may enter.
@@ -61,8 +65,9 @@ class DijkstraPlanner {
                   const PlannerOptions& options = PlannerOptions());
 
  private:
-  // Runs the search from `start`; returns true when `target` was settled.
-  bool search(int start, int target, bool stop_at_target);
+  // Runs the search from `start`; returns true when `target` was settled. Sets cancelled_ and returns false
+  // when `cancel` was set.
+  bool search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
   // The free cell nearest to `goal` within `radius` cells (settled by the last search if
   // `settled_only`), ties to the first in row order; -1 if there is none.
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
@@ -81,6 +86,7 @@ class DijkstraPlanner {
   int height_ = 0;
   bool passable_[256] = {};  // by occupancy value as uint8 (-1 unknown is 255)
   std::uint64_t expansions_ = 0;
+  bool cancelled_ = false;
 
   // Reused between calls: +inf except in cells [dirty_begin_, dirty_end_), the rows the last search
   // touched, which the next search resets: a short search on a big map does not pay to clear it all.

@@ -22,10 +22,11 @@ enum class PlanStatus : std::uint8_t {
   kCloudError = 10,      // the cloud answered with an error that is not about the request
   kInvalidRequest = 11,  // non-finite pose, negative tolerance, bad planner options
   kStaleMap = 12,        // only a path on a map older than the one in force (the learner's verdict on an answer)
+  kCancelled = 13,       // the caller cancelled the plan (it had its path from the other side): no path
 };
 
 // One past the largest code: bindings enumerate 0 .. kPlanStatusCount - 1.
-constexpr int kPlanStatusCount = 13;
+constexpr int kPlanStatusCount = 14;
 
 // The code's name as offload_msgs/PlanPath spells its constant, e.g. "GOAL_BLOCKED"; "" past the end.
 const char* statusName(PlanStatus status);

@@ -4,10 +4,13 @@
 // PlannerNode only wires topics, services and parameters.
 #pragma once
 
+#include <atomic>
 #include <cstdint>
+#include <deque>
 #include <memory>
 #include <mutex>
 #include <string>
+#include <unordered_map>
 
 #include <nav_msgs/GetPlan.h>
 #include <nav_msgs/OccupancyGrid.h>
@@ -15,6 +18,7 @@
 #include <offload_msgs/PlanTiming.h>
 #include <ros/callback_queue.h>
 #include <ros/ros.h>
+#include <std_msgs/UInt64.h>
 
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/plan_request.h"
@@ -34,8 +38,10 @@ class PlanRequestHandler {
   bool setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, std::string* error);
   nav_msgs::OccupancyGrid::ConstPtr map() const;
 
-  // Thread safe; each calling thread plans with its own buffers on the map current at the call.
-  void handle(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res) const;
+  // Thread safe; each calling thread plans with its own buffers on the map current at the call. `cancel`
+  // (optional), set from another thread, stops the plan with CANCELLED.
+  void handle(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res,
+              const std::atomic<bool>* cancel = nullptr) const;
 
  private:
   PlannerOptions options_;
@@ -44,6 +50,23 @@ class PlanRequestHandler {
   nav_msgs::OccupancyGrid::ConstPtr map_;
   MapGeometry geometry_;  // of map_
   std::string rejected_;  // why the last rejected map was rejected, for NO_MAP replies
+};
+
+// The plans a caller may cancel, by the request's cancel_id. A cancel that arrives before its plan started
+// (topics and services travel apart) is remembered, among the latest kRemembered, so the plan never runs.
+class CancelRegistry {
+ public:
+  static constexpr std::size_t kRemembered = 256;
+  // The flag the plan with `id` watches; already set when it was cancelled before it began.
+  std::shared_ptr<std::atomic<bool>> begin(std::uint64_t id);
+  void end(std::uint64_t id);
+  void cancel(std::uint64_t id);
+  std::size_t running() const;
+
+ private:
+  mutable std::mutex mutex_;
+  std::unordered_map<std::uint64_t, std::shared_ptr<std::atomic<bool>>> running_;
+  std::deque<std::uint64_t> early_;   // cancelled before they began, oldest first, at most kRemembered
 };
 
 class PlannerNode {
@@ -55,6 +78,7 @@ class PlannerNode {
 
  private:
   void onMap(const nav_msgs::OccupancyGrid::ConstPtr& map);
+  void onCancel(const std_msgs::UInt64::ConstPtr& msg);
   bool onPlan(offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response& res);
   bool onMakePlan(nav_msgs::GetPlan::Request& req, nav_msgs::GetPlan::Response& res);
   void serve(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res);
@@ -63,7 +87,10 @@ class PlannerNode {
   std::string planner_name_;
   int planning_threads_ = 4;
   ros::CallbackQueue map_queue_;
+  ros::CallbackQueue cancel_queue_;   // its own thread: a cancel must reach a plan while every planning thread is busy
+  CancelRegistry cancels_;
   ros::Subscriber map_sub_;
+  ros::Subscriber cancel_sub_;
   ros::ServiceServer plan_srv_;
   ros::ServiceServer make_plan_srv_;
   ros::Publisher path_pub_;
