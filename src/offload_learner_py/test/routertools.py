@@ -7,8 +7,9 @@ from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.routing import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 
-OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10
+OK, NO_PATH, TIMEOUT, ERROR, CANCELLED = 0, 7, 9, 10, 13
 STATUSES = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR)
+CANCELLABLE = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, cancelled=CANCELLED)
 STATE = State(1.2, 0.6, 0.05)
 
 
@@ -38,6 +39,41 @@ class FakePlanner:
         if self.raises:
             raise self.raises
         return self.status, {"side": self, "request": request}
+
+
+class CancellablePlanner:
+    """A planner the router may cancel, as the planner node through ~cancel: a call holds until `release()`
+    (all calls) or until its call id is cancelled, then answers CANCELLED after `ran_s` of virtual time.
+    `held`: how many calls may hold (later ones answer at once); None: all."""
+
+    def __init__(self, clock, cost_s, ran_s=0.0, held=None, cpu_s=0.0):
+        self.clock, self.cost_s, self.ran_s, self.held, self.cpu_s = clock, cost_s, ran_s, held, cpu_s
+        self.calls, self.call_ids, self.cancelled = [], [], []
+        self._released = False
+        self._cond = threading.Condition()
+
+    def __call__(self, request, call_id=0):
+        with self._cond:
+            self.calls.append(request)
+            self.call_ids.append(call_id)
+            holds = self.held is None or len(self.calls) <= self.held
+            assert self._cond.wait_for(lambda: not holds or self._released or call_id in self.cancelled, 10), \
+                "neither released nor cancelled"
+            if call_id in self.cancelled:
+                self.clock.advance(self.ran_s)
+                return CANCELLED, {"side": self, "request": request, "cpu": self.cpu_s}
+        self.clock.advance(self.cost_s)
+        return OK, {"side": self, "request": request, "cpu": self.cpu_s}
+
+    def cancel(self, call_id):
+        with self._cond:
+            self.cancelled.append(call_id)
+            self._cond.notify_all()
+
+    def release(self):
+        with self._cond:
+            self._released = True
+            self._cond.notify_all()
 
 
 class Recorder:

@@ -17,7 +17,7 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.core.state import State, input_size
-from offload_learner_py.nodes.learner_io import PlannerProxy, RosLog, RvizGoals, StaleMapCheck, account, \
+from offload_learner_py.nodes.learner_io import PlannerProxy, RosLog, planner_proxy, RvizGoals, StaleMapCheck, account, \
     config_msg, decision_msg, exit_fatal, outcome_msg, rejection, stamped, stats_msg, wait_for_recorder
 from offload_learner_py.online.breaker import BreakerConfig
 from offload_learner_py.online.cpu import make_cpu_sampler
@@ -56,7 +56,9 @@ class LearnerNode:
         self.goals = RvizGoals(self.serve, float(p("goal_tolerance", 0.5)),
                                (float(p("start_x", float("nan"))), float(p("start_y", float("nan")))),
                                str(p("base_frame", "base_link")), lambda: self.map_info)
-        self.sides = (PlannerProxy(str(p("local_service", "/planner/plan"))),
+        # The local planner's plans are cancelled through its ~cancel topic when a newer request needs it; the
+        # cloud side runs calls concurrently and is never cancelled.
+        self.sides = (planner_proxy(str(p("local_service", "/planner/plan")), str(p("local_cancel_topic", "/planner/cancel"))),
                       PlannerProxy(str(p("cloud_service", "/cloud_bridge/plan"))))
         wait_s = float(p("service_wait_s", 60.0))
         for side in self.sides:
@@ -75,7 +77,8 @@ class LearnerNode:
         wait_for_recorder((self.decision_pub, self.outcome_pub), float(p("wait_for_recorder_s", 0.0)),
                           rospy.names.resolve_name(recorder) if recorder else "")
         statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
-                            cloud_error=PlanPathResponse.CLOUD_ERROR, stale_map=PlanPathResponse.STALE_MAP)
+                            cloud_error=PlanPathResponse.CLOUD_ERROR, stale_map=PlanPathResponse.STALE_MAP,
+                            cancelled=PlanPathResponse.CANCELLED)
         self.router = OffloadRouter(self.session.policy, *self.sides, statuses, self.router_config,
                                     on_decision=self.publish_decision, on_outcome=self.on_outcome,
                                     stale=StaleMapCheck(lambda: self.map_info), account=account)

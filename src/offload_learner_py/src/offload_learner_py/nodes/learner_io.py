@@ -3,11 +3,13 @@ publishes built from the router's and the session's records, the wait for the re
 (a 2D Nav Goal planned from the robot's pose)."""
 import json
 import math
+import threading
 import time
 from dataclasses import asdict
 
 import rospy
 from geometry_msgs.msg import PoseStamped
+from std_msgs.msg import UInt64
 from offload_msgs.msg import LearnerConfig, OffloadDecision, OffloadOutcome, TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
@@ -21,27 +23,53 @@ class RosLog:
 
 
 class PlannerProxy:
-    """A persistent connection to one planner's ~plan, reopened after any failure. Each side is
-    called by one thread at a time (the router serialises requests), so one connection suffices."""
+    """Persistent connections to one planner's ~plan, one per call in flight (the router calls the cloud side
+    concurrently), each reopened after any failure."""
 
     def __init__(self, service: str):
         self.service = service
-        self._proxy = None
+        self._idle = []
+        self._lock = threading.Lock()
 
-    def __call__(self, request):
-        if self._proxy is None:
-            self._proxy = rospy.ServiceProxy(self.service, PlanPath, persistent=True)
+    def __call__(self, request, call_id: int = 0):
+        with self._lock:
+            proxy = self._idle.pop() if self._idle else None
+        if proxy is None:
+            proxy = rospy.ServiceProxy(self.service, PlanPath, persistent=True)
+        # A copy: both sides of a probe get the same request object, each with its own cancel_id.
+        mine = PlanPathRequest(start=request.start, goal=request.goal, tolerance=request.tolerance, cancel_id=call_id)
         try:
-            response = self._proxy(request)
+            response = proxy(mine)
         except Exception:
-            self.close()
+            proxy.close()
             raise
+        with self._lock:
+            self._idle.append(proxy)
         return response.status, response
 
     def close(self):
-        if self._proxy is not None:
-            self._proxy.close()
-            self._proxy = None
+        with self._lock:
+            proxies, self._idle = self._idle, []
+        for proxy in proxies:
+            proxy.close()
+
+
+class CancellablePlannerProxy(PlannerProxy):
+    """A planner whose plans the router may cancel: the call's id travels as PlanPath.cancel_id, a cancel is
+    that id on the planner's ~cancel topic."""
+
+    def __init__(self, service: str, cancel_topic: str):
+        super().__init__(service)
+        self.cancel_topic = cancel_topic
+        self._cancel = rospy.Publisher(cancel_topic, UInt64, queue_size=100)
+
+    def cancel(self, call_id: int) -> None:
+        self._cancel.publish(UInt64(call_id))
+
+
+def planner_proxy(service: str, cancel_topic: str) -> PlannerProxy:
+    """The proxy for a planner: cancellable when it has a ~cancel topic ("" for none)."""
+    return CancellablePlannerProxy(service, cancel_topic) if cancel_topic else PlannerProxy(service)
 
 
 def exit_fatal(error) -> None:

@@ -13,19 +13,25 @@ CPU or the link; a `probe_rate` share of requests (drawn independently of the st
 unbiased sample for off-policy evaluation) are probes. A deployed request measures one side; the other is
 imputed by that side's latency model (latency_model.py) so eq. 10 still teaches the DQN.
 
-Each side is a lane that serves one call at a time (the planner node is single-threaded); a request never
-waits for a side it does not call, so the slower side of a probe finishes in the background without holding
-up the next request, and a background call that has not started yet is cancelled when a newer request
-needs that side. `delivered_s` runs from the request's arrival (any wait for a busy side included) to
-the path the caller gets.
+The cloud side serves calls concurrently (the bridge borrows a socket per call and a call costs the robot
+little CPU), so a cloud call still running in the background never holds up the next request. The local
+planner shares the robot's CPU, so its calls run one at a time, and a newer request that needs it cancels
+the local call of an earlier request whose caller already has its path (`cancel(call_id)` on the local
+side, the planner node's ~cancel topic; the plan stops within a few thousand expansions with CANCELLED).
+A cancelled call's CPU is still accounted; its latency is a lower bound, which the learner uses only where
+the other side was already faster (see _learn). `delivered_s` runs from the request's arrival (any wait
+for the local planner included) to the path the caller gets.
 
 Deadline hedge: when the chosen side has not answered within a deadline (a quantile of its latency model
 for this state, clamped, or a fixed bound), the other side starts and the first good path is delivered.
 Circuit breaker (breaker.py): after repeated cloud failures or a heartbeat that says the link is down or
 too slow, requests are planned locally without touching the link until the link is healthy again.
 """
+import itertools
 import math
+import os
 import threading
+from contextlib import nullcontext
 import time
 from typing import Any, Callable, Optional, Tuple
 
@@ -47,28 +53,47 @@ def _features(state: State) -> Tuple[float, float, float]:
     return state.input_size, state.cpu_availability, state.round_trip_s
 
 
-PlanCall = Callable[[Any], Tuple[int, Any]]
+PlanCall = Callable[..., Tuple[int, Any]]
 Accounting = Callable[[Any], Tuple[float, int, int]]
 
 
 class _Lane:
-    """One planner side: one call at a time, newest request first for calls nobody waits for."""
+    """One planner side. `serial`: one call at a time, and a call nobody waits for any more is dropped before
+    it starts (or cancelled while it runs) when a newer request needs the side."""
 
-    def __init__(self):
-        self.lock = threading.Lock()
-        self.newest_lock = threading.Lock()
+    def __init__(self, serial: bool):
+        self.serial = serial
+        self.lock = threading.Lock()     # held through a call when serial
+        self.state = threading.Lock()
         self.newest = -1
+        self.running = {}                # call_id -> the _Request it serves
 
     def want(self, request_id: int) -> None:
-        with self.newest_lock:
+        with self.state:
             self.newest = max(self.newest, request_id)
 
     def superseded(self, request_id: int) -> bool:
-        with self.newest_lock:
+        with self.state:
             return self.newest > request_id
 
+    def begin(self, call_id: int, req: "_Request") -> None:
+        with self.state:
+            self.running[call_id] = req
+
+    def end(self, call_id: int) -> None:
+        with self.state:
+            self.running.pop(call_id, None)
+
+    def abandoned(self, request_id: int):
+        """Calls running for earlier requests whose callers already have their path."""
+        with self.state:
+            return [call_id for call_id, req in self.running.items()
+                    if req.outcome.request_id < request_id and req.delivered.is_set()]
+
     def busy(self) -> bool:
-        return self.lock.locked()
+        """A call runs whose caller still waits for it (one that could not be cancelled)."""
+        with self.state:
+            return self.serial and any(not req.delivered.is_set() for req in self.running.values())
 
 
 class _Request:
@@ -97,7 +122,10 @@ class OffloadRouter:
     the last good map keeps serving rather than leaving a robot without a path.
 
     `account(response)` (optional) gives (robot CPU-seconds, link bytes sent, link bytes received) that
-    the serving node reported for one call."""
+    the serving node reported for one call.
+
+    A side that has a `cancel(call_id)` method is called as `side(request, call_id=...)`, each call with its
+    own id, and answers `statuses.cancelled` once cancelled; other sides are called as `side(request)`."""
 
     def __init__(self, policy: Policy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
@@ -116,7 +144,9 @@ class OffloadRouter:
         self.rng = np.random.default_rng(config.seed)
         self.breaker = breaker or LinkBreaker(config.breaker)
         self.models = {LOCAL: LatencyModel(config.latency_model), CLOUD: LatencyModel(config.latency_model)}
-        self._lanes = {LOCAL: _Lane(), CLOUD: _Lane()}
+        self._lanes = {LOCAL: _Lane(serial=True), CLOUD: _Lane(serial=False)}
+        # Call ids start at a random point: a cancel meant for an earlier learner process never hits ours.
+        self._call_ids = itertools.count(int.from_bytes(os.urandom(6), "little") + 1)
         self._waited_out = {}   # id(side) -> the stale-map verdict it was waited out on
         self._ids = threading.Lock()
         self._deciding = threading.Lock()   # policy and probe draws share random generators across callers
@@ -172,8 +202,8 @@ class OffloadRouter:
             probe = True                      # both sides: the caller gets local at worst, the link is tested
         deadline_s = float("nan")
         if config.hedge and not probe:
-            # A side still busy with an earlier request's call (the planner cannot be interrupted) would make
-            # this one wait for it: the hedge then starts the other side at once.
+            # The local planner still busy with a call someone waits for would make this one wait for it: the
+            # hedge then starts the other side at once. (A call nobody waits for is cancelled instead.)
             deadline_s = 0.0 if self._lanes[action].busy() else self._deadline_s(action, state)
         return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s)
 
@@ -220,21 +250,39 @@ class OffloadRouter:
 
     def _side(self, req: _Request, side: int, request) -> None:
         lane = self._lanes[side]
-        with lane.lock:
-            if req.delivered.is_set() and lane.superseded(req.outcome.request_id):
+        call_id = next(self._call_ids) & 0xFFFFFFFFFFFFFFFF
+        if lane.serial:
+            self._cancel_abandoned(side, req.outcome.request_id)
+        with lane.lock if lane.serial else nullcontext():
+            if lane.serial and req.delivered.is_set() and lane.superseded(req.outcome.request_id):
                 result = SideResult(self.statuses.cloud_error, None, 0.0, raised="cancelled: a newer request needed "
                                     "this side first", cancelled=True)
             else:
                 started_after_s = self.clock() - req.began
+                lane.begin(call_id, req)
                 try:
-                    result = self._call_local(request) if side == LOCAL else self._call_cloud(request)
+                    result = self._call_local(request, call_id) if side == LOCAL else self._call_cloud(request, call_id)
                 except Exception as error:   # a broken stale() or account(): a failed side, never a lost request
                     result = SideResult(self.statuses.cloud_error, None, self.clock() - req.began - started_after_s,
                                         raised=f"{type(error).__name__}: {error}", link_failed=True)
+                finally:
+                    lane.end(call_id)
                 result.started_after_s = started_after_s
         if side == CLOUD and not result.cancelled and req.outcome.state is not None:
             self.breaker.record_call(not result.link_failed)
         self._settle(req, side, result, request)
+
+    def _cancel_abandoned(self, side: int, request_id: int) -> None:
+        """Cancels the side's running calls for earlier requests that already have their path, so this request
+        does not wait for them; a side without cancel() keeps running them."""
+        cancel = getattr(self.sides[side], "cancel", None)
+        if cancel is None:
+            return
+        for call_id in self._lanes[side].abandoned(request_id):
+            try:
+                cancel(call_id)
+            except Exception:   # a cancel that fails leaves the call to finish; this request waits for it
+                pass
 
     def _settle(self, req: _Request, side: int, result: SideResult, request) -> None:
         """Record one side's result; deliver the first good path; when no side is left running, finish."""
@@ -266,17 +314,23 @@ class OffloadRouter:
         req.delivered_result = result
         req.delivered.set()
 
-    def _call(self, side: PlanCall, request, failure_status: int, stale_status: Optional[int]) -> SideResult:
+    def _call(self, side: PlanCall, request, failure_status: int, stale_status: Optional[int],
+              call_id: int = 0) -> SideResult:
         """stale_status None: after the wait, an answer from the older map is delivered with a note (and the
         STALE_MAP status when the node gave one). A side already waited out on the same stale map is not
         waited for again: one wait per stale map, not one per request."""
         began = self.clock()
+        cancellable = getattr(side, "cancel", None) is not None
         while True:
             try:
-                status, response = side(request)
+                status, response = side(request, call_id=call_id) if cancellable else side(request)
             except Exception as error:   # the planner node is gone or broke: a failed side, never a lost request
                 return SideResult(failure_status, None, self.clock() - began, link_failed=True,
                                   raised=f"planner call failed: {type(error).__name__}: {error}")
+            if self.statuses.cancelled is not None and status == self.statuses.cancelled:
+                result = SideResult(int(status), response, self.clock() - began, cancelled=True,
+                                    raised="cancelled: a newer request needed this side")
+                break
             why = self.stale(response) if self.stale is not None and status == self.statuses.ok else None
             if why is None:
                 result = SideResult(int(status), response, self.clock() - began,
@@ -299,32 +353,34 @@ class OffloadRouter:
             result.cpu_s, result.bytes_sent, result.bytes_received = self.account(response)
         return result
 
-    def _call_local(self, request) -> SideResult:
+    def _call_local(self, request, call_id: int = 0) -> SideResult:
         # A local planner that cannot be called at all is reported as a cloud-style error status so
         # the caller still learns why; there is nobody else to plan.
-        return self._call(self.sides[LOCAL], request, self.statuses.cloud_error, None)
+        return self._call(self.sides[LOCAL], request, self.statuses.cloud_error, None, call_id)
 
-    def _call_cloud(self, request) -> SideResult:
-        return self._call(self.sides[CLOUD], request, self.statuses.cloud_error, self.statuses.cloud_error)
+    def _call_cloud(self, request, call_id: int = 0) -> SideResult:
+        return self._call(self.sides[CLOUD], request, self.statuses.cloud_error, self.statuses.cloud_error, call_id)
 
     # --- after the caller has its path ------------------------------------------------------------
     def _finish(self, req: _Request) -> None:
         outcome = req.outcome
         try:
             for side, result in req.results.items():
+                if side == LOCAL:
+                    outcome.robot_cpu_s += result.cpu_s   # a cancelled plan's CPU was spent all the same
+                else:
+                    outcome.bridge_cpu_s += result.cpu_s
+                outcome.bytes_sent += result.bytes_sent
+                outcome.bytes_received += result.bytes_received
                 if result.cancelled:
+                    if side == LOCAL and result.response is not None:
+                        outcome.local_lower_bound_s = result.seconds
                     continue
                 if side == LOCAL:
                     outcome.local, outcome.local_s = result, result.seconds
                 else:
                     outcome.cloud = result
                     self._score_cloud(outcome)
-                if side == LOCAL:
-                    outcome.robot_cpu_s += result.cpu_s
-                else:
-                    outcome.bridge_cpu_s += result.cpu_s
-                outcome.bytes_sent += result.bytes_sent
-                outcome.bytes_received += result.bytes_received
             self._learn(outcome)
             self.on_outcome(outcome)
         finally:
@@ -363,6 +419,15 @@ class OffloadRouter:
             return     # nothing measured about planning (a refused request, a stale map, a dead local planner)
         if local_s is None and outcome.local is not None:
             return     # the local planner answered but not with a plannable path: nothing to impute against
+        bound = outcome.local_lower_bound_s
+        if local_s is None and bound is not None and cloud_ok and bound >= cloud_s:
+            # Cancelled after running longer than the cloud took: l_local is at least `bound`, so the cloud was
+            # the better action whatever the rest would have been. Learning from the bound (or the model's
+            # estimate when larger) keeps the slowest local plans, the ones cancelled most, in the picture.
+            estimate = self.models[LOCAL].impute_s(state)
+            if estimate is None or estimate < bound:
+                self.models[LOCAL].observe(state, bound)
+            local_s, outcome.imputed = bound if estimate is None else max(bound, estimate), LOCAL
         if local_s is None:
             local_s, outcome.imputed = self.models[LOCAL].impute_s(state), LOCAL
         elif cloud_s is None:

@@ -22,6 +22,7 @@ class Statuses:
     cloud_timeout: int
     cloud_error: int
     stale_map: Optional[int] = None   # a path only on an older map; None: delivered as OK with a note
+    cancelled: Optional[int] = None   # a call the router cancelled (None: the sides cannot be cancelled)
 
     def cloud_failed(self, status: int) -> bool:
         """The cloud could not answer; the request itself may be fine, so plan it locally."""
@@ -40,7 +41,8 @@ class SideResult:
     cpu_s: float = 0.0              # robot CPU-seconds the serving node spent on it (the response says)
     bytes_sent: int = 0             # link bytes robot -> cloud for it (cloud side)
     bytes_received: int = 0
-    cancelled: bool = False         # a background call dropped before it started (a newer request took the side)
+    cancelled: bool = False         # a background call dropped before it started or cancelled while it ran
+                                    # (a newer request took the side); seconds: how long it had run
     started_after_s: float = 0.0    # from the request's arrival to the call (a busy side, or a hedge)
 
 
@@ -81,6 +83,8 @@ class Outcome:
     bridge_cpu_s: float = 0.0       # the cloud bridge's CPU on the robot for this request (serialising, waiting)
     bytes_sent: int = 0
     bytes_received: int = 0
+    local_lower_bound_s: Optional[float] = None   # a local call cancelled after running this long (l_local
+                                                  # was at least that); None when none was cancelled running
 
 
 @dataclass
