@@ -10,6 +10,7 @@
 #include <sstream>
 
 #include "offload_planner_cpp/dijkstra.h"
+#include "offload_planner_cpp/inflation.h"
 #include "offload_planner_cpp/plan_request.h"
 
 namespace py = pybind11;
@@ -62,14 +63,29 @@ Cell cellOf(const py::handle& obj, const char* name) {
   throw py::value_error(std::string(name) + " must be an (x, y) pair of integer cells");
 }
 
+offload_planner::Algorithm algorithmOf(const std::string& name) {
+  if (name == "dijkstra") return offload_planner::Algorithm::kDijkstra;
+  if (name == "astar") return offload_planner::Algorithm::kAStar;
+  throw py::value_error("algorithm must be \"dijkstra\" or \"astar\", got \"" + name + "\"");
+}
+
 py::dict planRaw(const py::array& grid, const py::object& start, const py::object& goal, int lethal_threshold,
-                 bool unknown_is_obstacle, double goal_tolerance, bool stop_at_goal) {
+                 bool unknown_is_obstacle, double goal_tolerance, bool stop_at_goal, const std::string& algorithm,
+                 bool any_angle, double cost_factor, double neutral_cost, double inflation_radius_cells,
+                 double robot_radius_cells, double inflation_decay) {
   const GridView view = viewOf(grid);
   PlannerOptions options;
   options.lethal_threshold = lethal_threshold;
   options.unknown_is_obstacle = unknown_is_obstacle;
   options.goal_tolerance_cells = goal_tolerance;
   options.stop_at_goal = stop_at_goal;
+  options.algorithm = algorithmOf(algorithm);
+  options.any_angle = any_angle;
+  options.cost_factor = cost_factor;
+  options.neutral_cost = neutral_cost;
+  options.inflation_radius_cells = inflation_radius_cells;
+  options.robot_radius_cells = robot_radius_cells;
+  options.inflation_decay = inflation_decay;
   const Cell s = cellOf(start, "start");
   const Cell g = cellOf(goal, "goal");
   // One planner per thread keeps the buffers warm and lets threads plan in parallel.
@@ -87,6 +103,7 @@ py::dict planRaw(const py::array& grid, const py::object& start, const py::objec
   out["message"] = result.message;
   out["path"] = path;
   out["cost"] = result.cost;
+  out["weighted_cost"] = result.weighted_cost;
   out["goal"] = py::make_tuple(result.goal.x, result.goal.y);
   out["expansions"] = result.expansions;
   out["seconds"] = result.seconds;
@@ -228,7 +245,56 @@ PYBIND11_MODULE(_core, m) {
         "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them.");
   m.def("plan_raw", &planRaw, py::arg("grid"), py::arg("start"), py::arg("goal"), py::arg("lethal_threshold") = 50,
         py::arg("unknown_is_obstacle") = true, py::arg("goal_tolerance") = 0.0, py::arg("stop_at_goal") = true,
+        py::kw_only(), py::arg("algorithm") = "dijkstra", py::arg("any_angle") = false, py::arg("cost_factor") = 0.0,
+        py::arg("neutral_cost") = 50.0, py::arg("inflation_radius_cells") = 0.0, py::arg("robot_radius_cells") = 0.0,
+        py::arg("inflation_decay") = 0.5,
         "Plan without raising on planning failures: returns a dict with status (PlanStatus), message, path, "
-        "cost, goal, expansions, seconds and grid_address (the buffer planned on). Malformed arguments raise "
-        "ValueError.");
+        "cost (length in cells), weighted_cost (in the cost model planned with), goal, expansions, seconds and "
+        "grid_address (the buffer planned on). Malformed arguments raise ValueError.");
+  m.def(
+      "path_clear",
+      [](const py::array& grid, const py::array_t<std::int32_t, py::array::c_style | py::array::forcecast>& path,
+         int lethal_threshold, bool unknown_is_obstacle) {
+        const GridView view = viewOf(grid);
+        if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
+          throw py::value_error("path must be an N x 2 array of (x, y) cells");
+        }
+        PlannerOptions options;
+        options.lethal_threshold = lethal_threshold;
+        options.unknown_is_obstacle = unknown_is_obstacle;
+        auto p = path.unchecked<2>();
+        for (py::ssize_t k = 0; k + 1 < path.shape(0); ++k) {
+          if (!offload_planner::segmentClear(view.data, view.width, view.height, Cell{p(k, 0), p(k, 1)},
+                                             Cell{p(k + 1, 0), p(k + 1, 1)}, options)) {
+            return k;
+          }
+        }
+        return py::ssize_t(-1);
+      },
+      py::arg("grid"), py::arg("path"), py::arg("lethal_threshold") = 50, py::arg("unknown_is_obstacle") = true,
+      "Index of the first segment of `path` (N x 2 cells) that leaves the grid, crosses a blocked cell or cuts a "
+      "blocked corner (the planner's line-of-sight rule); -1 when every segment is clear.");
+  m.def(
+      "inflate",
+      [](const py::array& grid, double robot_radius_cells, double inflation_radius_cells, double inflation_decay,
+         int lethal_threshold, bool unknown_is_obstacle) {
+        const GridView view = viewOf(grid);
+        PlannerOptions options;
+        options.lethal_threshold = lethal_threshold;
+        options.unknown_is_obstacle = unknown_is_obstacle;
+        options.robot_radius_cells = robot_radius_cells;
+        options.inflation_radius_cells = inflation_radius_cells;
+        options.inflation_decay = inflation_decay;
+        std::vector<std::int8_t> out;
+        {
+          py::gil_scoped_release release;
+          offload_planner::inflate(view.data, view.width, view.height, options, &out);
+        }
+        py::array_t<std::int8_t> inflated({static_cast<py::ssize_t>(view.height), static_cast<py::ssize_t>(view.width)});
+        std::memcpy(inflated.mutable_data(), out.data(), out.size());
+        return inflated;
+      },
+      py::arg("grid"), py::arg("robot_radius_cells"), py::arg("inflation_radius_cells"),
+      py::arg("inflation_decay") = 0.5, py::arg("lethal_threshold") = 50, py::arg("unknown_is_obstacle") = true,
+      "The grid the planner plans on with these inflation options (a copy; see inflation.h).");
 }

@@ -1,10 +1,13 @@
 #include "offload_planner_cpp/dijkstra.h"
 
+#include "offload_planner_cpp/inflation.h"
+
 #include <algorithm>
 #include <chrono>
 #include <cmath>
 #include <limits>
 #include <sstream>
+#include <utility>
 
 namespace offload_planner {
 namespace {
@@ -17,7 +20,62 @@ std::string cellText(Cell c) {
   return out.str();
 }
 
+// Walks the segment between the centres of cells a and b (Amanatides and Woo), calling
+// visit(index, length in cells inside that cell) for every cell it crosses. Returns false as soon as it
+// would enter a blocked cell, or pass through a grid vertex beside a blocked cell (the corner rule of the
+// 8-connected moves). Crossings are decided in integers, so a segment through a vertex is seen exactly.
+template <class Passable, class Visit>
+bool walkSegment(Cell a, Cell b, int width, Passable passable, Visit visit) {
+  const long long dx = std::llabs(static_cast<long long>(b.x) - a.x);
+  const long long dy = std::llabs(static_cast<long long>(b.y) - a.y);
+  const int sx = b.x > a.x ? 1 : -1;
+  const int sy = b.y > a.y ? 1 : -1;
+  const double length = std::hypot(static_cast<double>(dx), static_cast<double>(dy));
+  // The k-th vertical boundary is crossed at t = (2k + 1) / (2 dx), the k-th horizontal at (2k + 1) / (2 dy).
+  long long kx = 0;
+  long long ky = 0;
+  int x = a.x;
+  int y = a.y;
+  double t = 0.0;
+  auto at = [&](int cx, int cy) { return static_cast<int>(static_cast<long long>(cy) * width + cx); };
+  while (kx < dx || ky < dy) {
+    // Compare (2kx + 1) / dx with (2ky + 1) / dy without division.
+    const long long lhs = kx < dx ? (2 * kx + 1) * dy : -1;
+    const long long rhs = ky < dy ? (2 * ky + 1) * dx : -1;
+    double next;
+    if (ky >= dy || (kx < dx && lhs < rhs)) {
+      next = (2.0 * kx + 1.0) / (2.0 * dx);
+      visit(at(x, y), (next - t) * length);
+      x += sx;
+      ++kx;
+    } else if (kx >= dx || rhs < lhs) {
+      next = (2.0 * ky + 1.0) / (2.0 * dy);
+      visit(at(x, y), (next - t) * length);
+      y += sy;
+      ++ky;
+    } else {  // through a vertex: the two cells beside it are only touched, and must be free
+      next = (2.0 * kx + 1.0) / (2.0 * dx);
+      visit(at(x, y), (next - t) * length);
+      if (!passable(at(x + sx, y)) || !passable(at(x, y + sy))) return false;
+      x += sx;
+      y += sy;
+      ++kx;
+      ++ky;
+    }
+    t = next;
+    if (!passable(at(x, y))) return false;
+  }
+  visit(at(x, y), (1.0 - t) * length);
+  return true;
+}
+
 }  // namespace
+
+bool segmentClear(const std::int8_t* grid, int width, int height, Cell a, Cell b, const PlannerOptions& options) {
+  auto on = [&](Cell c) { return c.x >= 0 && c.y >= 0 && c.x < width && c.y < height; };
+  if (!on(a) || !on(b) || !isPassable(grid[static_cast<std::size_t>(a.y) * width + a.x], options)) return false;
+  return walkSegment(a, b, width, [&](int i) { return isPassable(grid[i], options); }, [](int, double) {});
+}
 
 void DijkstraPlanner::beginSearch() {
   constexpr double kUnseen = std::numeric_limits<double>::infinity();
@@ -108,6 +166,111 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
   return reached;
 }
 
+double DijkstraPlanner::heuristic(int index) const {
+  if (!astar_) return 0.0;
+  const int y = index / width_;
+  const double dx = std::abs(index - y * width_ - target_cell_.x);
+  const double dy = std::abs(y - target_cell_.y);
+  // The octile distance is the shortest 8-connected length on an empty grid, and no move costs less than
+  // its length times the least weight, so the heuristic never overestimates and is consistent.
+  return min_weight_ * (std::max(dx, dy) + (kDiagonal - 1.0) * std::min(dx, dy));
+}
+
+// Dijkstra or A* with a binary heap of (f, cell) and lazy deletion: for weighted moves, where buckets of
+// width one would not hold, and for A*.
+bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
+  beginSearch();
+  constexpr std::uint64_t kCancelCheck = 4096;
+  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
+  if (cancelled_) return false;
+  const int w = width_;
+  const int h = height_;
+  double* const dist = dist_.data();
+  int row_min = h;
+  int row_max = -1;
+  heap_.clear();
+  auto later = [](const std::pair<double, int>& a, const std::pair<double, int>& b) { return a.first > b.first; };
+  dist[start] = 0.0;
+  heap_.emplace_back(heuristic(start), start);
+  bool reached = false;
+  auto relax = [&](int i, int j, double d, double length) {
+    const double nd = d + moveCost(i, j, length);
+    if (nd < dist[j]) {  // false for settled cells, whose stored distance is negative
+      dist[j] = nd;
+      heap_.emplace_back(nd + heuristic(j), j);
+      std::push_heap(heap_.begin(), heap_.end(), later);
+    }
+  };
+  while (!heap_.empty()) {
+    std::pop_heap(heap_.begin(), heap_.end(), later);
+    const int i = heap_.back().second;
+    heap_.pop_back();
+    const double d = dist[i];
+    if (std::signbit(d)) continue;  // stale entry of a settled cell
+    dist[i] = -d;
+    ++expansions_;
+    if (cancel != nullptr && expansions_ % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
+      cancelled_ = true;
+      break;
+    }
+    const int y = i / w;
+    const int x = i - y * w;
+    row_min = std::min(row_min, y);
+    row_max = std::max(row_max, y);
+    if (i == target) {
+      reached = true;
+      if (stop_at_target) break;
+    }
+    const bool fw = x > 0 && passable(i - 1);
+    const bool fe = x < w - 1 && passable(i + 1);
+    const bool fn = y > 0 && passable(i - w);
+    const bool fs = y < h - 1 && passable(i + w);
+    if (fw) relax(i, i - 1, d, 1.0);
+    if (fe) relax(i, i + 1, d, 1.0);
+    if (fn) relax(i, i - w, d, 1.0);
+    if (fs) relax(i, i + w, d, 1.0);
+    if (fn && fw && passable(i - w - 1)) relax(i, i - w - 1, d, kDiagonal);
+    if (fn && fe && passable(i - w + 1)) relax(i, i - w + 1, d, kDiagonal);
+    if (fs && fw && passable(i + w - 1)) relax(i, i + w - 1, d, kDiagonal);
+    if (fs && fe && passable(i + w + 1)) relax(i, i + w + 1, d, kDiagonal);
+  }
+  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
+  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
+  return reached;
+}
+
+void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
+  const std::size_t n = path->size();
+  if (n < 3) return;
+  const int w = width_;
+  auto index = [&](Cell c) { return c.y * w + c.x; };
+  // The cost of the cell path up to each cell, in the same model as a segment's (a move is half in each cell).
+  std::vector<double> prefix(n, 0.0);
+  for (std::size_t k = 1; k < n; ++k) {
+    const Cell a = (*path)[k - 1];
+    const Cell b = (*path)[k];
+    const double length = (a.x != b.x && a.y != b.y) ? kDiagonal : 1.0;
+    prefix[k] = prefix[k - 1] + moveCost(index(a), index(b), length);
+  }
+  auto passableAt = [&](int i) { return passable(i); };
+  std::vector<Cell> pulled{path->front()};
+  std::size_t anchor = 0;
+  while (anchor + 1 < n) {
+    std::size_t best = anchor + 1;
+    for (std::size_t k = anchor + 2; k < n; ++k) {
+      double cost = 0.0;
+      const bool visible = walkSegment((*path)[anchor], (*path)[k], w, passableAt,
+                                       [&](int i, double length) { cost += weighted_ ? length * weight(i) : length; });
+      if (!visible) break;
+      // The straight segment must not cost more than the cells it replaces (it never does at uniform cost).
+      if (cost <= prefix[k] - prefix[anchor] + 1e-9 * prefix[k]) best = k;
+    }
+    pulled.push_back((*path)[best]);
+    anchor = best;
+  }
+  path->swap(pulled);
+}
+
 void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
   const int w = width_;
   const int h = height_;
@@ -123,9 +286,11 @@ void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
     const bool fs = y < h - 1 && passable(i + w);
     int best = -1;
     double best_dist = std::numeric_limits<double>::infinity();
-    auto consider = [&](bool legal, int j, double step) {
-      if (legal && settled(j) && distance(j) + step < best_dist) {
-        best_dist = distance(j) + step;
+    auto consider = [&](bool legal, int j, double length) {
+      if (!legal || !settled(j)) return;
+      const double through = distance(j) + moveCost(j, i, length);
+      if (through < best_dist) {
+        best_dist = through;
         best = j;
       }
     };
@@ -202,12 +367,33 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   if (!(options.goal_tolerance_cells >= 0.0) || !std::isfinite(options.goal_tolerance_cells)) {
     return finish(PlanStatus::kInvalidRequest, "goal tolerance must be a finite number >= 0");
   }
+  auto finiteAtLeast = [](double v, double low) { return std::isfinite(v) && v >= low; };
+  if (!finiteAtLeast(options.cost_factor, 0.0) || !(std::isfinite(options.neutral_cost) && options.neutral_cost > 0.0)) {
+    return finish(PlanStatus::kInvalidRequest, "cost_factor must be finite and >= 0, neutral_cost finite and > 0");
+  }
+  if (!finiteAtLeast(options.robot_radius_cells, 0.0) || !finiteAtLeast(options.inflation_radius_cells, 0.0) ||
+      !finiteAtLeast(options.inflation_decay, 0.0) || options.robot_radius_cells > 1e4 ||
+      options.inflation_radius_cells > 1e4) {
+    return finish(PlanStatus::kInvalidRequest,
+                  "robot_radius_cells and inflation_radius_cells must be in 0..10000, inflation_decay finite and >= 0");
+  }
+  if (options.algorithm != Algorithm::kDijkstra && options.algorithm != Algorithm::kAStar) {
+    return finish(PlanStatus::kInvalidRequest, "algorithm must be dijkstra or astar");
+  }
 
+  if (options.robot_radius_cells > 0.0 || options.inflation_radius_cells > 0.0) {
+    inflate(data, width, height, options, &inflated_);
+    data = inflated_.data();
+  }
   grid_ = data;
   width_ = width;
   height_ = height;
+  weighted_ = options.cost_factor > 0.0;
+  astar_ = options.algorithm == Algorithm::kAStar;
+  min_weight_ = weighted_ ? options.neutral_cost : 1.0;
   for (int v = -128; v < 128; ++v) {
     passable_[static_cast<std::uint8_t>(v)] = isPassable(static_cast<std::int8_t>(v), options);
+    weight_[static_cast<std::uint8_t>(v)] = options.neutral_cost + options.cost_factor * std::max(v, 0);
   }
 
   auto on_map = [&](Cell c) { return c.x >= 0 && c.y >= 0 && c.x < width && c.y < height; };
@@ -239,7 +425,9 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   // answer; if not, the search has exhausted the start's component and the nearest settled cell within
   // the tolerance is the nearest reachable one.
   int reached = target;
-  const bool found = search(index(start), target, options.stop_at_goal, options.cancel);
+  target_cell_ = {target % width, target / width};
+  const bool found = weighted_ || astar_ ? searchHeap(index(start), target, options.stop_at_goal, options.cancel)
+                                         : search(index(start), target, options.stop_at_goal, options.cancel);
   result.expansions = expansions_;
   if (cancelled_) {
     return finish(PlanStatus::kCancelled, "cancelled by the caller after " + std::to_string(expansions_) +
@@ -252,7 +440,24 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
     return finish(PlanStatus::kNoPath, msg);
   }
   tracePath(reached, &result.path);
-  result.cost = distance(reached);
+  result.cost = weighted_ ? 0.0 : distance(reached);
+  result.weighted_cost = distance(reached);
+  if (options.any_angle) pullTight(&result.path);
+  if (weighted_ || options.any_angle) {
+    // Length (and cost) of the path as returned: segments between its corners.
+    double length = 0.0;
+    double cost = 0.0;
+    auto passableAt = [&](int i) { return passable(i); };
+    for (std::size_t k = 1; k < result.path.size(); ++k) {
+      length += std::hypot(result.path[k].x - result.path[k - 1].x, result.path[k].y - result.path[k - 1].y);
+      if (options.any_angle) {
+        walkSegment(result.path[k - 1], result.path[k], width, passableAt,
+                    [&](int i, double part) { cost += weighted_ ? part * weight(i) : part; });
+      }
+    }
+    result.cost = length;
+    if (options.any_angle) result.weighted_cost = cost;
+  }
   result.goal = {reached % width, reached / width};
   return finish(PlanStatus::kOk, "");
 }

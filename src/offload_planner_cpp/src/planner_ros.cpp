@@ -1,9 +1,12 @@
 #include "offload_planner_cpp/planner_ros.h"
 
+#include "offload_planner_cpp/inflation.h"
+
 #include <time.h>
 
 #include <algorithm>
 #include <chrono>
+#include <cmath>
 #include <stdexcept>
 
 namespace offload_planner {
@@ -67,6 +70,16 @@ bool PlanRequestHandler::setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, st
   MapGeometry geometry;
   const Outcome checked = map ? checkMap(mapInfoOf(*map), max_map_cells_, &geometry)
                               : Outcome{PlanStatus::kInvalidMap, "null map"};
+  std::shared_ptr<std::vector<std::int8_t>> inflated;
+  if (checked.ok() && inflation_.enabled()) {   // outside the lock: requests keep planning on the last map
+    PlannerOptions options = options_;
+    options.robot_radius_cells = inflation_.robot_radius_m / geometry.resolution;
+    options.inflation_radius_cells = inflation_.inflation_radius_m / geometry.resolution;
+    options.inflation_decay = inflation_.cost_scaling_factor * geometry.resolution;
+    inflated = std::make_shared<std::vector<std::int8_t>>();
+    inflate(map->data.data(), static_cast<int>(geometry.width), static_cast<int>(geometry.height), options,
+            inflated.get());
+  }
   std::lock_guard<std::mutex> lock(map_mutex_);
   if (!checked.ok()) {
     rejected_ = checked.message;
@@ -74,6 +87,7 @@ bool PlanRequestHandler::setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, st
     return false;
   }
   map_ = map;
+  inflated_ = inflated;
   geometry_ = geometry;
   return true;
 }
@@ -86,11 +100,13 @@ nav_msgs::OccupancyGrid::ConstPtr PlanRequestHandler::map() const {
 void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response* res,
                                 const std::atomic<bool>* cancel) const {
   nav_msgs::OccupancyGrid::ConstPtr map;
+  std::shared_ptr<const std::vector<std::int8_t>> inflated;
   MapGeometry geometry;
   std::string rejected;
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     map = map_;  // a map arriving now replaces map_, while this request keeps planning on its copy
+    inflated = inflated_;
     geometry = geometry_;
     rejected = rejected_;
   }
@@ -105,7 +121,8 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
   options.goal_tolerance_cells = request.tolerance_cells;
   options.cancel = cancel;
   static thread_local DijkstraPlanner planner;
-  const PlanResult result = planner.plan(map->data.data(), map->data.size(), geometry.width, geometry.height,
+  const std::int8_t* grid = inflated ? inflated->data() : map->data.data();
+  const PlanResult result = planner.plan(grid, map->data.size(), geometry.width, geometry.height,
                                          request.start, request.goal, options);
   setStatus(Outcome{result.status, result.message}, res);
   res->planning_time_s = result.seconds;
@@ -172,6 +189,28 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   pnh.param<std::string>("planner_name", planner_name_, "local");
   pnh.param("planning_threads", planning_threads_, planning_threads_);
   pnh.param("max_map_cells", max_map_cells, 64000000);
+  std::string algorithm;
+  pnh.param<std::string>("algorithm", algorithm, "dijkstra");
+  pnh.param("any_angle", options.any_angle, options.any_angle);
+  pnh.param("cost_factor", options.cost_factor, options.cost_factor);
+  pnh.param("neutral_cost", options.neutral_cost, options.neutral_cost);
+  InflationParams inflation;
+  pnh.param("robot_radius", inflation.robot_radius_m, inflation.robot_radius_m);
+  pnh.param("inflation_radius", inflation.inflation_radius_m, inflation.inflation_radius_m);
+  pnh.param("cost_scaling_factor", inflation.cost_scaling_factor, inflation.cost_scaling_factor);
+  if (algorithm != "dijkstra" && algorithm != "astar") {
+    ROS_FATAL("~algorithm must be dijkstra or astar, got '%s'", algorithm.c_str());
+    throw std::invalid_argument("bad ~algorithm");
+  }
+  options.algorithm = algorithm == "astar" ? Algorithm::kAStar : Algorithm::kDijkstra;
+  auto finiteAtLeast = [](double v, double low) { return std::isfinite(v) && v >= low; };
+  if (!finiteAtLeast(options.cost_factor, 0.0) || !(std::isfinite(options.neutral_cost) && options.neutral_cost > 0) ||
+      !finiteAtLeast(inflation.robot_radius_m, 0.0) || !finiteAtLeast(inflation.inflation_radius_m, 0.0) ||
+      !finiteAtLeast(inflation.cost_scaling_factor, 0.0)) {
+    ROS_FATAL("~cost_factor, ~robot_radius, ~inflation_radius and ~cost_scaling_factor must be finite and >= 0, "
+              "~neutral_cost finite and > 0");
+    throw std::invalid_argument("bad cost or inflation parameter");
+  }
   if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
     ROS_FATAL("~lethal_threshold must be in 1..101, got %d", options.lethal_threshold);
     throw std::invalid_argument("bad ~lethal_threshold");
@@ -181,7 +220,7 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
               planning_threads_, max_map_cells);
     throw std::invalid_argument("bad ~planning_threads or ~max_map_cells");
   }
-  handler_ = std::make_unique<PlanRequestHandler>(options, static_cast<std::uint64_t>(max_map_cells));
+  handler_ = std::make_unique<PlanRequestHandler>(options, static_cast<std::uint64_t>(max_map_cells), inflation);
   path_pub_ = pnh.advertise<nav_msgs::Path>("path", 1, true);
   // A deep queue: a burst of fast plans must not drop timings the learner and the bags rely on.
   timing_pub_ = pnh.advertise<offload_msgs::PlanTiming>("timing", 1000);
@@ -194,10 +233,12 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   cancel_sub_ = pnh.subscribe(cancel_options);
   plan_srv_ = pnh.advertiseService("plan", &PlannerNode::onPlan, this);
   make_plan_srv_ = pnh.advertiseService("make_plan", &PlannerNode::onMakePlan, this);
-  ROS_INFO("planner ready: lethal_threshold %d, unknown cells %s, %d planning threads, maps up to %d cells; "
-           "waiting for a map on %s",
-           options.lethal_threshold, options.unknown_is_obstacle ? "blocked" : "free", planning_threads_,
-           max_map_cells, map_sub_.getTopic().c_str());
+  ROS_INFO("planner ready: %s%s, %s, lethal_threshold %d, unknown cells %s, inflation %.3g m + %.3g m, %d planning "
+           "threads, maps up to %d cells; waiting for a map on %s",
+           algorithm.c_str(), options.any_angle ? " any-angle" : "",
+           options.cost_factor > 0 ? "cost-aware" : "uniform cost", options.lethal_threshold,
+           options.unknown_is_obstacle ? "blocked" : "free", inflation.robot_radius_m, inflation.inflation_radius_m,
+           planning_threads_, max_map_cells, map_sub_.getTopic().c_str());
 }
 
 void PlannerNode::spin() {

@@ -5,6 +5,12 @@
 // occupancy. Moves are 8-connected with cost 1 and sqrt(2); a diagonal move needs both orthogonal
 // neighbours free (no corner cutting), the rules of the MovingAI benchmarks, so optimal lengths match
 // theirs exactly.
+//
+// Options, all exact on their own graph: cost-aware planning (a move between cells a and b costs its
+// length times the mean of w(a) and w(b), w = neutral_cost + cost_factor * occupancy, global_planner's
+// model), inflation of a raw map by a robot and an inflation radius (inflation.h), A* with the octile
+// heuristic (consistent, so its costs are Dijkstra's), and any-angle paths (the optimal cell path pulled
+// tight along lines of sight that cross no blocked cell or corner and never raise the path's cost).
 #pragma once
 
 #include <atomic>
@@ -24,6 +30,8 @@ struct Cell {
   bool operator==(const Cell& other) const { return x == other.x && y == other.y; }
 };
 
+enum class Algorithm : std::uint8_t { kDijkstra = 0, kAStar = 1 };
+
 struct PlannerOptions {
   // A cell whose occupancy is >= this value is an obstacle (0..100 scale).
   int lethal_threshold = 50;
@@ -37,6 +45,20 @@ struct PlannerOptions {
   // Set to true by another thread, it stops the plan within a few thousand expansions with kCancelled:
   // a caller that already has its path (from the other side) frees the CPU for the next request.
   const std::atomic<bool>* cancel = nullptr;
+  // kAStar settles only the cells the octile heuristic cannot rule out; same costs as kDijkstra.
+  Algorithm algorithm = Algorithm::kDijkstra;
+  // Return the corners of a path whose segments may run at any angle (see above).
+  bool any_angle = false;
+  // 0: every passable cell costs alike (the default; exact on MovingAI). Else cost-aware with
+  // w = neutral_cost + cost_factor * occupancy (unknown passable cells count as occupancy 0).
+  double cost_factor = 0.0;
+  double neutral_cost = 50.0;
+  // In cells, measured between cell centres. Cells within robot_radius_cells of an obstacle become
+  // obstacles; cells within inflation_radius_cells get occupancy 99 * exp(-inflation_decay * (d - robot
+  // radius)) if that is higher than their own (costmap_2d's inflation layer on the 0..100 scale).
+  double robot_radius_cells = 0.0;
+  double inflation_radius_cells = 0.0;
+  double inflation_decay = 0.5;   // per cell: costmap_2d's default 10 per metre at 5 cm cells
 };
 
 // The planner's one rule of which cells it may enter.
@@ -44,11 +66,16 @@ inline bool isPassable(std::int8_t occupancy, const PlannerOptions& options) {
   return occupancy < 0 ? !options.unknown_is_obstacle : occupancy < options.lethal_threshold;
 }
 
+// Whether the segment between the centres of cells a and b (both on the grid) crosses only passable cells
+// and passes through no grid vertex beside a blocked cell: the line-of-sight rule of any-angle paths.
+bool segmentClear(const std::int8_t* grid, int width, int height, Cell a, Cell b, const PlannerOptions& options);
+
 struct PlanResult {
   PlanStatus status = PlanStatus::kOk;
   std::string message;       // human-readable reason when status != kOk
-  std::vector<Cell> path;    // start to goal inclusive; empty unless kOk
+  std::vector<Cell> path;    // start to goal inclusive; empty unless kOk. Any-angle: the corners only
   double cost = 0.0;         // path length in cells
+  double weighted_cost = 0.0;  // the path's cost in the model planned with (= cost when cost_factor is 0)
   Cell goal;                 // the cell actually reached (differs from the request within tolerance)
   std::uint64_t expansions = 0;  // cells settled
   double seconds = 0.0;      // wall time inside plan()
@@ -66,14 +93,23 @@ class DijkstraPlanner {
 
  private:
   // Runs the search from `start`; returns true when `target` was settled. Sets cancelled_ and returns false
-  // when `cancel` was set.
+  // when `cancel` was set. Uniform cost, Dijkstra: Dial's buckets. Anything else: a binary heap.
   bool search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
+  bool searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
   // The free cell nearest to `goal` within `radius` cells (settled by the last search if
   // `settled_only`), ties to the first in row order; -1 if there is none.
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
   // Walks back from `goal` along settled cells, each step to the neighbour with the smallest distance.
   void tracePath(int goal, std::vector<Cell>* path) const;
+  // Pulls `path` tight along lines of sight that never raise its cost; returns its length and cost.
+  void pullTight(std::vector<Cell>* path) const;
   bool passable(int index) const { return passable_[static_cast<std::uint8_t>(grid_[index])]; }
+  double weight(int index) const { return weight_[static_cast<std::uint8_t>(grid_[index])]; }
+  // A move's cost: its length times the mean weight of its two cells.
+  double moveCost(int from, int to, double length) const {
+    return weighted_ ? length * 0.5 * (weight(from) + weight(to)) : length;
+  }
+  double heuristic(int index) const;
   // A settled cell stores its distance negated (the start -0.0): `nd < dist` then never holds for it,
   // so relaxation needs no separate flag.
   bool settled(int index) const { return std::signbit(dist_[index]); }
@@ -85,6 +121,11 @@ class DijkstraPlanner {
   int width_ = 0;
   int height_ = 0;
   bool passable_[256] = {};  // by occupancy value as uint8 (-1 unknown is 255)
+  double weight_[256] = {};  // w by occupancy value, when weighted_
+  bool weighted_ = false;
+  bool astar_ = false;
+  double min_weight_ = 1.0;  // the least w of any passable cell: scales the heuristic
+  Cell target_cell_;
   std::uint64_t expansions_ = 0;
   bool cancelled_ = false;
 
@@ -94,6 +135,8 @@ class DijkstraPlanner {
   std::size_t dirty_begin_ = 0;
   std::size_t dirty_end_ = 0;
   std::vector<int> buckets_[3];
+  std::vector<std::pair<double, int>> heap_;
+  std::vector<std::int8_t> inflated_;  // the grid after inflation, when asked for
 };
 
 }  // namespace offload_planner

@@ -28,11 +28,21 @@ namespace offload_planner {
 // The contract's view of a map message.
 MapInfo mapInfoOf(const nav_msgs::OccupancyGrid& map);
 
+// Inflation of the map in metres, as costmap_2d's parameters: converted to cells with each map's resolution.
+struct InflationParams {
+  double robot_radius_m = 0.0;
+  double inflation_radius_m = 0.0;
+  double cost_scaling_factor = 10.0;   // per metre
+  bool enabled() const { return robot_radius_m > 0.0 || inflation_radius_m > 0.0; }
+};
+
 class PlanRequestHandler {
  public:
-  // `max_map_cells` 0: no bound beyond the core's side limit.
-  explicit PlanRequestHandler(const PlannerOptions& options = PlannerOptions(), std::uint64_t max_map_cells = 0)
-      : options_(options), max_map_cells_(max_map_cells) {}
+  // `max_map_cells` 0: no bound beyond the core's side limit. With `inflation`, each map is inflated once,
+  // when it arrives, and every request plans on the inflated grid.
+  explicit PlanRequestHandler(const PlannerOptions& options = PlannerOptions(), std::uint64_t max_map_cells = 0,
+                              const InflationParams& inflation = InflationParams())
+      : options_(options), max_map_cells_(max_map_cells), inflation_(inflation) {}
 
   // Keeps the previous map and returns false (with the reason) when `map` is malformed.
   bool setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, std::string* error);
@@ -46,8 +56,10 @@ class PlanRequestHandler {
  private:
   PlannerOptions options_;
   std::uint64_t max_map_cells_;
+  InflationParams inflation_;
   mutable std::mutex map_mutex_;
   nav_msgs::OccupancyGrid::ConstPtr map_;
+  std::shared_ptr<const std::vector<std::int8_t>> inflated_;  // map_ inflated, when inflation_ is enabled
   MapGeometry geometry_;  // of map_
   std::string rejected_;  // why the last rejected map was rejected, for NO_MAP replies
 };

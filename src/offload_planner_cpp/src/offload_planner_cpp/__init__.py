@@ -11,9 +11,9 @@ from typing import Tuple
 
 import numpy as np
 
-from offload_planner_cpp._core import PlanStatus, free_cells, plan_raw
+from offload_planner_cpp._core import PlanStatus, free_cells, inflate, path_clear, plan_raw
 
-__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "free_cells", "plan_raw"]
+__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "free_cells", "inflate", "path_clear", "plan_raw"]
 
 
 class PlanError(ValueError):
@@ -36,7 +36,8 @@ class NoPathError(RuntimeError):
 @dataclass(frozen=True)
 class PlanResult:
     path: np.ndarray          # N x 2 int32 cells (x, y), start to goal inclusive
-    cost: float               # path length in cells (1 straight, sqrt(2) diagonal)
+    cost: float               # path length in cells (1 straight, sqrt(2) diagonal; any-angle: Euclidean)
+    weighted_cost: float      # cost in the model planned with; equals cost when cost_factor is 0
     goal: Tuple[int, int]     # the cell reached: the goal, or the nearest reachable one within tolerance
     expansions: int           # cells settled
     seconds: float            # time inside the C++ planner
@@ -44,17 +45,26 @@ class PlanResult:
 
 
 def plan(grid, start, goal, *, lethal_threshold=50, unknown_is_obstacle=True, goal_tolerance=0.0,
-         stop_at_goal=True) -> PlanResult:
+         stop_at_goal=True, algorithm="dijkstra", any_angle=False, cost_factor=0.0, neutral_cost=50.0,
+         inflation_radius_cells=0.0, robot_radius_cells=0.0, inflation_decay=0.5) -> PlanResult:
     """Shortest 8-connected path on `grid` (2-D int8 array [y, x], read in place) from `start` to `goal`,
     both (x, y) cells. `goal_tolerance` is in cells. Raises PlanError (a ValueError) on bad input and
-    NoPathError when the goal is unreachable."""
+    NoPathError when the goal is unreachable.
+
+    `algorithm` "astar": the same costs, fewer cells settled. `cost_factor` > 0: a move costs its length times
+    the mean of neutral_cost + cost_factor * occupancy over its two cells (global_planner's model).
+    `robot_radius_cells` / `inflation_radius_cells`: inflate a raw map first (see `inflate`). `any_angle`:
+    the corners of the optimal path pulled tight along lines of sight, never costlier."""
     raw = plan_raw(grid, start, goal, lethal_threshold=lethal_threshold,
                    unknown_is_obstacle=unknown_is_obstacle, goal_tolerance=goal_tolerance,
-                   stop_at_goal=stop_at_goal)
+                   stop_at_goal=stop_at_goal, algorithm=algorithm, any_angle=any_angle, cost_factor=cost_factor,
+                   neutral_cost=neutral_cost, inflation_radius_cells=inflation_radius_cells,
+                   robot_radius_cells=robot_radius_cells, inflation_decay=inflation_decay)
     status = raw["status"]
     if status == PlanStatus.NO_PATH:
         raise NoPathError(raw["message"])
     if status != PlanStatus.OK:
         raise PlanError(status, raw["message"])
-    return PlanResult(path=raw["path"], cost=raw["cost"], goal=raw["goal"], expansions=raw["expansions"],
+    return PlanResult(path=raw["path"], cost=raw["cost"], weighted_cost=raw["weighted_cost"], goal=raw["goal"],
+                      expansions=raw["expansions"],
                       seconds=raw["seconds"], grid_address=raw["grid_address"])

@@ -74,6 +74,14 @@ class BridgeConfig:
     lethal_threshold: int = 50
     unknown_is_obstacle: bool = True
     max_map_cells: int = 64_000_000   # larger maps are refused, as by the local planner node
+    # The planner options, as the local planner node's parameters (radii in metres, decay per metre).
+    algorithm: str = "dijkstra"
+    any_angle: bool = False
+    cost_factor: float = 0.0
+    neutral_cost: float = 50.0
+    robot_radius_m: float = 0.0
+    inflation_radius_m: float = 0.0
+    cost_scaling_factor: float = 10.0
 
 
 class CloudBridge:
@@ -230,9 +238,14 @@ class CloudBridge:
             result.status, result.message = request.outcome.status, request.outcome.message
             return result
 
-        options = PlanOptions(goal_tolerance_cells=request.tolerance_cells,
-                              lethal_threshold=self.config.lethal_threshold,
-                              unknown_is_obstacle=self.config.unknown_is_obstacle)
+        config = self.config
+        options = PlanOptions(goal_tolerance_cells=request.tolerance_cells, lethal_threshold=config.lethal_threshold,
+                              unknown_is_obstacle=config.unknown_is_obstacle, algorithm=config.algorithm,
+                              any_angle=config.any_angle, cost_factor=config.cost_factor,
+                              neutral_cost=config.neutral_cost,
+                              robot_radius_cells=config.robot_radius_m / geometry.resolution,
+                              inflation_radius_cells=config.inflation_radius_m / geometry.resolution,
+                              inflation_decay=config.cost_scaling_factor * geometry.resolution)
         client = self._borrow_client()
         sent_before, received_before = client.bytes_sent, client.bytes_received
         try:

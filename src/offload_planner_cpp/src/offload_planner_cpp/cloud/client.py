@@ -25,7 +25,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from offload_planner_cpp import free_cells
+from offload_planner_cpp import free_cells, path_clear
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.keys import load_client_keys
 from offload_planner_cpp.cloud.protocol import PlanOptions, ProtocolError, Reply, Status
@@ -248,7 +248,8 @@ def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Se
                   round_trip_s: float) -> str:
     """Why a plan reply cannot be true for the map and request this client sent, or "" when it can: the
     path must run from the start to the reached goal (within the tolerance of the goal) through
-    traversable cells in 8-connected steps without cutting corners, and its cost must be its length."""
+    traversable cells in 8-connected steps without cutting corners (any-angle: segments that cross no
+    blocked cell or corner, by the core's own rule), and its cost must be its length."""
     if not (math.isfinite(reply.planning_time_s) and 0.0 <= reply.planning_time_s <= round_trip_s):
         return f"planning time {reply.planning_time_s!r} s is not within the measured round trip"
     if reply.expansions > 8 * grid.size + 8:
@@ -272,6 +273,17 @@ def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Se
     if not free[ys, xs].all():
         return "path crosses an obstacle"
     dx, dy = np.abs(np.diff(xs)), np.abs(np.diff(ys))
+    if options.any_angle:
+        if ((dx == 0) & (dy == 0)).any():
+            return "any-angle path repeats a corner"
+        blocked = path_clear(grid, np.ascontiguousarray(path, dtype=np.int32), options.lethal_threshold,
+                             options.unknown_is_obstacle)
+        if blocked >= 0:
+            return f"segment {blocked} of the any-angle path crosses an obstacle or cuts its corner"
+        length = float(np.hypot(dx, dy).sum())
+        if not math.isfinite(reply.cost_cells) or abs(reply.cost_cells - length) > 1e-6 * max(1.0, length):
+            return f"cost {reply.cost_cells!r} cells is not the path's length {length:.6g}"
+        return ""
     if ((dx > 1) | (dy > 1) | ((dx == 0) & (dy == 0))).any():
         return "path is not a chain of 8-connected steps"
     diagonal = (dx == 1) & (dy == 1)

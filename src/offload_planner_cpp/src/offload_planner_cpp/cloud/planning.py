@@ -77,9 +77,7 @@ class Planning:
 def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: protocol.PlanOptions) -> dict:
     """plan_raw() with the request's options; malformed option values come back as a status, not a raise."""
     try:
-        return plan_raw(grid, request.start, request.goal, lethal_threshold=options.lethal_threshold,
-                        unknown_is_obstacle=options.unknown_is_obstacle,
-                        goal_tolerance=options.goal_tolerance_cells, stop_at_goal=options.stop_at_goal)
+        return plan_raw(grid, request.start, request.goal, **options.planner_kwargs())
     except ValueError as error:
         return {"status": PlanStatus.INVALID_REQUEST, "message": str(error), "path": np.empty((0, 2), np.int32),
                 "goal": request.goal, "expansions": 0, "seconds": 0.0, "cost": 0.0}

@@ -8,7 +8,11 @@ keeps, so a server can always tell an old client which version it speaks:
 Plan request (kind PLAN), after the envelope:
     frame 1: body, struct PLAN_BODY: map hash (16 bytes), start x, y, goal x, y (int32 cells),
              goal tolerance (float64 cells), lethal threshold (int16), flags (u8: unknown_is_obstacle,
-             stop_at_goal)
+             stop_at_goal, any_angle), then, only when a planner option differs from its default, the
+             struct PLANNER_TAIL: algorithm (u8: 0 dijkstra, 1 astar), cost_factor, neutral_cost,
+             robot_radius_cells, inflation_radius_cells, inflation_decay (float64 each). Added within
+             version 2: a server that predates the tail answers BAD_REQUEST about the body's size, and a
+             request with default options is byte for byte what it was.
     frames 2, 3 (only when uploading the map): JSON metadata {"width", "height", "dtype": "int8"} and
              the raw C-order int8 buffer, never pickle. The hash is map_hash() of exactly these two.
 Upload only (kind UPLOAD): frames 1, 2 are the metadata and buffer; the reply acknowledges the hash.
@@ -41,10 +45,13 @@ MAGIC = b"OFPL"
 VERSION = 2
 ENVELOPE = struct.Struct("<4sBBQ")
 PLAN_BODY = struct.Struct("<16s4idhB")
+PLANNER_TAIL = struct.Struct("<B5d")
 REPLY_BODY = struct.Struct("<B2iQdd")
 HASH_SIZE = 16
 FLAG_UNKNOWN_IS_OBSTACLE = 1
 FLAG_STOP_AT_GOAL = 2
+FLAG_ANY_ANGLE = 4
+ALGORITHMS = ("dijkstra", "astar")   # PLANNER_TAIL's algorithm code is the index
 # Largest side the planner accepts, as the ROS node's map validation.
 MAX_MAP_SIDE = 100000
 MAX_METADATA_BYTES = 1024
@@ -91,10 +98,30 @@ class ProtocolError(ValueError):
 
 @dataclass(frozen=True)
 class PlanOptions:
+    """The core's planner options (dijkstra.h, the pybind11 module's keyword arguments)."""
     goal_tolerance_cells: float = 0.0
     lethal_threshold: int = 50
     unknown_is_obstacle: bool = True
     stop_at_goal: bool = True
+    algorithm: str = "dijkstra"
+    any_angle: bool = False
+    cost_factor: float = 0.0
+    neutral_cost: float = 50.0
+    robot_radius_cells: float = 0.0
+    inflation_radius_cells: float = 0.0
+    inflation_decay: float = 0.5
+
+    def planner_kwargs(self) -> dict:
+        """The options as plan_raw's keyword arguments."""
+        return dict(lethal_threshold=self.lethal_threshold, unknown_is_obstacle=self.unknown_is_obstacle,
+                    goal_tolerance=self.goal_tolerance_cells, stop_at_goal=self.stop_at_goal,
+                    algorithm=self.algorithm, any_angle=self.any_angle, cost_factor=self.cost_factor,
+                    neutral_cost=self.neutral_cost, robot_radius_cells=self.robot_radius_cells,
+                    inflation_radius_cells=self.inflation_radius_cells, inflation_decay=self.inflation_decay)
+
+    def _tail(self) -> tuple:
+        return (float(self.cost_factor), float(self.neutral_cost), float(self.robot_radius_cells),
+                float(self.inflation_radius_cells), float(self.inflation_decay))
 
 
 @dataclass(frozen=True)
@@ -185,9 +212,13 @@ def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: S
                 options: PlanOptions = PlanOptions(), grid: Optional[np.ndarray] = None) -> list:
     """Frames of a plan request; with `grid` the map travels too (its buffer is sent without a copy)."""
     flags = (FLAG_UNKNOWN_IS_OBSTACLE if options.unknown_is_obstacle else 0) | \
-            (FLAG_STOP_AT_GOAL if options.stop_at_goal else 0)
+            (FLAG_STOP_AT_GOAL if options.stop_at_goal else 0) | (FLAG_ANY_ANGLE if options.any_angle else 0)
     body = PLAN_BODY.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]),
                           float(options.goal_tolerance_cells), int(options.lethal_threshold), flags)
+    if options.algorithm != PlanOptions.algorithm or options._tail() != PlanOptions()._tail():
+        if options.algorithm not in ALGORITHMS:
+            raise ValueError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {options.algorithm!r}")
+        body += PLANNER_TAIL.pack(ALGORITHMS.index(options.algorithm), *options._tail())
     frames = [envelope(Kind.PLAN, request_id), body]
     if grid is not None:
         frames += [map_metadata(grid), _buffer_of(grid)]
@@ -259,14 +290,24 @@ def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
         raise ProtocolError(Status.BAD_REQUEST,
                             f"plan request needs 1 body frame (+2 map frames), got {len(frames)} frames")
     body = bytes(frames[0])
-    if len(body) != PLAN_BODY.size:
-        raise ProtocolError(Status.BAD_REQUEST, f"plan body is {len(body)} bytes, expected {PLAN_BODY.size}")
-    digest, sx, sy, gx, gy, tolerance, lethal, flags = PLAN_BODY.unpack(body)
+    if len(body) not in (PLAN_BODY.size, PLAN_BODY.size + PLANNER_TAIL.size):
+        raise ProtocolError(Status.BAD_REQUEST, f"plan body is {len(body)} bytes, expected {PLAN_BODY.size} "
+                                                f"(or {PLAN_BODY.size + PLANNER_TAIL.size} with planner options)")
+    digest, sx, sy, gx, gy, tolerance, lethal, flags = PLAN_BODY.unpack_from(body)
     if not np.isfinite(tolerance) or tolerance < 0:
         raise ProtocolError(Status.BAD_REQUEST, "goal tolerance must be a finite number >= 0 cells")
+    tail = {}
+    if len(body) > PLAN_BODY.size:
+        algorithm, *numbers = PLANNER_TAIL.unpack_from(body, PLAN_BODY.size)
+        if algorithm >= len(ALGORITHMS):
+            raise ProtocolError(Status.BAD_REQUEST, f"unknown algorithm code {algorithm}")
+        # Range checks are the core's (INVALID_REQUEST with its reason); only the codes are checked here.
+        tail = dict(zip(("cost_factor", "neutral_cost", "robot_radius_cells", "inflation_radius_cells",
+                         "inflation_decay"), numbers), algorithm=ALGORITHMS[algorithm])
     options = PlanOptions(goal_tolerance_cells=tolerance, lethal_threshold=lethal,
                           unknown_is_obstacle=bool(flags & FLAG_UNKNOWN_IS_OBSTACLE),
-                          stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL))
+                          stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL), any_angle=bool(flags & FLAG_ANY_ANGLE),
+                          **tail)
     grid = None
     if len(frames) == 3:
         uploaded, grid = decode_map(frames[1], frames[2], max_cells)

@@ -11,10 +11,13 @@ def free_cells(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle
     return np.where(grid < 0, not unknown_is_obstacle, grid < lethal_threshold)
 
 
-def grid_graph(grid: np.ndarray, **options) -> csr_matrix:
+def grid_graph(grid: np.ndarray, cost_factor: float = 0.0, neutral_cost: float = 50.0, **options) -> csr_matrix:
     """Directed graph over cell indices y * width + x: 8-connected, cost 1 and sqrt(2), a diagonal only
-    when both orthogonal neighbours are free."""
+    when both orthogonal neighbours are free. With cost_factor > 0 a move costs its length times the mean of
+    neutral_cost + cost_factor * occupancy over its two cells (unknown cells: occupancy 0), the planner's
+    cost-aware model."""
     free = free_cells(grid, **options)
+    weight = neutral_cost + cost_factor * np.maximum(grid.astype(np.float64), 0.0)
     height, width = free.shape
     index = np.arange(height * width).reshape(height, width)
     rows, cols, costs = [], [], []
@@ -28,9 +31,13 @@ def grid_graph(grid: np.ndarray, **options) -> csr_matrix:
         if dx and dy:
             ok &= free[ys, xs2] & free[ys2, xs]  # no corner cutting
         a, b = index[ys, xs][ok], index[ys2, xs2][ok]
-        cost = _SQRT2 if dx and dy else 1.0
+        length = _SQRT2 if dx and dy else 1.0
+        if cost_factor > 0:
+            cost = length * 0.5 * (weight[ys, xs][ok] + weight[ys2, xs2][ok])
+        else:
+            cost = np.full(a.size, length)
         rows += [a, b]
         cols += [b, a]
-        costs += [np.full(a.size, cost), np.full(a.size, cost)]
+        costs += [cost, cost]
     rows, cols, costs = np.concatenate(rows), np.concatenate(cols), np.concatenate(costs)
     return csr_matrix((costs, (rows, cols)), shape=(height * width, height * width))

@@ -1,5 +1,6 @@
 """rospy node around bridge.CloudBridge: the robot's door to the cloud planner. It serves the same
 offload_msgs/PlanPath service as the local planner node, so a caller can use either."""
+import math
 import threading
 import time
 
@@ -42,7 +43,21 @@ def read_parameters() -> BridgeConfig:
                           heartbeat_timeout_s=float(rospy.get_param("~heartbeat_timeout_s", 1.0)),
                           lethal_threshold=int(rospy.get_param("~lethal_threshold", 50)),
                           unknown_is_obstacle=bool(rospy.get_param("~unknown_is_obstacle", True)),
-                          max_map_cells=int(rospy.get_param("~max_map_cells", 64_000_000)))
+                          max_map_cells=int(rospy.get_param("~max_map_cells", 64_000_000)),
+                          algorithm=str(rospy.get_param("~algorithm", "dijkstra")),
+                          any_angle=bool(rospy.get_param("~any_angle", False)),
+                          cost_factor=float(rospy.get_param("~cost_factor", 0.0)),
+                          neutral_cost=float(rospy.get_param("~neutral_cost", 50.0)),
+                          robot_radius_m=float(rospy.get_param("~robot_radius", 0.0)),
+                          inflation_radius_m=float(rospy.get_param("~inflation_radius", 0.0)),
+                          cost_scaling_factor=float(rospy.get_param("~cost_scaling_factor", 10.0)))
+    if config.algorithm not in ("dijkstra", "astar"):
+        raise ValueError(f"~algorithm must be dijkstra or astar, got {config.algorithm!r}")
+    numbers = (config.cost_factor, config.robot_radius_m, config.inflation_radius_m, config.cost_scaling_factor)
+    if not all(math.isfinite(v) and v >= 0 for v in numbers) or not (math.isfinite(config.neutral_cost)
+                                                                    and config.neutral_cost > 0):
+        raise ValueError("~cost_factor, ~robot_radius, ~inflation_radius and ~cost_scaling_factor must be finite "
+                         "and >= 0, ~neutral_cost finite and > 0")
     if not 1 <= config.lethal_threshold <= 101:
         raise ValueError(f"~lethal_threshold must be in 1..101, got {config.lethal_threshold}")
     if config.timeout_s <= 0 or config.retries < 0 or config.heartbeat_timeout_s <= 0:

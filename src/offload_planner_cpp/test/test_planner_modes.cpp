@@ -1,0 +1,278 @@
+// The planner's options on random grids against independent references written here: A* (same costs
+// as Dijkstra, fewer cells), cost-aware planning (a textbook weighted Dijkstra on the same graph),
+// inflation (a brute-force distance), and any-angle paths (segment-square intersection, never costlier).
+#include <gtest/gtest.h>
+
+#include <algorithm>
+#include <cmath>
+#include <queue>
+#include <random>
+#include <vector>
+
+#include "offload_planner_cpp/dijkstra.h"
+#include "offload_planner_cpp/inflation.h"
+
+using namespace offload_planner;
+
+namespace {
+
+const double kSqrt2 = std::sqrt(2.0);
+
+struct RandomGrid {
+  int w, h;
+  std::vector<std::int8_t> data;
+  RandomGrid(std::mt19937* rng, int width, int height, double blocked, bool graded) : w(width), h(height) {
+    std::bernoulli_distribution wall(blocked);
+    std::uniform_int_distribution<int> occupancy(0, 49);
+    data.resize(static_cast<std::size_t>(w) * h);
+    for (auto& v : data) v = wall(*rng) ? 100 : graded ? occupancy(*rng) : 0;
+  }
+  bool free(int x, int y, int lethal = 50) const {
+    return x >= 0 && y >= 0 && x < w && y < h && data[y * w + x] >= 0 && data[y * w + x] < lethal;
+  }
+};
+
+// Textbook weighted Dijkstra: a move between a and b costs its length times the mean of their weights.
+double referenceCost(const RandomGrid& g, Cell s, Cell t, double neutral, double factor) {
+  auto weight = [&](int i) { return neutral + factor * std::max<int>(g.data[i], 0); };
+  std::vector<double> dist(g.data.size(), INFINITY);
+  using Item = std::pair<double, int>;
+  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> heap;
+  dist[s.y * g.w + s.x] = 0;
+  heap.push({0, s.y * g.w + s.x});
+  while (!heap.empty()) {
+    auto [d, i] = heap.top();
+    heap.pop();
+    if (d > dist[i]) continue;
+    const int x = i % g.w, y = i / g.w;
+    for (int dy = -1; dy <= 1; ++dy) {
+      for (int dx = -1; dx <= 1; ++dx) {
+        if ((dx == 0 && dy == 0) || !g.free(x + dx, y + dy)) continue;
+        if (dx != 0 && dy != 0 && (!g.free(x + dx, y) || !g.free(x, y + dy))) continue;
+        const int j = (y + dy) * g.w + x + dx;
+        const double nd = d + ((dx != 0 && dy != 0) ? kSqrt2 : 1.0) * 0.5 * (weight(i) + weight(j));
+        if (nd < dist[j]) {
+          dist[j] = nd;
+          heap.push({nd, j});
+        }
+      }
+    }
+  }
+  return dist[t.y * g.w + t.x];
+}
+
+// Whether the closed unit square of cell (cx, cy) meets the segment between the centres of a and b
+// (separating axes: the square's two axes and the segment's normal).
+bool segmentMeetsCell(Cell a, Cell b, int cx, int cy) {
+  const double ax = a.x + 0.5, ay = a.y + 0.5, bx = b.x + 0.5, by = b.y + 0.5;
+  if (std::max(ax, bx) < cx || std::min(ax, bx) > cx + 1 || std::max(ay, by) < cy || std::min(ay, by) > cy + 1) {
+    return false;
+  }
+  const double nx = by - ay, ny = ax - bx;  // normal of the segment
+  double lo = INFINITY, hi = -INFINITY;
+  for (int k = 0; k < 4; ++k) {
+    const double px = cx + (k & 1), py = cy + (k >> 1);
+    const double side = nx * (px - ax) + ny * (py - ay);
+    lo = std::min(lo, side);
+    hi = std::max(hi, side);
+  }
+  return lo <= 1e-12 && hi >= -1e-12;
+}
+
+// Every segment of an any-angle path meets only free cells, and the path runs from s to t.
+void expectClearPath(const RandomGrid& g, const PlanResult& r, Cell s, Cell t) {
+  ASSERT_TRUE(r.ok()) << r.message;
+  EXPECT_EQ(r.path.front(), s);
+  EXPECT_EQ(r.path.back(), t);
+  double length = 0.0;
+  for (std::size_t k = 1; k < r.path.size(); ++k) {
+    const Cell a = r.path[k - 1], b = r.path[k];
+    length += std::hypot(b.x - a.x, b.y - a.y);
+    for (int y = std::min(a.y, b.y) - 1; y <= std::max(a.y, b.y) + 1; ++y) {
+      for (int x = std::min(a.x, b.x) - 1; x <= std::max(a.x, b.x) + 1; ++x) {
+        if (segmentMeetsCell(a, b, x, y)) {
+          ASSERT_TRUE(g.free(x, y)) << "segment " << k << " (" << a.x << "," << a.y << ")-(" << b.x << "," << b.y
+                                    << ") meets blocked cell (" << x << "," << y << ")";
+        }
+      }
+    }
+  }
+  EXPECT_NEAR(length, r.cost, 1e-9);
+}
+
+}  // namespace
+
+TEST(PlannerModes, AStarHasDijkstrasCostsAndSettlesFewerCells) {
+  std::mt19937 rng(11);
+  DijkstraPlanner dijkstra, astar;
+  PlannerOptions a;
+  a.algorithm = Algorithm::kAStar;
+  std::uint64_t settled_dijkstra = 0, settled_astar = 0;
+  int compared = 0;
+  for (int trial = 0; trial < 40; ++trial) {
+    RandomGrid g(&rng, 20 + rng() % 80, 20 + rng() % 80, 0.1 + 0.1 * (trial % 3), trial % 2 == 1);
+    for (int q = 0; q < 5; ++q) {
+      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      for (double factor : {0.0, 3.0}) {
+        PlannerOptions d;
+        d.cost_factor = a.cost_factor = factor;
+        const auto rd = dijkstra.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, d);
+        const auto ra = astar.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, a);
+        ASSERT_EQ(rd.status, ra.status) << ra.message;
+        if (!rd.ok()) continue;
+        EXPECT_NEAR(ra.weighted_cost, rd.weighted_cost, 1e-9 * std::max(1.0, rd.weighted_cost));
+        settled_dijkstra += rd.expansions;
+        settled_astar += ra.expansions;
+        ++compared;
+      }
+    }
+  }
+  EXPECT_GT(compared, 200);
+  EXPECT_LT(settled_astar * 2, settled_dijkstra) << "A* settles far fewer cells";
+}
+
+TEST(PlannerModes, CostAwareMatchesAWeightedReferenceAndUniformIsUnchanged) {
+  std::mt19937 rng(5);
+  DijkstraPlanner planner;
+  int checked = 0;
+  for (int trial = 0; trial < 40; ++trial) {
+    RandomGrid g(&rng, 10 + rng() % 60, 10 + rng() % 60, 0.15, true);
+    for (int q = 0; q < 5; ++q) {
+      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      PlannerOptions o;
+      o.cost_factor = 3.0;
+      o.neutral_cost = 50.0;
+      const double expected = referenceCost(g, s, t, 50.0, 3.0);
+      const auto r = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
+      if (std::isinf(expected)) {
+        EXPECT_EQ(r.status, PlanStatus::kNoPath);
+        continue;
+      }
+      ASSERT_TRUE(r.ok()) << r.message;
+      EXPECT_NEAR(r.weighted_cost, expected, 1e-9 * expected);
+      // The traced path is one of that cost, and cost is its length.
+      double cost = 0.0, length = 0.0;
+      for (std::size_t k = 1; k < r.path.size(); ++k) {
+        const Cell a = r.path[k - 1], b = r.path[k];
+        const double step = (a.x != b.x && a.y != b.y) ? kSqrt2 : 1.0;
+        length += step;
+        cost += step * 0.5 * (100.0 + 3.0 * (g.data[a.y * g.w + a.x] + g.data[b.y * g.w + b.x]));
+      }
+      EXPECT_NEAR(cost, expected, 1e-9 * expected);
+      EXPECT_NEAR(length, r.cost, 1e-9);
+      // Uniform cost (factor 0) is the plain length, whatever the occupancy of passable cells.
+      const auto uniform = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t);
+      EXPECT_NEAR(uniform.weighted_cost, uniform.cost, 0.0);
+      EXPECT_LE(uniform.cost, r.cost + 1e-9);
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 100);
+}
+
+TEST(PlannerModes, CostAwarePathsKeepAwayFromHighCost) {
+  // A corridor of occupancy 40 on the straight line and a free detour two cells longer: the cost-aware
+  // plan takes the detour, the uniform one the corridor.
+  const int w = 9, h = 5;
+  std::vector<std::int8_t> grid(w * h, 100);
+  for (int x = 0; x < w; ++x) grid[2 * w + x] = 40;                 // the direct row, costly
+  for (int x = 1; x < w - 1; ++x) grid[0 * w + x] = 0;              // a free row above
+  for (int x : {0, w - 1}) grid[1 * w + x] = grid[0 * w + x] = 0;   // joined at both ends
+  grid[2 * w] = grid[2 * w + w - 1] = 0;
+  DijkstraPlanner planner;
+  PlannerOptions o;
+  o.cost_factor = 3.0;
+  const auto costly = planner.plan(grid.data(), grid.size(), w, h, {0, 2}, {w - 1, 2});
+  const auto aware = planner.plan(grid.data(), grid.size(), w, h, {0, 2}, {w - 1, 2}, o);
+  ASSERT_TRUE(costly.ok() && aware.ok());
+  EXPECT_NEAR(costly.cost, w - 1, 1e-9);
+  EXPECT_GT(aware.cost, costly.cost);
+  for (const Cell c : aware.path) {
+    if (c.x > 0 && c.x < w - 1) {
+      EXPECT_NE(c.y, 2) << "the cost-aware path stays off the costly row";
+    }
+  }
+}
+
+TEST(PlannerModes, DistanceTransformIsExact) {
+  std::mt19937 rng(3);
+  for (int trial = 0; trial < 20; ++trial) {
+    RandomGrid g(&rng, 5 + rng() % 40, 5 + rng() % 40, trial == 0 ? 0.0 : 0.05, false);
+    std::vector<double> d2;
+    obstacleDistanceSquared(g.data.data(), g.w, g.h, PlannerOptions(), &d2);
+    for (int y = 0; y < g.h; ++y) {
+      for (int x = 0; x < g.w; ++x) {
+        double best = INFINITY;
+        for (int v = 0; v < g.h; ++v) {
+          for (int u = 0; u < g.w; ++u) {
+            if (!g.free(u, v)) best = std::min(best, double(u - x) * (u - x) + double(v - y) * (v - y));
+          }
+        }
+        ASSERT_EQ(d2[y * g.w + x], best) << "cell (" << x << ", " << y << ")";
+      }
+    }
+  }
+}
+
+TEST(PlannerModes, InflationBlocksTheRobotRadiusAndGradesBeyond) {
+  const int w = 21, h = 3;
+  std::vector<std::int8_t> grid(w * h, 0);
+  grid[1 * w + 0] = 100;  // one obstacle at the left end of the middle row
+  PlannerOptions o;
+  o.robot_radius_cells = 2.0;
+  o.inflation_radius_cells = 8.0;
+  std::vector<std::int8_t> out;
+  inflate(grid.data(), w, h, o, &out);
+  EXPECT_EQ(out[1 * w + 0], 100);
+  EXPECT_EQ(out[1 * w + 1], 100);
+  EXPECT_EQ(out[1 * w + 2], 100);   // d = 2: inscribed
+  EXPECT_EQ(out[1 * w + 3], std::round(49 * std::exp(-0.5)));
+  for (int x = 4; x <= 8; ++x) EXPECT_LT(out[1 * w + x], out[1 * w + x - 1]);
+  EXPECT_EQ(out[1 * w + 9], 0);     // beyond the inflation radius
+  for (int x = 3; x < w; ++x) EXPECT_LT(out[1 * w + x], 50) << "inflated cells stay passable";
+  // Planning with inflation goes around the inscribed cells.
+  DijkstraPlanner planner;
+  EXPECT_EQ(planner.plan(grid.data(), grid.size(), w, h, {1, 0}, {20, 0}, o).status, PlanStatus::kStartBlocked);
+}
+
+TEST(PlannerModes, AnyAngleCrossesNoBlockedCellAndIsNeverLonger) {
+  std::mt19937 rng(17);
+  DijkstraPlanner planner;
+  double grid_length = 0.0, pulled_length = 0.0;
+  int checked = 0;
+  for (int trial = 0; trial < 30; ++trial) {
+    RandomGrid g(&rng, 30 + rng() % 70, 30 + rng() % 70, 0.2, trial % 2 == 1);
+    for (int q = 0; q < 5; ++q) {
+      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      for (double factor : {0.0, 3.0}) {
+        PlannerOptions o;
+        o.cost_factor = factor;
+        const auto cells = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
+        if (!cells.ok()) continue;
+        o.any_angle = true;
+        const auto pulled = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
+        expectClearPath(g, pulled, s, t);
+        EXPECT_LE(pulled.weighted_cost, cells.weighted_cost * (1 + 1e-9)) << "never costlier";
+        if (factor == 0.0) {
+          EXPECT_LE(pulled.cost, cells.cost + 1e-9);
+          grid_length += cells.cost;
+          pulled_length += pulled.cost;
+        }
+        ++checked;
+      }
+    }
+  }
+  EXPECT_GT(checked, 100);
+  EXPECT_LT(pulled_length, grid_length);
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
