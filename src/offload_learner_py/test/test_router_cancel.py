@@ -1,6 +1,7 @@
 """Cancelling the local planner's abandoned calls, and the cloud side serving calls concurrently: the slower
 side of an earlier request never holds up the next one, its CPU is still accounted, and a cancelled plan's
 running time teaches the learner only as the lower bound it is."""
+import dataclasses
 import threading
 
 import pytest
@@ -132,3 +133,106 @@ def test_without_a_cancelled_status_the_sides_are_called_as_before():
     router.route("req", STATE)
     finish(router)
     assert calls == ["req"] and CANCELLED != OK
+
+
+def test_a_hedges_local_plan_is_cancelled_as_soon_as_the_cloud_delivers():
+    """Deployed, cloud chosen, hedged into the local planner: when the late cloud answer comes first the local
+    plan is cancelled at once (it frees the robot's CPU); a probe's local side is kept (it is a measurement)."""
+    clock = VirtualClock()
+    local, cloud = CancellablePlanner(clock, 0.5, ran_s=0.05, held=1), CancellablePlanner(clock, 0.2, held=1)
+    router, recorder = router_for(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0, hedge=True,
+                                  hedge_deadline_s=0.01)
+    caller = threading.Thread(target=router.route, args=("req", STATE))
+    caller.start()
+    while not local.calls:                  # the deadline passed: the local planner was hedged into
+        threading.Event().wait(0.001)
+    cloud.release()                         # the cloud answers first
+    caller.join(10)
+    assert router.wait_idle(10)
+    assert local.cancelled == local.call_ids[:1], "the hedge's local plan was cancelled when the cloud delivered"
+    (outcome,) = recorder.outcomes
+    assert outcome.hedged and outcome.delivered == CLOUD and outcome.local is None
+
+
+def test_the_local_planner_is_not_hedged_into_when_it_cannot_win():
+    """The local latency model says about 0.9 s for this state; the cloud's deadline is 0.3 s: starting a local
+    plan then would only burn the robot's CPU, so the request waits for the cloud."""
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.9), CancellablePlanner(clock, 0.4, held=1)
+    router, recorder = router_for(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0, hedge=True,
+                                  hedge_deadline_s=0.05)
+    for k in range(60):
+        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.9 + 0.01 * (k % 3))
+    caller = threading.Thread(target=router.route, args=("req", STATE))
+    caller.start()
+    threading.Event().wait(0.2)             # well past the deadline
+    assert not local.calls
+    cloud.release()
+    caller.join(10)
+    finish(router)
+    assert not recorder.outcomes[0].hedged
+    # With a local estimate below the deadline, the hedge goes ahead.
+    router2, recorder2 = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.02),
+                                    CancellablePlanner(clock, 0.4, held=1), clock, probe_rate=0.0, hedge=True,
+                                    hedge_deadline_s=0.05)
+    for k in range(60):
+        router2.models[LOCAL].observe((1.2, 0.6, 0.05), 0.02)
+    assert router2.route("req", STATE).response["request"] == "req"
+    router2.sides[CLOUD].release()
+    finish(router2)
+    assert recorder2.outcomes[0].hedged and recorder2.outcomes[0].delivered == LOCAL
+
+
+def test_a_hedges_local_plan_still_queued_when_the_cloud_delivers_never_starts():
+    """The first request (local, no deadline reached) holds the local planner; the second (cloud) is hedged into
+    it and waits in line. The cloud delivers the second request first: its local plan then never starts."""
+    clock = VirtualClock()
+    local, cloud = CancellablePlanner(clock, 0.3, held=1), _GatedPerRequest(clock, 0.1)
+    router, recorder = router_for(_Alternating(), local, cloud, clock, probe_rate=0.0, hedge=True,
+                                  hedge_deadline_s=0.01)
+    first = threading.Thread(target=router.route, args=("first", STATE))
+    first.start()
+    while not local.calls or "first" not in cloud.calls:   # local running, its hedged cloud call held
+        threading.Event().wait(0.001)
+    second = threading.Thread(target=router.route, args=("second", STATE))
+    second.start()
+    while "second" not in cloud.calls:
+        threading.Event().wait(0.001)
+    threading.Event().wait(0.05)                            # the second's hedge is queued behind the first
+    cloud.release("second")
+    second.join(10)
+    local.release()
+    cloud.release("first")
+    first.join(10)
+    finish(router)
+    assert local.calls == ["first"], "the second request's local plan never started: its caller had the cloud path"
+
+
+class _GatedPerRequest:
+    """A cloud whose answer to each request waits until that request is released."""
+
+    def __init__(self, clock, cost_s):
+        self.clock, self.cost_s, self.calls, self.gates = clock, cost_s, [], {}
+
+    def __call__(self, request):
+        gate = self.gates.setdefault(request, threading.Event())
+        self.calls.append(request)
+        assert gate.wait(10)
+        self.clock.advance(self.cost_s)
+        return OK, {"side": self, "request": request}
+
+    def release(self, request):
+        self.gates.setdefault(request, threading.Event()).set()
+
+
+class _Alternating(AlwaysCloud):
+    """Local for the first request, then cloud."""
+
+    def __init__(self):
+        super().__init__("alternating")
+        self.count = 0
+
+    def decide(self, state):
+        decision = super().decide(state)
+        self.count += 1
+        return dataclasses.replace(decision, action=LOCAL) if self.count == 1 else decision

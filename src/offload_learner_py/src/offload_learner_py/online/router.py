@@ -90,6 +90,10 @@ class _Lane:
             return [call_id for call_id, req in self.running.items()
                     if req.outcome.request_id < request_id and req.delivered.is_set()]
 
+    def calls_of(self, req: "_Request"):
+        with self.state:
+            return [call_id for call_id, running in self.running.items() if running is req]
+
     def busy(self) -> bool:
         """A call runs whose caller still waits for it (one that could not be cancelled)."""
         with self.state:
@@ -231,11 +235,21 @@ class OffloadRouter:
             other = OTHER[first[0]]
             with req.lock:
                 late = not req.delivered.is_set() and other not in req.started
-            if late and (other == LOCAL or self.breaker.admit() != OPEN):
+            if late and self._worth_hedging(other, req.outcome.state, deadline_s):
                 req.outcome.hedged = True
                 self._start(req, (other,), request)
         req.delivered.wait()
         return req.delivered_result
+
+    def _worth_hedging(self, other: int, state: State, deadline_s: float) -> bool:
+        """The cloud is hedged into unless the breaker says the link is down. The local planner is not hedged
+        into when its median latency for this state already exceeds the deadline the cloud missed: on a
+        saturated robot it would most likely lose, and its CPU would slow the cloud call's bridge and the
+        learner that waits for it."""
+        if other == CLOUD:
+            return self.breaker.admit() != OPEN
+        local_s = self.models[LOCAL].impute_s(_features(state))
+        return local_s is None or local_s < deadline_s
 
     def _start(self, req: _Request, sides, request) -> None:
         """All of `sides` count as started before any runs, so the first to finish cannot finish the request."""
@@ -254,9 +268,12 @@ class OffloadRouter:
         if lane.serial:
             self._cancel_abandoned(side, req.outcome.request_id)
         with lane.lock if lane.serial else nullcontext():
-            if lane.serial and req.delivered.is_set() and lane.superseded(req.outcome.request_id):
-                result = SideResult(self.statuses.cloud_error, None, 0.0, raised="cancelled: a newer request needed "
-                                    "this side first", cancelled=True)
+            # A call whose caller has its path is not started when a newer request needs the side, nor, the
+            # local planner's CPU being the robot's, when it is no probe's measurement.
+            if lane.serial and req.delivered.is_set() and (lane.superseded(req.outcome.request_id)
+                                                           or not req.outcome.probe):
+                result = SideResult(self.statuses.cloud_error, None, 0.0, raised="cancelled: its caller had a path "
+                                    "before it started", cancelled=True)
             else:
                 started_after_s = self.clock() - req.began
                 lane.begin(call_id, req)
@@ -271,6 +288,16 @@ class OffloadRouter:
         if side == CLOUD and not result.cancelled and req.outcome.state is not None:
             self.breaker.record_call(not result.link_failed)
         self._settle(req, side, result, request)
+
+    def _cancel_calls_of(self, side: int, req: _Request) -> None:
+        cancel = getattr(self.sides[side], "cancel", None)
+        if cancel is None:
+            return
+        for call_id in self._lanes[side].calls_of(req):
+            try:
+                cancel(call_id)
+            except Exception:
+                pass
 
     def _cancel_abandoned(self, side: int, request_id: int) -> None:
         """Cancels the side's running calls for earlier requests that already have their path, so this request
@@ -290,8 +317,12 @@ class OffloadRouter:
         with req.lock:
             req.results[side] = result
             good = result.status == self.statuses.ok and result.note is None and not result.cancelled
+            abandon = False
             if good and not req.delivered.is_set():
                 self._deliver(req, side, result)
+                # A hedge's local plan is not a measurement anyone asked for: its CPU is freed at once.
+                abandon = side == CLOUD and not req.outcome.probe and LOCAL in req.started \
+                    and LOCAL not in req.results
             all_done = req.started <= set(req.results)
             if all_done and not req.delivered.is_set():
                 if LOCAL not in req.started and self.statuses.cloud_failed(result.status):
@@ -301,6 +332,8 @@ class OffloadRouter:
                 else:
                     self._deliver(req, side, result)   # the planner's own verdict on the request (NO_PATH, ...)
             finish = all_done and not fallback
+        if abandon:
+            self._cancel_calls_of(LOCAL, req)
         if fallback:
             self._start(req, (LOCAL,), request)
         elif finish:
