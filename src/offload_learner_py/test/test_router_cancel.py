@@ -154,33 +154,52 @@ def test_a_hedges_local_plan_is_cancelled_as_soon_as_the_cloud_delivers():
     assert outcome.hedged and outcome.delivered == CLOUD and outcome.local is None
 
 
-def test_the_local_planner_is_not_hedged_into_when_it_cannot_win():
-    """The local latency model says about 0.9 s for this state; the cloud's deadline is 0.3 s: starting a local
-    plan then would only burn the robot's CPU, so the request waits for the cloud."""
+def test_the_local_planner_is_not_hedged_into_when_it_cannot_win_until_hedge_max():
+    """The local latency model says about 0.9 s for this state, the cloud's 95th percentile is about 0.3 s: a
+    local plan started at the deadline would only burn the robot's CPU, so it is not; but by hedge_max_s the
+    cloud call is as good as failed (a dead link the breaker has not caught yet), and the local plan starts."""
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.9), CancellablePlanner(clock, 0.4, held=1)
     router, recorder = router_for(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0, hedge=True,
-                                  hedge_deadline_s=0.05)
+                                  hedge_deadline_s=0.05, hedge_max_s=2.0)
     for k in range(60):
         router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.9 + 0.01 * (k % 3))
+        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.3 + 0.01 * (k % 3))
     caller = threading.Thread(target=router.route, args=("req", STATE))
     caller.start()
-    threading.Event().wait(0.2)             # well past the deadline
+    threading.Event().wait(0.2)             # well past the deadline, well before hedge_max_s
     assert not local.calls
+    caller.join(10)                         # the local plan starts at hedge_max_s and serves the request
+    assert local.calls == ["req"]
     cloud.release()
-    caller.join(10)
     finish(router)
-    assert not recorder.outcomes[0].hedged
-    # With a local estimate below the deadline, the hedge goes ahead.
-    router2, recorder2 = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.02),
-                                    CancellablePlanner(clock, 0.4, held=1), clock, probe_rate=0.0, hedge=True,
-                                    hedge_deadline_s=0.05)
+    assert recorder.outcomes[0].hedged and recorder.outcomes[0].delivered == LOCAL
+
+
+def test_the_local_planner_is_hedged_into_when_it_can_win():
+    clock = VirtualClock()
+    router, recorder = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.02), CancellablePlanner(clock, 0.4, held=1),
+                                  clock, probe_rate=0.0, hedge=True, hedge_deadline_s=0.05)
     for k in range(60):
-        router2.models[LOCAL].observe((1.2, 0.6, 0.05), 0.02)
-    assert router2.route("req", STATE).response["request"] == "req"
-    router2.sides[CLOUD].release()
-    finish(router2)
-    assert recorder2.outcomes[0].hedged and recorder2.outcomes[0].delivered == LOCAL
+        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.02)
+        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.3 + 0.01 * (k % 3))
+    assert router.route("req", STATE).response["request"] == "req"
+    router.sides[CLOUD].release()
+    finish(router)
+    assert recorder.outcomes[0].hedged and recorder.outcomes[0].delivered == LOCAL
+
+
+def test_a_late_cloud_call_is_hedged_once_the_local_plan_would_have_finished():
+    clock = VirtualClock()
+    router, _ = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1), clock,
+                           hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
+    for k in range(60):
+        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.1 * (1.0 + 0.5 * (k % 3 - 1)))
+    assert router._deadline_s(CLOUD, STATE) > 0.12                 # the cloud's own 95th percentile
+    for k in range(60):
+        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.08)
+    assert router._deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].impute_s((1.2, 0.6, 0.05)))
+    # (never before the cloud's own median, though the local median is lower)
 
 
 def test_a_hedges_local_plan_still_queued_when_the_cloud_delivers_never_starts():

@@ -213,43 +213,56 @@ class OffloadRouter:
 
     def _deadline_s(self, side: int, state: State) -> float:
         """How long the chosen side may take before the other starts: the hedge_quantile of its latency for
-        this state, clamped. A local plan that runs long is hedged sooner, once the cloud's median for the
-        state has passed: the cloud would most likely have been done already, it costs the robot only the
-        bridge, and started then the request costs at most about that median twice. A cloud call is not
-        hedged that early: the local planner cannot be interrupted, so a local plan started for nothing
-        would hold the robot's CPU and the next requests (the breaker handles a dead link)."""
+        this state, clamped to [hedge_min_s, hedge_max_s], and sooner:
+        - a local plan, once the cloud's median for the state has passed: the cloud would most likely have
+          been done already, and it costs the robot only the bridge;
+        - a cloud call, once the local planner's median has passed (never before the cloud's own median): a
+          late cloud call (a link slowing down) gets the local plan while it can still win, and the local
+          plan is cancelled if the cloud answers first. Whether the local planner is hedged into at all is
+          _worth_hedging's call."""
         config = self.config
         if config.hedge_deadline_s > 0:
             return config.hedge_deadline_s
         features = _features(state)
         quantile = self.models[side].quantile_s(features, config.hedge_quantile)
         deadline = config.hedge_max_s if quantile is None else quantile
-        cloud = self.models[CLOUD].impute_s(features) if side == LOCAL else None
-        if cloud is not None:
-            deadline = min(deadline, cloud)
+        other = self.models[OTHER[side]].impute_s(features)
+        if other is not None:
+            own = self.models[side].impute_s(features) if side == CLOUD else None
+            deadline = min(deadline, other if own is None else max(other, own))
         return min(max(deadline, config.hedge_min_s), config.hedge_max_s)
 
     def _run(self, req: _Request, first, deadline_s: Optional[float], request=None):
         self._start(req, first, request)
         if deadline_s is not None and not req.delivered.wait(deadline_s):
             other = OTHER[first[0]]
-            with req.lock:
-                late = not req.delivered.is_set() and other not in req.started
-            if late and self._worth_hedging(other, req.outcome.state, deadline_s):
-                req.outcome.hedged = True
-                self._start(req, (other,), request)
+            if self._worth_hedging(other, req.outcome.state, first[0]):
+                self._hedge(req, other, request)
+            elif other == LOCAL and not req.delivered.wait(max(0.0, self.config.hedge_max_s - deadline_s)):
+                # By hedge_max_s a cloud call is as good as failed (a dead link the breaker has not caught
+                # yet): the local plan starts whatever it costs, so no request waits for the cloud timeout.
+                self._hedge(req, other, request)
         req.delivered.wait()
         return req.delivered_result
 
-    def _worth_hedging(self, other: int, state: State, deadline_s: float) -> bool:
-        """The cloud is hedged into unless the breaker says the link is down. The local planner is not hedged
-        into when its median latency for this state already exceeds the deadline the cloud missed: on a
-        saturated robot it would most likely lose, and its CPU would slow the cloud call's bridge and the
-        learner that waits for it."""
+    def _hedge(self, req: _Request, other: int, request) -> None:
+        with req.lock:
+            late = not req.delivered.is_set() and other not in req.started
+        if late:
+            req.outcome.hedged = True
+            self._start(req, (other,), request)
+
+    def _worth_hedging(self, other: int, state: State, first: int) -> bool:
+        """The cloud is hedged into unless the breaker says the link is down. The local planner is hedged into
+        at the deadline only when its median latency for this state is below the cloud's 95th percentile: on a
+        saturated robot a local plan would most likely lose, and its CPU would slow the cloud call's bridge and
+        the learner that waits for it."""
         if other == CLOUD:
             return self.breaker.admit() != OPEN
-        local_s = self.models[LOCAL].impute_s(_features(state))
-        return local_s is None or local_s < deadline_s
+        features = _features(state)
+        local_s = self.models[LOCAL].impute_s(features)
+        cloud_q = self.models[CLOUD].quantile_s(features, self.config.hedge_quantile)
+        return local_s is None or cloud_q is None or local_s < cloud_q
 
     def _start(self, req: _Request, sides, request) -> None:
         """All of `sides` count as started before any runs, so the first to finish cannot finish the request."""
