@@ -18,6 +18,9 @@ from offload_planner_cpp import NoPathError, plan
 from offload_planner_cpp.devtools.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map
 
+sys.path.insert(0, str(Path(__file__).resolve().parent))
+import planner_modes  # noqa: E402  (this directory's sibling module)
+
 HERE = Path(__file__).resolve()
 SHARED_ROS = HERE.parents[3].parent / "shared" / "data" / "maps" / "ros"
 BUNDLED = HERE.parents[1] / "maps"
@@ -104,7 +107,14 @@ def main(argv=None):
     parser.add_argument("--runs", type=int, default=7)
     parser.add_argument("--pairs", type=int, default=50, help="random pairs per ROS map")
     parser.add_argument("--starts", type=int, default=3, help="full searches per ROS map compared with scipy")
+    parser.add_argument("--figure", type=Path, default=BUNDLED.parents[1] / "docs" / "planner_modes.png",
+                        help="PNG of the same plan in each mode on the Husky playpen")
+    parser.add_argument("--only-modes", action="store_true", help="only the modes section")
     args = parser.parse_args(argv)
+    print("## Planner modes")
+    planner_modes.run(3, args.figure, BUNDLED / "husky_playpen" / "playpen_map.yaml")
+    if args.only_modes:
+        return 0
     bench_random(args.size, args.runs)
     maps_dir = SHARED_ROS if SHARED_ROS.is_dir() else BUNDLED
     print(f"## ROS maps from {maps_dir}: random free start/goal pairs (seed 0), stop at goal; "

@@ -239,19 +239,116 @@ bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, con
   return reached;
 }
 
+double DijkstraPlanner::segmentCost(int from, int to) const {
+  const int w = width_;
+  double cost = 0.0;
+  const bool visible = walkSegment({from % w, from / w}, {to % w, to / w}, w, [&](int i) { return passable(i); },
+                                   [&](int i, double length) { cost += weighted_ ? length * weight(i) : length; });
+  return visible ? cost : std::numeric_limits<double>::infinity();
+}
+
+double DijkstraPlanner::pathCost(const std::vector<Cell>& path) const {
+  double cost = 0.0;
+  for (std::size_t k = 1; k < path.size(); ++k) {
+    cost += segmentCost(path[k - 1].y * width_ + path[k - 1].x, path[k].y * width_ + path[k].x);
+  }
+  return cost;
+}
+
+bool DijkstraPlanner::searchTheta(int start, int target, const std::atomic<bool>* cancel, std::vector<Cell>* path) {
+  beginSearch();
+  constexpr std::uint64_t kCancelCheck = 1024;
+  const int w = width_;
+  const int h = height_;
+  const std::size_t cells = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
+  if (parent_.size() != cells) parent_.assign(cells, -1);
+  double* const dist = dist_.data();
+  int row_min = h;
+  int row_max = -1;
+  heap_.clear();
+  auto later = [](const std::pair<double, int>& a, const std::pair<double, int>& b) { return a.first > b.first; };
+  const Cell goal{target % w, target / w};
+  // Euclidean distance times the least weight: no segment costs less, so the heuristic is consistent.
+  auto euclid = [&](int i) { return min_weight_ * std::hypot(i % w - goal.x, i / w - goal.y); };
+  dist[start] = 0.0;
+  parent_[start] = start;
+  heap_.emplace_back(euclid(start), start);
+  bool reached = false;
+  while (!heap_.empty()) {
+    std::pop_heap(heap_.begin(), heap_.end(), later);
+    const int i = heap_.back().second;
+    heap_.pop_back();
+    const double d = dist[i];
+    if (std::signbit(d)) continue;
+    dist[i] = -d;
+    ++expansions_;
+    if (cancel != nullptr && expansions_ % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
+      cancelled_ = true;
+      break;
+    }
+    const int y = i / w;
+    const int x = i - y * w;
+    row_min = std::min(row_min, y);
+    row_max = std::max(row_max, y);
+    if (i == target) {
+      reached = true;
+      break;
+    }
+    const int up = parent_[i];
+    const double up_cost = distance(up);
+    auto relax = [&](int j, double length) {
+      if (settled(j)) return;
+      // Path 2 of Theta*: straight from i's parent when j is in its sight; else path 1, through i.
+      double best = d + moveCost(i, j, length);
+      int from = i;
+      if (up != i) {
+        const double straight = up_cost + segmentCost(up, j);
+        if (straight <= best) {
+          best = straight;
+          from = up;
+        }
+      }
+      if (best < dist[j]) {
+        dist[j] = best;
+        parent_[j] = from;
+        heap_.emplace_back(best + euclid(j), j);
+        std::push_heap(heap_.begin(), heap_.end(), later);
+      }
+    };
+    const bool fw = x > 0 && passable(i - 1);
+    const bool fe = x < w - 1 && passable(i + 1);
+    const bool fn = y > 0 && passable(i - w);
+    const bool fs = y < h - 1 && passable(i + w);
+    if (fw) relax(i - 1, 1.0);
+    if (fe) relax(i + 1, 1.0);
+    if (fn) relax(i - w, 1.0);
+    if (fs) relax(i + w, 1.0);
+    if (fn && fw && passable(i - w - 1)) relax(i - w - 1, kDiagonal);
+    if (fn && fe && passable(i - w + 1)) relax(i - w + 1, kDiagonal);
+    if (fs && fw && passable(i + w - 1)) relax(i + w - 1, kDiagonal);
+    if (fs && fe && passable(i + w + 1)) relax(i + w + 1, kDiagonal);
+  }
+  // Relaxed cells lie at most one row beyond the settled ones; parents are only read for settled cells.
+  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
+  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
+  if (!reached) return false;
+  path->clear();
+  for (int i = target;; i = parent_[i]) {
+    path->push_back({i % w, i / w});
+    if (i == start) break;
+  }
+  std::reverse(path->begin(), path->end());
+  return true;
+}
+
 void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
   const std::size_t n = path->size();
   if (n < 3) return;
   const int w = width_;
   auto index = [&](Cell c) { return c.y * w + c.x; };
-  // The cost of the cell path up to each cell, in the same model as a segment's (a move is half in each cell).
+  // The cost of the path up to each corner, in the same model as a segment's (a move is half in each cell).
   std::vector<double> prefix(n, 0.0);
-  for (std::size_t k = 1; k < n; ++k) {
-    const Cell a = (*path)[k - 1];
-    const Cell b = (*path)[k];
-    const double length = (a.x != b.x && a.y != b.y) ? kDiagonal : 1.0;
-    prefix[k] = prefix[k - 1] + moveCost(index(a), index(b), length);
-  }
+  for (std::size_t k = 1; k < n; ++k) prefix[k] = prefix[k - 1] + segmentCost(index((*path)[k - 1]), index((*path)[k]));
   auto passableAt = [&](int i) { return passable(i); };
   std::vector<Cell> pulled{path->front()};
   std::size_t anchor = 0;
@@ -442,7 +539,23 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   tracePath(reached, &result.path);
   result.cost = weighted_ ? 0.0 : distance(reached);
   result.weighted_cost = distance(reached);
-  if (options.any_angle) pullTight(&result.path);
+  if (options.any_angle) {
+    // Two candidates, the cheaper wins: the optimal cell path pulled tight (never costlier than it), and
+    // Theta*'s path (usually shorter: its corners need not be cells of one cell path) pulled tight too.
+    pullTight(&result.path);
+    const double pulled = pathCost(result.path);
+    std::vector<Cell> theta;
+    const std::uint64_t settled = expansions_;
+    if (searchTheta(index(start), reached, options.cancel, &theta)) {
+      pullTight(&theta);
+      if (pathCost(theta) < pulled) result.path.swap(theta);
+    }
+    result.expansions = settled + expansions_;
+    if (cancelled_) {
+      return finish(PlanStatus::kCancelled, "cancelled by the caller after " + std::to_string(result.expansions) +
+                                                " expansions");
+    }
+  }
   if (weighted_ || options.any_angle) {
     // Length (and cost) of the path as returned: segments between its corners.
     double length = 0.0;

@@ -4,6 +4,7 @@
 #include <gtest/gtest.h>
 
 #include <algorithm>
+#include <cstdio>
 #include <cmath>
 #include <queue>
 #include <random>
@@ -270,6 +271,36 @@ TEST(PlannerModes, AnyAngleCrossesNoBlockedCellAndIsNeverLonger) {
   }
   EXPECT_GT(checked, 100);
   EXPECT_LT(pulled_length, grid_length);
+}
+
+TEST(PlannerModes, AnyAngleIsAtLeastFourPercentShorterOnRandomMaps) {
+  // 20 % random obstacles, pairs at least 60 cells apart: the bar, also checked from Python.
+  std::mt19937 rng(23);
+  DijkstraPlanner planner;
+  double octile = 0.0, pulled = 0.0;
+  int pairs = 0;
+  for (int trial = 0; trial < 12; ++trial) {
+    RandomGrid g(&rng, 160, 160, 0.2, false);
+    for (int q = 0; q < 8; ++q) {
+      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      if (std::hypot(s.x - t.x, s.y - t.y) < 60) continue;
+      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      const auto cells = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t);
+      if (!cells.ok()) continue;
+      PlannerOptions o;
+      o.any_angle = true;
+      const auto tight = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
+      expectClearPath(g, tight, s, t);
+      octile += cells.cost;
+      pulled += tight.cost;
+      ++pairs;
+    }
+  }
+  ASSERT_GT(pairs, 40);
+  const double saving = 1.0 - pulled / octile;
+  std::printf("any-angle: %d pairs, %.2f %% shorter than the 8-connected optimum\n", pairs, 100 * saving);
+  EXPECT_GE(saving, 0.04);
 }
 
 int main(int argc, char** argv) {

@@ -101,8 +101,15 @@ class DijkstraPlanner {
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
   // Walks back from `goal` along settled cells, each step to the neighbour with the smallest distance.
   void tracePath(int goal, std::vector<Cell>* path) const;
-  // Pulls `path` tight along lines of sight that never raise its cost; returns its length and cost.
+  // Pulls `path` tight along lines of sight that never raise its cost.
   void pullTight(std::vector<Cell>* path) const;
+  // Theta* (any-angle A*: a cell's parent may be any cell in sight) from start to target; the corners of
+  // its path in *path, false when cancelled or the target was not reached.
+  bool searchTheta(int start, int target, const std::atomic<bool>* cancel, std::vector<Cell>* path);
+  // Cost of the segment between two cells (length times the weights it crosses), or +inf when not in sight.
+  double segmentCost(int from, int to) const;
+  // Cost of a path of corners, segment by segment.
+  double pathCost(const std::vector<Cell>& path) const;
   bool passable(int index) const { return passable_[static_cast<std::uint8_t>(grid_[index])]; }
   double weight(int index) const { return weight_[static_cast<std::uint8_t>(grid_[index])]; }
   // A move's cost: its length times the mean weight of its two cells.
@@ -136,6 +143,7 @@ class DijkstraPlanner {
   std::size_t dirty_end_ = 0;
   std::vector<int> buckets_[3];
   std::vector<std::pair<double, int>> heap_;
+  std::vector<int> parent_;            // Theta*: each settled cell's parent
   std::vector<std::int8_t> inflated_;  // the grid after inflation, when asked for
 };
 
