@@ -107,7 +107,7 @@ def main(argv=None):
     parser.add_argument("--runs", type=int, default=7)
     parser.add_argument("--pairs", type=int, default=50, help="random pairs per ROS map")
     parser.add_argument("--starts", type=int, default=3, help="full searches per ROS map compared with scipy")
-    parser.add_argument("--figure", type=Path, default=BUNDLED.parents[1] / "docs" / "planner_modes.png",
+    parser.add_argument("--figure", type=Path, default=BUNDLED.parent / "docs" / "planner_modes.png",
                         help="PNG of the same plan in each mode on the Husky playpen")
     parser.add_argument("--only-modes", action="store_true", help="only the modes section")
     args = parser.parse_args(argv)

@@ -16,14 +16,19 @@ from offload_planner_cpp.maps import load_map
 
 # name: plan() keywords. Radii in cells (the Husky playpen has 5 cm cells: a 0.2 m robot, 0.6 m inflation).
 INFLATION = dict(robot_radius_cells=4.0, inflation_radius_cells=12.0, inflation_decay=0.5)
-MODES = {
-    "dijkstra": {},
-    "astar": dict(algorithm="astar"),
-    "any-angle": dict(any_angle=True),
-    "cost-aware + inflation": dict(cost_factor=3.0, **INFLATION),
-    "cost-aware A* + inflation": dict(algorithm="astar", cost_factor=3.0, **INFLATION),
-    "cost-aware any-angle + inflation": dict(any_angle=True, cost_factor=3.0, **INFLATION),
-}
+# A random map's free cells are mostly within a few cells of an obstacle: inflation there grades only.
+RANDOM_INFLATION = dict(robot_radius_cells=0.0, inflation_radius_cells=3.0, inflation_decay=0.5)
+
+
+def modes(inflation: dict) -> dict:
+    return {
+        "dijkstra": {},
+        "astar": dict(algorithm="astar"),
+        "any-angle": dict(any_angle=True),
+        "cost-aware + inflation": dict(cost_factor=3.0, **inflation),
+        "cost-aware A* + inflation": dict(algorithm="astar", cost_factor=3.0, **inflation),
+        "cost-aware any-angle + inflation": dict(any_angle=True, cost_factor=3.0, **inflation),
+    }
 
 
 def _median(runs, fn):
@@ -50,14 +55,14 @@ def _pairs(grid, count, rng, min_apart, clearance=0.0):
     return pairs
 
 
-def bench_modes(name, grid, pairs, runs):
+def bench_modes(name, grid, pairs, runs, inflation):
     """Prints one row per mode: median time per plan, cells settled, length against the 8-connected optimum
     and the weighted cost checked against scipy on the same graph (one full scipy search per start)."""
     print(f"### {name}, {len(pairs)} pairs, median of {runs} runs each")
     print(f"{'mode':34s} {'ms/plan':>8s} {'settled':>10s} {'length vs 8-conn':>17s} {'cost = scipy':>13s}")
     optimum = {pair: plan(grid, *pair).cost for pair in pairs}
     graphs = {}
-    for mode, options in MODES.items():
+    for mode, options in modes(inflation).items():
         times, settled, ratios, exact = [], 0, [], 0
         for pair in pairs:
             seconds, result = _median(runs, lambda: plan(grid, *pair, **options))
@@ -67,7 +72,7 @@ def bench_modes(name, grid, pairs, runs):
             if options.get("any_angle"):
                 assert path_clear(grid, result.path) == -1
             if not options.get("any_angle"):
-                key = (options.get("cost_factor", 0.0), options.get("robot_radius_cells", 0.0))
+                key = (options.get("cost_factor", 0.0), options.get("inflation_radius_cells", 0.0))
                 if key not in graphs:
                     inflated = inflate(grid, options.get("robot_radius_cells", 0.0),
                                        options.get("inflation_radius_cells", 0.0),
@@ -117,20 +122,22 @@ def figure(grid, pair, out: Path, resolution: float) -> None:
     ax.set_title("Husky playpen: the same plan in each mode (grey: inflation, robot radius 0.2 m, 0.6 m)",
                  fontsize=9)
     fig.tight_layout()
-    fig.savefig(out)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out, bbox_inches="tight")
     plt.close(fig)
 
 
 def run(runs: int, figure_out: Path = None, husky_yaml: Path = None) -> None:
     rng = np.random.default_rng(0)
     grid = (rng.random((600, 600)) < 0.2).astype(np.int8) * 100
-    bench_modes("600 x 600, 20 % random obstacles (seed 0)", grid, _pairs(grid, 12, rng, 300), runs)
+    bench_modes("600 x 600, 20 % random obstacles (seed 0), inflation radius 3 cells", grid,
+                _pairs(grid, 12, rng, 300), runs, RANDOM_INFLATION)
     if husky_yaml is None:
         return
     husky = load_map(husky_yaml)
     pairs = _pairs(husky.grid, 12, rng, 150, clearance=INFLATION["robot_radius_cells"] + 1)
-    bench_modes(f"{husky.name} {husky.grid.shape[1]} x {husky.grid.shape[0]}, known free space", husky.grid, pairs,
-                runs)
+    bench_modes(f"{husky.name} {husky.grid.shape[1]} x {husky.grid.shape[0]}, known free space, robot radius 4 "
+                f"cells, inflation 12", husky.grid, pairs, runs, INFLATION)
     if figure_out is not None:
         figure(husky.grid, pairs[0], figure_out, husky.resolution)
         print(f"figure: {figure_out}")
