@@ -31,8 +31,8 @@ import itertools
 import math
 import os
 import threading
-from contextlib import nullcontext
 import time
+from contextlib import nullcontext
 from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
