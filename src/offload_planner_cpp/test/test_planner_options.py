@@ -187,3 +187,28 @@ def test_the_client_refuses_an_any_angle_path_through_a_wall():
     straight = np.array([START, GOAL], np.int32)
     forged = protocol.Reply(1, Status.OK, "", straight, GOAL, 10, 0.001, float(np.hypot(*np.subtract(GOAL, START))))
     assert "crosses an obstacle" in reply_problem(forged, grid, START, GOAL, options, 1.0)
+
+
+def test_the_server_inflates_a_map_once_for_all_requests_that_ask_the_same():
+    """Inflation is a whole-map pass: the server keeps the inflated map in its map cache (same budget, same
+    eviction), so a second request with the same options adds nothing to it, and answers as the binding does."""
+    grid = corridor_grid()
+    server = start_server()
+    options = PlanOptions(cost_factor=3.0, robot_radius_cells=1.0, inflation_radius_cells=5.0)
+    try:
+        with CloudClient(server.endpoint, insecure=True, timeout_s=10.0) as client:
+            first = client.plan(grid, START, GOAL, options)
+            cached = len(server.cache)
+            second = client.plan(grid, START, GOAL, options)
+            other = client.plan(grid, START, GOAL, dataclasses.replace(options, inflation_radius_cells=7.0))
+            assert len(server.cache) == cached + 1                 # one more inflated map for the new radius
+            assert cached == 2                                     # the map and its inflation
+            local = plan_raw(grid, START, GOAL, **options.planner_kwargs())
+            for reply in (first.reply, second.reply):
+                assert reply.status == Status.OK and reply.path.tolist() == local["path"].tolist()
+            assert other.reply.status == Status.OK
+            bad = client.plan(grid, START, GOAL, dataclasses.replace(options, robot_radius_cells=float("nan")))
+            assert bad.reply.status == Status.INVALID_REQUEST       # bad radii: the core's verdict, nothing cached
+            assert len(server.cache) == cached + 1
+    finally:
+        server.stop()

@@ -1,13 +1,16 @@
 """What a cloud worker does with one PLAN or UPLOAD message: decode it, take the map from the cache or store
 the one it carries, plan with the C++ core through the one request contract, and encode the reply. Never
 raises: a bad message costs one reply."""
+import dataclasses
+import hashlib
 import logging
+import struct
 import time
 from typing import Callable
 
 import numpy as np
 
-from offload_planner_cpp import PlanStatus, plan_raw
+from offload_planner_cpp import PlanStatus, inflate, plan_raw
 from offload_planner_cpp.cloud import protocol
 from offload_planner_cpp.cloud.map_cache import MapCache
 from offload_planner_cpp.cloud.protocol import Kind, ProtocolError, Reply, Status
@@ -65,6 +68,8 @@ class Planning:
             self._store(request.map_hash, grid, client)
             source = "uploaded"
         options = request.options
+        if options.robot_radius_cells > 0 or options.inflation_radius_cells > 0:
+            grid, options = self._inflated(request.map_hash, grid, options, client)
         raw = protocol_plan(grid, request, options)
         status = Status(int(raw["status"]))
         LOG.info("request %d: map %s %s, %s -> %s: %s, plan %.2f ms, %d expansions, %.2f ms in server",
@@ -72,6 +77,24 @@ class Planning:
                  raw["expansions"], (time.perf_counter() - started) * 1e3)
         return Reply(request_id, status, raw["message"], raw["path"], raw["goal"], raw["expansions"],
                      raw["seconds"], raw["cost"])
+
+
+    def _inflated(self, map_hash: bytes, grid: np.ndarray, options: protocol.PlanOptions, client: str):
+        """The map inflated as `options` ask, from the map cache when an earlier request asked the same (a
+        whole-map distance transform per request would cost more than the plan), and the options that plan on
+        it as it is. Inflated maps share the cache's byte budget and eviction with the maps themselves."""
+        settings = struct.pack("<3dh?", options.robot_radius_cells, options.inflation_radius_cells,
+                               options.inflation_decay, options.lethal_threshold, options.unknown_is_obstacle)
+        key = hashlib.blake2b(map_hash + settings, digest_size=protocol.HASH_SIZE, person=b"inflated").digest()
+        inflated = self.cache.get(key)
+        if inflated is None:
+            try:
+                inflated = inflate(grid, options.robot_radius_cells, options.inflation_radius_cells,
+                                   options.inflation_decay, options.lethal_threshold, options.unknown_is_obstacle)
+            except ValueError:
+                return grid, options   # the planner reports what is wrong with the options
+            self.cache.put(key, inflated, client)
+        return inflated, dataclasses.replace(options, robot_radius_cells=0.0, inflation_radius_cells=0.0)
 
 
 def protocol_plan(grid: np.ndarray, request: protocol.PlanRequest, options: protocol.PlanOptions) -> dict:
