@@ -6,7 +6,6 @@
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
 
-#include <cmath>
 #include <cstring>
 #include <sstream>
 
@@ -280,11 +279,8 @@ PYBIND11_MODULE(_core, m) {
       [](const py::array& grid, double robot_radius_cells, double inflation_radius_cells, double inflation_decay,
          int lethal_threshold, bool unknown_is_obstacle) {
         const GridView view = viewOf(grid);
-        auto within = [](double v, double high) { return std::isfinite(v) && v >= 0.0 && v <= high; };
-        if (!within(robot_radius_cells, 1e4) || !within(inflation_radius_cells, 1e4) ||
-            !within(inflation_decay, 1e300) || lethal_threshold < 1 || lethal_threshold > 101) {
-          throw py::value_error("radii must be in 0..10000 cells, inflation_decay finite and >= 0, "
-                                "lethal_threshold in 1..101");
+        if (lethal_threshold < 1 || lethal_threshold > 101) {
+          throw py::value_error("lethal_threshold must be in 1..101, got " + std::to_string(lethal_threshold));
         }
         PlannerOptions options;
         options.lethal_threshold = lethal_threshold;
@@ -292,6 +288,8 @@ PYBIND11_MODULE(_core, m) {
         options.robot_radius_cells = robot_radius_cells;
         options.inflation_radius_cells = inflation_radius_cells;
         options.inflation_decay = inflation_decay;
+        const std::string problem = offload_planner::inflationProblem(options);
+        if (!problem.empty()) throw py::value_error(problem);
         std::vector<std::int8_t> out;
         {
           py::gil_scoped_release release;

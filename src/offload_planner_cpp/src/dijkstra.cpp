@@ -90,6 +90,23 @@ void DijkstraPlanner::beginSearch() {
   expansions_ = 0;
 }
 
+template <class Visit>
+inline void DijkstraPlanner::forEachMove(int i, int x, int y, Visit visit) const {
+  const int w = width_;
+  const bool fw = x > 0 && passable(i - 1);
+  const bool fe = x < w - 1 && passable(i + 1);
+  const bool fn = y > 0 && passable(i - w);
+  const bool fs = y < height_ - 1 && passable(i + w);
+  if (fw) visit(i - 1, 1.0);
+  if (fe) visit(i + 1, 1.0);
+  if (fn) visit(i - w, 1.0);
+  if (fs) visit(i + w, 1.0);
+  if (fn && fw && passable(i - w - 1)) visit(i - w - 1, kDiagonal);
+  if (fn && fe && passable(i - w + 1)) visit(i - w + 1, kDiagonal);
+  if (fs && fw && passable(i + w - 1)) visit(i + w - 1, kDiagonal);
+  if (fs && fe && passable(i + w + 1)) visit(i + w + 1, kDiagonal);
+}
+
 // Dial's bucket queue with bucket width 1, the smallest step cost (Dinitz): every cell in the lowest
 // non-empty bucket already has its final distance, so buckets are settled in any order with O(1) queue
 // work. Steps cost at most sqrt(2) < 2, so three buckets in a ring hold everything pending.
@@ -144,18 +161,7 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
           break;
         }
       }
-      const bool fw = x > 0 && passable(i - 1);
-      const bool fe = x < w - 1 && passable(i + 1);
-      const bool fn = y > 0 && passable(i - w);
-      const bool fs = y < h - 1 && passable(i + w);
-      if (fw) relax(i - 1, d + 1.0);
-      if (fe) relax(i + 1, d + 1.0);
-      if (fn) relax(i - w, d + 1.0);
-      if (fs) relax(i + w, d + 1.0);
-      if (fn && fw && passable(i - w - 1)) relax(i - w - 1, d + kDiagonal);
-      if (fn && fe && passable(i - w + 1)) relax(i - w + 1, d + kDiagonal);
-      if (fs && fw && passable(i + w - 1)) relax(i + w - 1, d + kDiagonal);
-      if (fs && fe && passable(i + w + 1)) relax(i + w + 1, d + kDiagonal);
+      forEachMove(i, x, y, [&](int j, double length) { relax(j, d + length); });
     }
     pending -= std::min(pending, bucket.size());
     bucket.clear();
@@ -176,11 +182,10 @@ double DijkstraPlanner::heuristic(int index) const {
   return min_weight_ * (std::max(dx, dy) + (kDiagonal - 1.0) * std::min(dx, dy));
 }
 
-// Dijkstra or A* with a binary heap of (f, cell) and lazy deletion: for weighted moves, where buckets of
-// width one would not hold, and for A*.
-bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
+template <class Estimate, class Relax>
+bool DijkstraPlanner::bestFirst(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel,
+                                std::uint64_t cancel_check, Estimate estimate, Relax relax) {
   beginSearch();
-  constexpr std::uint64_t kCancelCheck = 4096;
   cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
   if (cancelled_) return false;
   const int w = width_;
@@ -191,16 +196,8 @@ bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, con
   heap_.clear();
   auto later = [](const std::pair<double, int>& a, const std::pair<double, int>& b) { return a.first > b.first; };
   dist[start] = 0.0;
-  heap_.emplace_back(heuristic(start), start);
+  heap_.emplace_back(estimate(start), start);
   bool reached = false;
-  auto relax = [&](int i, int j, double d, double length) {
-    const double nd = d + moveCost(i, j, length);
-    if (nd < dist[j]) {  // false for settled cells, whose stored distance is negative
-      dist[j] = nd;
-      heap_.emplace_back(nd + heuristic(j), j);
-      std::push_heap(heap_.begin(), heap_.end(), later);
-    }
-  };
   while (!heap_.empty()) {
     std::pop_heap(heap_.begin(), heap_.end(), later);
     const int i = heap_.back().second;
@@ -209,7 +206,7 @@ bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, con
     if (std::signbit(d)) continue;  // stale entry of a settled cell
     dist[i] = -d;
     ++expansions_;
-    if (cancel != nullptr && expansions_ % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
+    if (cancel != nullptr && expansions_ % cancel_check == 0 && cancel->load(std::memory_order_relaxed)) {
       cancelled_ = true;
       break;
     }
@@ -221,22 +218,29 @@ bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, con
       reached = true;
       if (stop_at_target) break;
     }
-    const bool fw = x > 0 && passable(i - 1);
-    const bool fe = x < w - 1 && passable(i + 1);
-    const bool fn = y > 0 && passable(i - w);
-    const bool fs = y < h - 1 && passable(i + w);
-    if (fw) relax(i, i - 1, d, 1.0);
-    if (fe) relax(i, i + 1, d, 1.0);
-    if (fn) relax(i, i - w, d, 1.0);
-    if (fs) relax(i, i + w, d, 1.0);
-    if (fn && fw && passable(i - w - 1)) relax(i, i - w - 1, d, kDiagonal);
-    if (fn && fe && passable(i - w + 1)) relax(i, i - w + 1, d, kDiagonal);
-    if (fs && fw && passable(i + w - 1)) relax(i, i + w - 1, d, kDiagonal);
-    if (fs && fe && passable(i + w + 1)) relax(i, i + w + 1, d, kDiagonal);
+    forEachMove(i, x, y, [&](int j, double length) {
+      if (relax(i, d, j, length)) {
+        heap_.emplace_back(dist[j] + estimate(j), j);
+        std::push_heap(heap_.begin(), heap_.end(), later);
+      }
+    });
   }
+  // Relaxed cells lie at most one row beyond the settled ones.
   dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
   dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
   return reached;
+}
+
+// Dijkstra or A*, with a heap: for weighted moves, where buckets of width one would not hold, and for A*.
+bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
+  // dist_ is read through the member: bestFirst's beginSearch may reallocate it.
+  return bestFirst(start, target, stop_at_target, cancel, 4096, [&](int j) { return heuristic(j); },
+                   [&](int i, double d, int j, double length) {
+                     const double nd = d + moveCost(i, j, length);
+                     if (!(nd < dist_[j])) return false;  // always false for settled cells (negative)
+                     dist_[j] = nd;
+                     return true;
+                   });
 }
 
 double DijkstraPlanner::segmentCost(int from, int to) const {
@@ -256,82 +260,32 @@ double DijkstraPlanner::pathCost(const std::vector<Cell>& path) const {
 }
 
 bool DijkstraPlanner::searchTheta(int start, int target, const std::atomic<bool>* cancel, std::vector<Cell>* path) {
-  beginSearch();
-  constexpr std::uint64_t kCancelCheck = 1024;
   const int w = width_;
-  const int h = height_;
-  const std::size_t cells = static_cast<std::size_t>(w) * static_cast<std::size_t>(h);
+  const std::size_t cells = static_cast<std::size_t>(w) * static_cast<std::size_t>(height_);
   if (parent_.size() != cells) parent_.assign(cells, -1);
-  double* const dist = dist_.data();
-  int row_min = h;
-  int row_max = -1;
-  heap_.clear();
-  auto later = [](const std::pair<double, int>& a, const std::pair<double, int>& b) { return a.first > b.first; };
+  parent_[start] = start;   // parents are only read for settled cells
   const Cell goal{target % w, target / w};
   // Euclidean distance times the least weight: no segment costs less, so the heuristic is consistent.
   auto euclid = [&](int i) { return min_weight_ * std::hypot(i % w - goal.x, i / w - goal.y); };
-  dist[start] = 0.0;
-  parent_[start] = start;
-  heap_.emplace_back(euclid(start), start);
-  bool reached = false;
-  while (!heap_.empty()) {
-    std::pop_heap(heap_.begin(), heap_.end(), later);
-    const int i = heap_.back().second;
-    heap_.pop_back();
-    const double d = dist[i];
-    if (std::signbit(d)) continue;
-    dist[i] = -d;
-    ++expansions_;
-    if (cancel != nullptr && expansions_ % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
-      cancelled_ = true;
-      break;
-    }
-    const int y = i / w;
-    const int x = i - y * w;
-    row_min = std::min(row_min, y);
-    row_max = std::max(row_max, y);
-    if (i == target) {
-      reached = true;
-      break;
-    }
+  auto relax = [&](int i, double d, int j, double length) {
+    if (settled(j)) return false;
+    // Path 2 of Theta*: straight from i's parent when j is in its sight; else path 1, through i.
+    double best = d + moveCost(i, j, length);
+    int from = i;
     const int up = parent_[i];
-    const double up_cost = distance(up);
-    auto relax = [&](int j, double length) {
-      if (settled(j)) return;
-      // Path 2 of Theta*: straight from i's parent when j is in its sight; else path 1, through i.
-      double best = d + moveCost(i, j, length);
-      int from = i;
-      if (up != i) {
-        const double straight = up_cost + segmentCost(up, j);
-        if (straight <= best) {
-          best = straight;
-          from = up;
-        }
+    if (up != i) {
+      const double straight = distance(up) + segmentCost(up, j);
+      if (straight <= best) {
+        best = straight;
+        from = up;
       }
-      if (best < dist[j]) {
-        dist[j] = best;
-        parent_[j] = from;
-        heap_.emplace_back(best + euclid(j), j);
-        std::push_heap(heap_.begin(), heap_.end(), later);
-      }
-    };
-    const bool fw = x > 0 && passable(i - 1);
-    const bool fe = x < w - 1 && passable(i + 1);
-    const bool fn = y > 0 && passable(i - w);
-    const bool fs = y < h - 1 && passable(i + w);
-    if (fw) relax(i - 1, 1.0);
-    if (fe) relax(i + 1, 1.0);
-    if (fn) relax(i - w, 1.0);
-    if (fs) relax(i + w, 1.0);
-    if (fn && fw && passable(i - w - 1)) relax(i - w - 1, kDiagonal);
-    if (fn && fe && passable(i - w + 1)) relax(i - w + 1, kDiagonal);
-    if (fs && fw && passable(i + w - 1)) relax(i + w - 1, kDiagonal);
-    if (fs && fe && passable(i + w + 1)) relax(i + w + 1, kDiagonal);
-  }
-  // Relaxed cells lie at most one row beyond the settled ones; parents are only read for settled cells.
-  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
-  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
-  if (!reached) return false;
+    }
+    if (!(best < dist_[j])) return false;
+    dist_[j] = best;
+    parent_[j] = from;
+    return true;
+  };
+  if (!bestFirst(start, target, true, cancel, 1024, euclid, relax)) return false;
   path->clear();
   for (int i = target;; i = parent_[i]) {
     path->push_back({i % w, i / w});
@@ -370,35 +324,21 @@ void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
 
 void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
   const int w = width_;
-  const int h = height_;
   path->clear();
   int i = goal;
   path->push_back({i % w, i / w});
   while (distance(i) > 0.0) {
     const int y = i / w;
-    const int x = i - y * w;
-    const bool fw = x > 0 && passable(i - 1);
-    const bool fe = x < w - 1 && passable(i + 1);
-    const bool fn = y > 0 && passable(i - w);
-    const bool fs = y < h - 1 && passable(i + w);
     int best = -1;
     double best_dist = std::numeric_limits<double>::infinity();
-    auto consider = [&](bool legal, int j, double length) {
-      if (!legal || !settled(j)) return;
+    forEachMove(i, i - y * w, y, [&](int j, double length) {
+      if (!settled(j)) return;
       const double through = distance(j) + moveCost(j, i, length);
       if (through < best_dist) {
         best_dist = through;
         best = j;
       }
-    };
-    consider(fw, i - 1, 1.0);
-    consider(fe, i + 1, 1.0);
-    consider(fn, i - w, 1.0);
-    consider(fs, i + w, 1.0);
-    consider(fn && fw && passable(i - w - 1), i - w - 1, kDiagonal);
-    consider(fn && fe && passable(i - w + 1), i - w + 1, kDiagonal);
-    consider(fs && fw && passable(i + w - 1), i + w - 1, kDiagonal);
-    consider(fs && fe && passable(i + w + 1), i + w + 1, kDiagonal);
+    });
     i = best;  // exists: a settled cell's predecessor on its shortest path is settled and closer
     path->push_back({i % w, i / w});
   }
@@ -468,12 +408,8 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   if (!finiteAtLeast(options.cost_factor, 0.0) || !(std::isfinite(options.neutral_cost) && options.neutral_cost > 0.0)) {
     return finish(PlanStatus::kInvalidRequest, "cost_factor must be finite and >= 0, neutral_cost finite and > 0");
   }
-  if (!finiteAtLeast(options.robot_radius_cells, 0.0) || !finiteAtLeast(options.inflation_radius_cells, 0.0) ||
-      !finiteAtLeast(options.inflation_decay, 0.0) || options.robot_radius_cells > 1e4 ||
-      options.inflation_radius_cells > 1e4) {
-    return finish(PlanStatus::kInvalidRequest,
-                  "robot_radius_cells and inflation_radius_cells must be in 0..10000, inflation_decay finite and >= 0");
-  }
+  const std::string inflation_problem = inflationProblem(options);
+  if (!inflation_problem.empty()) return finish(PlanStatus::kInvalidRequest, inflation_problem);
   if (options.algorithm != Algorithm::kDijkstra && options.algorithm != Algorithm::kAStar) {
     return finish(PlanStatus::kInvalidRequest, "algorithm must be dijkstra or astar");
   }

@@ -96,6 +96,15 @@ class DijkstraPlanner {
   // when `cancel` was set. Uniform cost, Dijkstra: Dial's buckets. Anything else: a binary heap.
   bool search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
   bool searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
+  // Best-first search over heap_ (lazy deletion), shared by searchHeap and searchTheta: `estimate(j)` is the
+  // heuristic, `relax(i, d, j, length)` offers j a cost through the settled cell i (at cost d) and returns
+  // whether it improved dist_[j]. Checks `cancel` every `cancel_check` settled cells.
+  template <class Estimate, class Relax>
+  bool bestFirst(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel,
+                 std::uint64_t cancel_check, Estimate estimate, Relax relax);
+  // Calls visit(j, length) for every legal 8-connected move out of cell i = (x, y), in a fixed order.
+  template <class Visit>
+  void forEachMove(int i, int x, int y, Visit visit) const;
   // The free cell nearest to `goal` within `radius` cells (settled by the last search if
   // `settled_only`), ties to the first in row order; -1 if there is none.
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
