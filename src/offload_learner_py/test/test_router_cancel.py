@@ -78,15 +78,21 @@ def test_cloud_calls_run_concurrently_so_a_slow_one_holds_up_nobody():
     assert len(cloud.calls) == 2
 
 
-def test_a_cancelled_local_plan_that_had_outrun_the_cloud_teaches_its_lower_bound():
+def first_of_two_probes(local_ran_s):
+    """Two probes; the first one's local plan (0.5 s) is cancelled by the second after `local_ran_s`, while its
+    cloud side took 0.1 s. The first outcome and what the policy was taught."""
     clock = VirtualClock()
-    local, cloud = CancellablePlanner(clock, 0.5, ran_s=0.25, held=1), FakePlanner(clock, 0.1)
+    local, cloud = CancellablePlanner(clock, 0.5, ran_s=local_ran_s, held=1), FakePlanner(clock, 0.1)
     policy = _Recording(CLOUD)
     router, recorder = router_for(policy, local, cloud, clock, probe_rate=1.0)
     router.route("first", STATE)
     router.route("second", STATE)
     finish(router)
-    first = min(recorder.outcomes, key=lambda o: o.request_id)
+    return min(recorder.outcomes, key=lambda o: o.request_id), policy
+
+
+def test_a_cancelled_local_plan_that_had_outrun_the_cloud_teaches_its_lower_bound():
+    first, policy = first_of_two_probes(0.25)
     assert first.imputed == LOCAL and first.transitions == 2
     assert first.reward == pytest.approx(reward(CLOUD, 0.25, 0.1))
     assert (LOCAL, pytest.approx(reward(LOCAL, 0.25, 0.1))) in policy.taught
@@ -95,14 +101,7 @@ def test_a_cancelled_local_plan_that_had_outrun_the_cloud_teaches_its_lower_boun
 def test_a_cancelled_local_plan_shorter_than_the_cloud_teaches_nothing_about_local():
     """Cancelled after 0.05 s while the cloud took 0.1 s: the local plan might have won, the bound says
     nothing about which side was better, so with no model to impute from nothing is learned."""
-    clock = VirtualClock()
-    local, cloud = CancellablePlanner(clock, 0.5, ran_s=0.05, held=1), FakePlanner(clock, 0.1)
-    policy = _Recording(CLOUD)
-    router, recorder = router_for(policy, local, cloud, clock, probe_rate=1.0)
-    router.route("first", STATE)
-    router.route("second", STATE)
-    finish(router)
-    first = min(recorder.outcomes, key=lambda o: o.request_id)
+    first, _ = first_of_two_probes(0.05)
     assert first.local_lower_bound_s == pytest.approx(0.05)
     assert first.reward is None and first.transitions == 0
 

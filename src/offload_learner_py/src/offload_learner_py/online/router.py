@@ -278,8 +278,8 @@ class OffloadRouter:
     def _side(self, req: _Request, side: int, request) -> None:
         lane = self._lanes[side]
         call_id = next(self._call_ids) & 0xFFFFFFFFFFFFFFFF
-        if lane.serial:
-            self._cancel_abandoned(side, req.outcome.request_id)
+        if lane.serial:   # running calls of earlier requests that already have their path: this one won't wait
+            self._cancel(side, lane.abandoned(req.outcome.request_id))
         with lane.lock if lane.serial else nullcontext():
             # A call whose caller has its path is not started when a newer request needs the side, nor, the
             # local planner's CPU being the robot's, when it is no probe's measurement.
@@ -302,26 +302,16 @@ class OffloadRouter:
             self.breaker.record_call(not result.link_failed)
         self._settle(req, side, result, request)
 
-    def _cancel_calls_of(self, side: int, req: _Request) -> None:
+    def _cancel(self, side: int, call_ids) -> None:
+        """Cancels these calls of the side; a side without cancel() keeps running them, and a cancel that fails
+        leaves the call to finish (whoever needs the side waits for it)."""
         cancel = getattr(self.sides[side], "cancel", None)
         if cancel is None:
             return
-        for call_id in self._lanes[side].calls_of(req):
+        for call_id in call_ids:
             try:
                 cancel(call_id)
             except Exception:
-                pass
-
-    def _cancel_abandoned(self, side: int, request_id: int) -> None:
-        """Cancels the side's running calls for earlier requests that already have their path, so this request
-        does not wait for them; a side without cancel() keeps running them."""
-        cancel = getattr(self.sides[side], "cancel", None)
-        if cancel is None:
-            return
-        for call_id in self._lanes[side].abandoned(request_id):
-            try:
-                cancel(call_id)
-            except Exception:   # a cancel that fails leaves the call to finish; this request waits for it
                 pass
 
     def _settle(self, req: _Request, side: int, result: SideResult, request) -> None:
@@ -346,7 +336,7 @@ class OffloadRouter:
                     self._deliver(req, side, result)   # the planner's own verdict on the request (NO_PATH, ...)
             finish = all_done and not fallback
         if abandon:
-            self._cancel_calls_of(LOCAL, req)
+            self._cancel(LOCAL, self._lanes[LOCAL].calls_of(req))
         if fallback:
             self._start(req, (LOCAL,), request)
         elif finish:
