@@ -20,19 +20,11 @@ from offload_planner_cpp.maps import load_map
 
 sys.path.insert(0, str(Path(__file__).resolve().parent))
 import planner_modes  # noqa: E402  (this directory's sibling module)
+from planner_modes import median_of  # noqa: E402
 
 HERE = Path(__file__).resolve()
 SHARED_ROS = HERE.parents[3].parent / "shared" / "data" / "maps" / "ros"
 BUNDLED = HERE.parents[1] / "maps"
-
-
-def median_of(runs, fn):
-    times, out = [], None
-    for _ in range(runs):
-        started = time.perf_counter()
-        out = fn()
-        times.append(time.perf_counter() - started)
-    return statistics.median(times), out
 
 
 def random_grid(size, density, seed):

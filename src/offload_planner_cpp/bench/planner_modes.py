@@ -31,7 +31,8 @@ def modes(inflation: dict) -> dict:
     }
 
 
-def _median(runs, fn):
+def median_of(runs, fn):
+    """Median wall time of `runs` calls of fn, and its last result (bench_planner.py uses it too)."""
     times, out = [], None
     for _ in range(runs):
         started = time.perf_counter()
@@ -65,7 +66,7 @@ def bench_modes(name, grid, pairs, runs, inflation):
     for mode, options in modes(inflation).items():
         times, settled, ratios, exact = [], 0, [], 0
         for pair in pairs:
-            seconds, result = _median(runs, lambda: plan(grid, *pair, **options))
+            seconds, result = median_of(runs, lambda: plan(grid, *pair, **options))
             times.append(seconds)
             settled += result.expansions
             ratios.append(result.cost / optimum[pair])
