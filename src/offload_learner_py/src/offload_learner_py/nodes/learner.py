@@ -24,6 +24,7 @@ from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.routing import RouterConfig, Statuses
 from offload_learner_py.online.session import LearnerSession, SessionConfig
+from offload_planner_cpp.gc_pauses import freeze_startup_heap
 
 
 class LearnerNode:
@@ -187,6 +188,7 @@ def main():
         LearnerNode()
     except (ValueError, OSError, IncompatibleCheckpointError, rospy.ROSException) as error:
         exit_fatal(error)
+    freeze_startup_heap()
     rospy.spin()
 
 

@@ -8,6 +8,7 @@ import zmq
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_planner_cpp.cloud.server import LOG, CloudServer, ServerConfig
+from offload_planner_cpp.gc_pauses import freeze_startup_heap
 
 
 def _endpoint(text: str) -> str:
@@ -90,6 +91,7 @@ def main(argv=None) -> int:
         signal.signal(signum, lambda *_: server.stop())
     signal.signal(signal.SIGHUP, lambda *_: server.reload_allowlist())   # as sshd and nginx: re-read keys
     print(f"listening on {server.endpoint}", flush=True)
+    freeze_startup_heap()
     server.run()
     return 0
 

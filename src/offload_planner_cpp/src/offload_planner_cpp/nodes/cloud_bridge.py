@@ -14,6 +14,7 @@ from offload_msgs.srv import PlanPath, PlanPathResponse
 from rospy.numpy_msg import numpy_msg
 
 from offload_planner_cpp.cloud.bridge import BridgeConfig, CloudBridge, StampedPose
+from offload_planner_cpp.gc_pauses import freeze_startup_heap
 
 
 def stamped_pose(msg) -> StampedPose:
@@ -189,6 +190,7 @@ def main():
         # runs without a working link.
         rospy.logfatal("%s", error)
         raise SystemExit(1) from None
+    freeze_startup_heap()
     rospy.spin()
     return node
 
