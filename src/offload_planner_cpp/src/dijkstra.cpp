@@ -80,13 +80,15 @@ bool segmentClear(const std::int8_t* grid, int width, int height, Cell a, Cell b
 void DijkstraPlanner::beginSearch() {
   constexpr double kUnseen = std::numeric_limits<double>::infinity();
   const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
-  if (dist_.size() != cells) {
-    dist_.assign(cells, kUnseen);
-  } else if (dirty_end_ > dirty_begin_) {
-    std::fill(dist_.begin() + dirty_begin_, dist_.begin() + dirty_end_, kUnseen);
+  for (std::vector<double>* dist : {&dist_, &back_}) {
+    if (dist == &back_ && !two_waves_) continue;  // no memory for a backward wave until one runs
+    if (dist->size() != cells) {
+      dist->assign(cells, kUnseen);
+    } else if (dirty_end_ > dirty_begin_) {
+      std::fill(dist->begin() + dirty_begin_, dist->begin() + dirty_end_, kUnseen);
+    }
   }
   dirty_begin_ = dirty_end_ = 0;
-  for (auto& bucket : buckets_) bucket.clear();
   expansions_ = 0;
 }
 
@@ -110,66 +112,160 @@ inline void DijkstraPlanner::forEachMove(int i, int x, int y, Visit visit) const
 // Dial's bucket queue with bucket width 1, the smallest step cost (Dinitz): every cell in the lowest
 // non-empty bucket already has its final distance, so buckets are settled in any order with O(1) queue
 // work. Steps cost at most sqrt(2) < 2, so three buckets in a ring hold everything pending.
-bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
-  beginSearch();
-  // Checked once every kCancelCheck settled cells: a relaxed load costs nothing at that rate, and even a
-  // slow robot settles that many cells in well under a millisecond.
-  constexpr std::uint64_t kCancelCheck = 4096;
-  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
-  if (cancelled_) return false;
+template <class Near, class Meet>
+DijkstraPlanner::LevelEnd DijkstraPlanner::settleLevel(Wave& wave, int target, const std::atomic<bool>* cancel,
+                                                       Near near, Meet meet) {
+  constexpr std::uint64_t kCancelCheck = 4096;  // a relaxed load costs nothing at that rate
+  // The wave's counters live in locals while the level runs: stores through dist could alias the
+  // members, which would keep the compiler from holding them in registers.
+  std::vector<int>* const buckets = wave.buckets;
+  const std::vector<int>& bucket = buckets[wave.level % 3];
+  const std::size_t entries = bucket.size();
+  double* const dist = wave.dist;
   const int w = width_;
-  const int h = height_;
-  double* const dist = dist_.data();
-  int row_min = h;
-  int row_max = -1;
-
-  dist[start] = 0.0;
-  buckets_[0].push_back(start);
-  std::size_t pending = 1;
-  bool reached = false;
-
-  auto relax = [&](int j, double nd) {
-    if (nd < dist[j]) {  // false for settled cells, whose stored distance is negative
+  std::size_t pending = wave.pending;
+  std::uint64_t expansions = expansions_;
+  int row_min = wave.row_min;
+  int row_max = wave.row_max;
+  int col_min = wave.col_min;
+  int col_max = wave.col_max;
+  LevelEnd end = LevelEnd::kLevel;
+  // Relaxations from this bucket land in the next two, never in this one (steps cost >= 1).
+  for (std::size_t k = 0; k < entries; ++k) {
+    const int i = bucket[k];
+    const double d = dist[i];
+    if (std::signbit(d)) continue;  // stale duplicate of an improved entry
+    dist[i] = -d;
+    ++expansions;
+    if (cancel != nullptr && expansions % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
+      cancelled_ = true;
+      end = LevelEnd::kStopped;
+      break;
+    }
+    const int y = i / w;
+    const int x = i - y * w;
+    row_min = std::min(row_min, y);
+    row_max = std::max(row_max, y);
+    col_min = std::min(col_min, x);
+    col_max = std::max(col_max, x);
+    if (i == target) {
+      end = LevelEnd::kTarget;
+      break;
+    }
+    auto label = [&](int j, double nd) {
       dist[j] = nd;
-      buckets_[static_cast<std::size_t>(nd) % 3].push_back(j);
+      buckets[static_cast<std::size_t>(nd) % 3].push_back(j);
       ++pending;
+    };
+    // Only a cell near the other wave can offer a crossing: elsewhere the moves skip looking at it.
+    if (near(x, y)) {
+      forEachMove(i, x, y, [&](int j, double length) {
+        const double old = dist[j];
+        // A cell this wave has settled gains nothing, and offers no crossing the proof needs (those run
+        // from a cell settled here to one not yet settled here).
+        if (std::signbit(old)) return;
+        const double nd = d + length;
+        meet(i, j, nd);
+        if (nd < old) label(j, nd);
+      });
+    } else {
+      forEachMove(i, x, y, [&](int j, double length) {
+        const double nd = d + length;
+        if (nd < dist[j]) label(j, nd);  // false for settled cells, whose stored distance is negative
+      });
     }
-  };
+  }
+  expansions_ = expansions;
+  wave.row_min = row_min;
+  wave.row_max = row_max;
+  wave.col_min = col_min;
+  wave.col_max = col_max;
+  wave.pending = pending;
+  if (end != LevelEnd::kLevel) return end;
+  wave.pending -= std::min(pending, entries);
+  buckets[wave.level % 3].clear();
+  ++wave.level;
+  return LevelEnd::kLevel;
+}
 
-  for (std::size_t level = 0; pending > 0; ++level) {
-    std::vector<int>& bucket = buckets_[level % 3];
-    // Relaxations from this bucket land in the next two, never in this one (steps cost >= 1).
-    for (std::size_t k = 0; k < bucket.size(); ++k) {
-      const int i = bucket[k];
-      const double d = dist[i];
-      if (std::signbit(d)) continue;  // stale duplicate of an improved entry
-      dist[i] = -d;
-      ++expansions_;
-      if (cancel != nullptr && expansions_ % kCancelCheck == 0 && cancel->load(std::memory_order_relaxed)) {
-        cancelled_ = true;
-        pending = 0;
-        break;
-      }
-      const int y = i / w;
-      const int x = i - y * w;
-      row_min = std::min(row_min, y);
-      row_max = std::max(row_max, y);
-      if (i == target) {
-        reached = true;
-        if (stop_at_target) {
-          pending = 0;
-          break;
-        }
-      }
-      forEachMove(i, x, y, [&](int j, double length) { relax(j, d + length); });
-    }
-    pending -= std::min(pending, bucket.size());
-    bucket.clear();
+DijkstraPlanner::Wave DijkstraPlanner::startWave(std::vector<double>* dist, std::vector<int>* buckets, int source) {
+  for (int k = 0; k < 3; ++k) buckets[k].clear();
+  Wave wave{dist->data(), buckets};
+  wave.dist[source] = 0.0;
+  // The source's row is dirty even if the wave never settles it (the other wave may finish first).
+  wave.row_min = wave.row_max = source / width_;
+  wave.col_min = wave.col_max = source % width_;
+  buckets[0].push_back(source);
+  wave.pending = 1;
+  return wave;
+}
+
+void DijkstraPlanner::endWaves(const Wave& a, const Wave* b) {
+  int row_min = a.row_min;
+  int row_max = a.row_max;
+  if (b != nullptr) {
+    row_min = std::min(row_min, b->row_min);
+    row_max = std::max(row_max, b->row_max);
   }
   // Relaxed cells lie at most one row beyond the settled ones.
-  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
-  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
+  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * width_;
+  dirty_end_ = static_cast<std::size_t>(std::min(height_, row_max + 2)) * width_;
+}
+
+bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
+  beginSearch();
+  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
+  if (cancelled_) return false;
+  Wave wave = startWave(&dist_, buckets_, start);
+  auto nowhere = [](int, int) { return false; };
+  auto no_meeting = [](int, int, double) {};
+  while (wave.pending > 0 &&
+         settleLevel(wave, stop_at_target ? target : -1, cancel, nowhere, no_meeting) == LevelEnd::kLevel) {
+  }
+  const bool reached = !cancelled_ && std::signbit(dist_[target]);
+  endWaves(wave, nullptr);
   return reached;
+}
+
+// Bidirectional: a wave from each end, the one with the smaller next level goes on, each relaxation into a
+// cell the other wave has labelled offers a path through that move (mu, the best so far). Once every cell
+// nearer than level_f to the start and every cell nearer than level_b to the target is settled, a path
+// shorter than level_f + level_b would have to cross from one settled set to the other, and that move was
+// offered when its later end was settled; so mu is optimal (Pohl's rule, Goldberg's proof). The moves are
+// symmetric (same length and corner rule both ways), so the backward wave runs the same code.
+bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atomic<bool>* cancel) {
+  two_waves_ = true;  // from now on beginSearch sizes and resets back_ too
+  beginSearch();
+  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
+  if (cancelled_) return false;
+  Wave forward = startWave(&dist_, buckets_, start);
+  Wave backward = startWave(&back_, back_buckets_, target);
+  meeting_cost_ = std::numeric_limits<double>::infinity();
+  meet_forward_ = meet_backward_ = -1;
+  while (forward.pending > 0 && backward.pending > 0 &&
+         static_cast<double>(forward.level + backward.level) < meeting_cost_) {
+    // The wave with the smaller frontier goes on (the other may be in a corridor or a dead end).
+    const bool ahead = forward.buckets[forward.level % 3].size() <= backward.buckets[backward.level % 3].size();
+    Wave& wave = ahead ? forward : backward;
+    const Wave& far = ahead ? backward : forward;
+    const double* const other = far.dist;
+    // The other wave has labelled only cells within one of the cells it settled, so a cell whose moves can
+    // reach them lies within two of that box.
+    auto near = [&](int x, int y) {
+      return x >= far.col_min - 2 && x <= far.col_max + 2 && y >= far.row_min - 2 && y <= far.row_max + 2;
+    };
+    const LevelEnd end = settleLevel(wave, -1, cancel, near, [&](int i, int j, double through) {
+      const double cost = through + std::fabs(other[j]);   // +inf unless the other wave has labelled j
+      if (cost < meeting_cost_) {
+        meeting_cost_ = cost;
+        meet_forward_ = ahead ? i : j;
+        meet_backward_ = ahead ? j : i;
+      }
+    });
+    if (end == LevelEnd::kStopped) break;
+  }
+  endWaves(forward, &backward);
+  return !cancelled_ && meet_forward_ >= 0;
 }
 
 double DijkstraPlanner::heuristic(int index) const {
@@ -322,18 +418,18 @@ void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
   path->swap(pulled);
 }
 
-void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path) const {
+void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path, const double* dist) const {
   const int w = width_;
   path->clear();
   int i = goal;
   path->push_back({i % w, i / w});
-  while (distance(i) > 0.0) {
+  while (std::fabs(dist[i]) > 0.0) {
     const int y = i / w;
     int best = -1;
     double best_dist = std::numeric_limits<double>::infinity();
     forEachMove(i, i - y * w, y, [&](int j, double length) {
-      if (!settled(j)) return;
-      const double through = distance(j) + moveCost(j, i, length);
+      if (!std::signbit(dist[j])) return;  // not settled
+      const double through = std::fabs(dist[j]) + moveCost(j, i, length);
       if (through < best_dist) {
         best_dist = through;
         best = j;
@@ -459,11 +555,22 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   // the tolerance is the nearest reachable one.
   int reached = target;
   target_cell_ = {target % width, target / width};
-  const bool found = weighted_ || astar_ ? searchHeap(index(start), target, options.stop_at_goal, options.cancel)
-                                         : search(index(start), target, options.stop_at_goal, options.cancel);
+  const int from = index(start);
+  // Uniform-cost Dijkstra to one cell runs from both ends: two waves of half the radius settle about half
+  // the cells of one on open ground. It proves an unreachable goal as soon as either wave runs dry.
+  const bool both_ends = !weighted_ && !astar_ && options.stop_at_goal && from != target;
+  bool found = both_ends ? searchBidirectional(from, target, options.cancel)
+               : weighted_ || astar_ ? searchHeap(from, target, options.stop_at_goal, options.cancel)
+                                     : search(from, target, options.stop_at_goal, options.cancel);
+  const bool met = both_ends && found;
   result.expansions = expansions_;
+  if (!found && !cancelled_ && both_ends && radius > 0.0) {
+    // The nearest reachable cell within the tolerance needs the start's whole component settled.
+    found = search(from, target, true, options.cancel);
+    result.expansions += expansions_;
+  }
   if (cancelled_) {
-    return finish(PlanStatus::kCancelled, "cancelled by the caller after " + std::to_string(expansions_) +
+    return finish(PlanStatus::kCancelled, "cancelled by the caller after " + std::to_string(result.expansions) +
                                               " expansions");
   }
   if (!found) reached = radius > 0.0 ? nearestWithin(goal, radius, true) : -1;
@@ -472,16 +579,25 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
     if (radius > 0.0) msg += ", and so is every free cell within the tolerance";
     return finish(PlanStatus::kNoPath, msg);
   }
-  tracePath(reached, &result.path);
-  result.cost = weighted_ ? 0.0 : distance(reached);
-  result.weighted_cost = distance(reached);
+  if (met) {
+    // Start to the meeting move on the forward wave, then on to the target on the backward one.
+    tracePath(meet_forward_, &result.path, dist_.data());
+    std::vector<Cell> tail;
+    tracePath(meet_backward_, &tail, back_.data());
+    result.path.insert(result.path.end(), tail.rbegin(), tail.rend());
+    result.cost = result.weighted_cost = meeting_cost_;
+  } else {
+    tracePath(reached, &result.path, dist_.data());
+    result.cost = weighted_ ? 0.0 : distance(reached);
+    result.weighted_cost = distance(reached);
+  }
   if (options.any_angle) {
     // Two candidates, the cheaper wins: the optimal cell path pulled tight (never costlier than it), and
     // Theta*'s path (usually shorter: its corners need not be cells of one cell path) pulled tight too.
     pullTight(&result.path);
     const double pulled = pathCost(result.path);
     std::vector<Cell> theta;
-    const std::uint64_t settled = expansions_;
+    const std::uint64_t settled = result.expansions;
     if (searchTheta(index(start), reached, options.cancel, &theta)) {
       pullTight(&theta);
       if (pathCost(theta) < pulled) result.path.swap(theta);

@@ -315,6 +315,72 @@ TEST(Dijkstra, Errors) {
   }
 }
 
+// The default search runs from both ends; its two halves must join into one legal, optimal path.
+TEST(Dijkstra, TheTwoWavesJoinIntoALegalOptimalPath) {
+  std::mt19937 rng(11);
+  int checked = 0;
+  for (int trial = 0; trial < 40; ++trial) {
+    const int w = 30 + static_cast<int>(rng() % 90), h = 30 + static_cast<int>(rng() % 90);
+    std::bernoulli_distribution blocked(0.05 + 0.1 * (trial % 4));
+    Grid grid({std::string(w, '.')});
+    grid.height = h;
+    grid.data.assign(static_cast<std::size_t>(w) * h, 0);
+    for (auto& v : grid.data) v = blocked(rng) ? 100 : 0;
+    for (int q = 0; q < 5; ++q) {
+      Cell s{static_cast<int>(rng() % w), static_cast<int>(rng() % h)};
+      Cell g{static_cast<int>(rng() % w), static_cast<int>(rng() % h)};
+      grid.data[s.y * w + s.x] = 0;
+      grid.data[g.y * w + g.x] = 0;
+      const double expected = referenceCost(grid.data, w, h, s, g);
+      const auto r = grid.plan(s, g);
+      if (std::isinf(expected)) {
+        EXPECT_EQ(r.status, PlanStatus::kNoPath);
+        continue;
+      }
+      expectValidPath(grid, r, s, g);
+      EXPECT_NEAR(r.cost, expected, 1e-9) << "trial " << trial << " query " << q;
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 120);
+}
+
+TEST(Dijkstra, TwoWavesSettleAboutHalfTheCellsOfOne) {
+  Grid grid({std::string(201, '.')});
+  grid.height = 201;
+  grid.data.assign(201 * 201, 0);
+  const Cell s{50, 100}, g{150, 100};
+  const auto r = grid.plan(s, g);
+  expectValidPath(grid, r, s, g);
+  EXPECT_NEAR(r.cost, 100.0, 1e-9);
+  // One wave from s settles every cell nearer than the goal (octile distance below 100) before the goal.
+  std::uint64_t one_wave = 0;
+  for (int y = 0; y < 201; ++y) {
+    for (int x = 0; x < 201; ++x) {
+      const double dx = std::abs(x - s.x), dy = std::abs(y - s.y);
+      one_wave += std::max(dx, dy) + (kSqrt2 - 1.0) * std::min(dx, dy) < 100.0;
+    }
+  }
+  EXPECT_LT(r.expansions, 0.65 * one_wave) << one_wave << " cells in one wave";
+}
+
+TEST(Dijkstra, AnEnclosedGoalIsProvedUnreachableByItsOwnWave) {
+  std::vector<std::string> rows(200, std::string(200, '.'));
+  for (int k = 150; k <= 154; ++k) rows[150][k] = rows[154][k] = rows[k][150] = rows[k][154] = '#';
+  Grid grid(rows);
+  const auto r = grid.plan({0, 0}, {152, 152});
+  EXPECT_EQ(r.status, PlanStatus::kNoPath);
+  EXPECT_LT(r.expansions, 50u) << "the goal's wave runs dry inside the box; the start's need not cover the map";
+  // With a tolerance, the nearest reachable cell needs the start's whole component: still found.
+  PlannerOptions tolerant;
+  tolerant.goal_tolerance_cells = 3.0;
+  const auto near = grid.plan({0, 0}, {152, 152}, tolerant);
+  ASSERT_TRUE(near.ok()) << near.message;
+  const double dx = near.goal.x - 152, dy = near.goal.y - 152;
+  EXPECT_NEAR(std::hypot(dx, dy), 3.0, 1e-9);
+  expectValidPath(grid, near, {0, 0}, near.goal);
+}
+
 TEST(Dijkstra, AgreesWithReferenceOnRandomGridsAndReusesBuffers) {
   std::mt19937 rng(7);
   DijkstraPlanner planner;  // one planner across sizes: buffers grow, shrink and get reused

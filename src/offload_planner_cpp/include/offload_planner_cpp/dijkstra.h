@@ -17,6 +17,7 @@
 #include <cmath>
 #include <cstddef>
 #include <cstdint>
+#include <limits>
 #include <string>
 #include <vector>
 
@@ -92,9 +93,33 @@ class DijkstraPlanner {
                   const PlannerOptions& options = PlannerOptions());
 
  private:
+  // One wave of Dial's bucket queue (uniform cost): its distances, its three buckets, the next level to
+  // settle (every cell nearer than that is settled) and the rows it touched.
+  struct Wave {
+    double* dist;
+    std::vector<int>* buckets;
+    std::size_t level = 0;
+    std::size_t pending = 0;
+    int row_min = std::numeric_limits<int>::max();
+    int row_max = -1;
+    int col_min = std::numeric_limits<int>::max();
+    int col_max = -1;
+  };
+  enum class LevelEnd { kLevel, kTarget, kStopped };
+  Wave startWave(std::vector<double>* dist, std::vector<int>* buckets, int source);
+  // Settles the wave's current level; meet(i, j, d) sees every move i -> j offered at distance d by a cell
+  // i = (x, y) with near(x, y). Stops early when `target` is settled (kTarget) or `cancel` was set
+  // (kStopped, cancelled_).
+  template <class Near, class Meet>
+  LevelEnd settleLevel(Wave& wave, int target, const std::atomic<bool>* cancel, Near near, Meet meet);
+  // The rows the waves touched, for the next beginSearch to reset.
+  void endWaves(const Wave& a, const Wave* b);
   // Runs the search from `start`; returns true when `target` was settled. Sets cancelled_ and returns false
   // when `cancel` was set. Uniform cost, Dijkstra: Dial's buckets. Anything else: a binary heap.
   bool search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
+  // Uniform-cost Dijkstra from both ends at once; true when they met: the optimal path crosses the move
+  // meet_forward_ -> meet_backward_ and costs meeting_cost_.
+  bool searchBidirectional(int start, int target, const std::atomic<bool>* cancel);
   bool searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
   // Best-first search over heap_ (lazy deletion), shared by searchHeap and searchTheta: `estimate(j)` is the
   // heuristic, `relax(i, d, j, length)` offers j a cost through the settled cell i (at cost d) and returns
@@ -108,8 +133,9 @@ class DijkstraPlanner {
   // The free cell nearest to `goal` within `radius` cells (settled by the last search if
   // `settled_only`), ties to the first in row order; -1 if there is none.
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
-  // Walks back from `goal` along settled cells, each step to the neighbour with the smallest distance.
-  void tracePath(int goal, std::vector<Cell>* path) const;
+  // Walks back from `goal` to the source of the distances `dist` along settled cells, each step to the
+  // neighbour with the smallest distance; the path runs from that source to `goal`.
+  void tracePath(int goal, std::vector<Cell>* path, const double* dist) const;
   // Pulls `path` tight along lines of sight that never raise its cost.
   void pullTight(std::vector<Cell>* path) const;
   // Theta* (any-angle A*: a cell's parent may be any cell in sight) from start to target; the corners of
@@ -151,6 +177,12 @@ class DijkstraPlanner {
   std::size_t dirty_begin_ = 0;
   std::size_t dirty_end_ = 0;
   std::vector<int> buckets_[3];
+  std::vector<double> back_;           // the bidirectional search's backward wave (same dirty rows)
+  bool two_waves_ = false;             // back_ in use
+  std::vector<int> back_buckets_[3];
+  double meeting_cost_ = 0.0;
+  int meet_forward_ = -1;
+  int meet_backward_ = -1;
   std::vector<std::pair<double, int>> heap_;
   std::vector<int> parent_;            // Theta*: each settled cell's parent
   std::vector<std::int8_t> inflated_;  // the grid after inflation, when asked for
