@@ -262,32 +262,18 @@ def test_router_config_rejects_bad_modes_and_hedges():
             RouterConfig(**kwargs)
 
 
-def test_a_local_plan_whose_tail_reaches_past_the_clouds_median_is_hedged_at_once():
-    """A local plan that may well be slower than the cloud usually is: the cloud starts at hedge_min_s (a
-    cloud call started at the cloud's median could only answer at twice it). A cloud call is never hedged
-    that early: the local plan costs the robot its CPU."""
+def test_a_long_local_plan_is_hedged_once_the_clouds_median_has_passed():
+    """A local plan slower than the cloud usually is: the cloud starts once it would have been done. A cloud
+    call is never hedged that early: a local plan cannot be interrupted."""
     clock = VirtualClock()
     router, _ = configured_router(AlwaysLocal("local"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
                                   clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
     for k in range(60):
         router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.5 * (1.0 + 0.3 * (k % 3 - 1)))   # local slow, noisy
         router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.12 * (1.0 + 0.3 * (k % 3 - 1)))
-    assert router._deadline_s(LOCAL, STATE) == 0.02
+    assert router._deadline_s(LOCAL, STATE) == pytest.approx(0.12, rel=0.05)
     assert router._deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].quantile_s((1.2, 0.6, 0.05), 0.95))
     assert router._deadline_s(CLOUD, STATE) > 0.12
-
-
-def test_a_local_plan_surely_faster_than_the_cloud_waits_for_its_own_tail():
-    """Local's 95th percentile below the cloud's median: the cloud starts only if the local plan runs past it."""
-    clock = VirtualClock()
-    router, _ = configured_router(AlwaysLocal("local"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
-                                  clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
-    for k in range(60):
-        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.05 * (1.0 + 0.3 * (k % 3 - 1)))
-        router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.3 * (1.0 + 0.3 * (k % 3 - 1)))
-    local_q95 = router.models[LOCAL].quantile_s((1.2, 0.6, 0.05), 0.95)
-    assert 0.05 < local_q95 < 0.3
-    assert router._deadline_s(LOCAL, STATE) == pytest.approx(local_q95)
 
 
 def test_a_warm_started_policy_probes_until_both_latency_models_are_ready():

@@ -214,11 +214,8 @@ class OffloadRouter:
     def _deadline_s(self, side: int, state: State) -> float:
         """How long the chosen side may take before the other starts: the hedge_quantile of its latency for
         this state, clamped to [hedge_min_s, hedge_max_s], and sooner:
-        - a local plan whose hedge_quantile reaches past the cloud's median for the state: at hedge_min_s. In
-          its tail it loses to a cloud call started now, and a cloud call started once the cloud's median has
-          passed can only answer at about twice that median (the bench's slowest requests were these). The
-          cloud costs the robot only the bridge, and the local plan is cancelled if the cloud answers first;
-        - a local plan otherwise, once the cloud's median has passed;
+        - a local plan, once the cloud's median for the state has passed: the cloud would most likely have
+          been done already, and it costs the robot only the bridge;
         - a cloud call, once the local planner's median has passed (never before the cloud's own median): a
           late cloud call (a link slowing down) gets the local plan while it can still win, and the local
           plan is cancelled if the cloud answers first. Whether the local planner is hedged into at all is
@@ -230,9 +227,7 @@ class OffloadRouter:
         quantile = self.models[side].quantile_s(features, config.hedge_quantile)
         deadline = config.hedge_max_s if quantile is None else quantile
         other = self.models[OTHER[side]].impute_s(features)
-        if other is not None and side == LOCAL and quantile is not None and quantile >= other:
-            deadline = config.hedge_min_s
-        elif other is not None:
+        if other is not None:
             own = self.models[side].impute_s(features) if side == CLOUD else None
             deadline = min(deadline, other if own is None else max(other, own))
         return min(max(deadline, config.hedge_min_s), config.hedge_max_s)
