@@ -228,11 +228,15 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
 }
 
 // Bidirectional: a wave from each end, the one with the smaller next level goes on, each relaxation into a
-// cell the other wave has labelled offers a path through that move (mu, the best so far). Once every cell
-// nearer than level_f to the start and every cell nearer than level_b to the target is settled, a path
-// shorter than level_f + level_b would have to cross from one settled set to the other, and that move was
-// offered when its later end was settled; so mu is optimal (Pohl's rule, Goldberg's proof). The moves are
-// symmetric (same length and corner rule both ways), so the backward wave runs the same code.
+// cell the other wave has labelled offers a path through that move (mu, the best so far). Every cell
+// nearer than level_f to the start and every cell nearer than level_b to the target is settled. Take a
+// shortest path P of length L < mu <= level_f + level_b + 1, u its last cell nearer than level_f to the
+// start and v the next: v is nearer than level_b + 1 to the target, so v's successor (every move costs at
+// least 1) is settled backward, and v holds exact labels from both waves; whichever of u and that
+// successor was settled later offered L through v. So once level_f + level_b + 1 >= mu, mu is optimal
+// (Pohl's rule with the bucket width's slack). A cell this wave has settled is skipped: P's cells lie in
+// strictly different levels of each wave, so the crossing above never needs one. The moves are symmetric
+// (same length and corner rule both ways), so the backward wave runs the same code.
 bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atomic<bool>* cancel) {
   two_waves_ = true;  // from now on beginSearch sizes and resets back_ too
   beginSearch();
@@ -243,9 +247,13 @@ bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atom
   meeting_cost_ = std::numeric_limits<double>::infinity();
   meet_forward_ = meet_backward_ = -1;
   while (forward.pending > 0 && backward.pending > 0 &&
-         static_cast<double>(forward.level + backward.level) < meeting_cost_) {
-    // The wave with the smaller frontier goes on (the other may be in a corridor or a dead end).
-    const bool ahead = forward.buckets[forward.level % 3].size() <= backward.buckets[backward.level % 3].size();
+         static_cast<double>(forward.level + backward.level) + 1.0 < meeting_cost_) {
+    // The wave with the smaller frontier goes on (the other may be in a corridor or a dead end); on a tie
+    // the one with fewer levels settled, so a corridor is walked from both ends.
+    const std::size_t forward_front = forward.buckets[forward.level % 3].size();
+    const std::size_t backward_front = backward.buckets[backward.level % 3].size();
+    const bool ahead = forward_front < backward_front ||
+                       (forward_front == backward_front && forward.level <= backward.level);
     Wave& wave = ahead ? forward : backward;
     const Wave& far = ahead ? backward : forward;
     const double* const other = far.dist;

@@ -113,6 +113,7 @@ TEST(Dijkstra, StartEqualsGoal) {
   ASSERT_TRUE(r.ok());
   ASSERT_EQ(r.path.size(), 1u);
   EXPECT_EQ(r.cost, 0.0);
+  EXPECT_EQ(r.expansions, 1u) << "the goal is the start: nothing else to settle";
 }
 
 TEST(Dijkstra, NoCornerCutting) {
