@@ -1,5 +1,6 @@
 """Adds up every JUnit XML file under a results directory (gtest, rostest, pytest) and prints one line per
-file with failures and a closing total. Exits 1 when a test failed or errored, or when none ran."""
+file, the name and first message line of each failed test under it, and a closing total. Exits 1 when a
+test failed or errored, or when none ran."""
 import sys
 import xml.etree.ElementTree as ET
 from pathlib import Path
@@ -16,6 +17,20 @@ def counts(path):
     return tests, failures, skipped
 
 
+def failed_cases(path):
+    """(test name, first line of its failure or error message) of every failed test case in the file."""
+    cases = []
+    for case in ET.parse(path).getroot().iter("testcase"):
+        for verdict in ("failure", "error"):
+            found = case.find(verdict)
+            if found is not None:
+                text = (found.get("message") or found.text or verdict).strip()
+                name = ".".join(part for part in (case.get("classname"), case.get("name")) if part)
+                cases.append((name, text.splitlines()[0][:300] if text else verdict))
+                break
+    return cases
+
+
 def main(results_dir):
     total = failed = skipped = 0
     files = sorted(Path(results_dir).rglob("*.xml"))
@@ -28,6 +43,12 @@ def main(results_dir):
         total, failed, skipped = total + tests, failed + failures, skipped + skips
         mark = "FAIL" if failures else "ok  "
         print(f"{mark} {path.relative_to(results_dir)}: {tests} tests, {failures} failed")
+        if failures:
+            try:
+                for name, message in failed_cases(path):
+                    print(f"       {name}: {message}")
+            except ET.ParseError:
+                pass
     passed = total - failed - skipped
     print(f"total: {passed} passed, {failed} failed, {skipped} skipped")
     return 0 if failed == 0 and passed > 0 else 1
