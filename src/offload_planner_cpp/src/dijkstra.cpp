@@ -238,6 +238,12 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
 // strictly different levels of each wave, so the crossing above never needs one. The moves are symmetric
 // (same length and corner rule both ways), so the backward wave runs the same code.
 bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atomic<bool>* cancel) {
+  // A cancel that came first skips the buffers too (a planner's first plan on a big map fills them).
+  if (cancel != nullptr && cancel->load(std::memory_order_relaxed)) {
+    cancelled_ = true;
+    expansions_ = 0;
+    return false;
+  }
   two_waves_ = true;  // from now on beginSearch sizes and resets back_ too
   beginSearch();
   cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
@@ -273,6 +279,7 @@ bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atom
     if (end == LevelEnd::kStopped) break;
   }
   endWaves(forward, &backward);
+  start_component_settled_ = !cancelled_ && forward.pending == 0;
   return !cancelled_ && meet_forward_ >= 0;
 }
 
@@ -572,8 +579,9 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
                                      : search(from, target, options.stop_at_goal, options.cancel);
   const bool met = both_ends && found;
   result.expansions = expansions_;
-  if (!found && !cancelled_ && both_ends && radius > 0.0) {
-    // The nearest reachable cell within the tolerance needs the start's whole component settled.
+  if (!found && !cancelled_ && both_ends && radius > 0.0 && !start_component_settled_) {
+    // The nearest reachable cell within the tolerance needs the start's whole component settled: the
+    // goal's wave ran dry first, so the start's wave settles the rest of it now.
     found = search(from, target, true, options.cancel);
     result.expansions += expansions_;
   }

@@ -257,7 +257,7 @@ class PlannerNodeTest(unittest.TestCase):
     def test_zy_cancel_stops_a_running_plan_and_one_not_yet_begun(self):
         """Of two identical long plans started together, the one cancelled on ~cancel answers CANCELLED
         first; a cancel that arrives before its request makes that request answer CANCELLED at once."""
-        self.publish_map(np.zeros((5000, 5000), np.int8), 9000)
+        self.publish_map(split_map(), 9000)
         cancel = rospy.Publisher("/planner/cancel", UInt64, queue_size=10)
         deadline = rospy.Time.now() + rospy.Duration(30)
         while cancel.get_num_connections() == 0 and rospy.Time.now() < deadline:
@@ -279,7 +279,7 @@ class PlannerNodeTest(unittest.TestCase):
             thread.join(120)
         self.assertEqual(finished[4242][1].status, R.CANCELLED, finished[4242][1].message)
         self.assertEqual(len(finished[4242][1].path.poses), 0)
-        self.assertEqual(finished[4243][1].status, R.OK)
+        self.assertEqual(finished[4243][1].status, R.NO_PATH, finished[4243][1].message)
         self.assertLess(finished[4242][0], finished[4243][0], "the cancelled plan ran to its end")
         self.assertLess(finished[4242][1].expansions, finished[4243][1].expansions)
 
@@ -292,8 +292,7 @@ class PlannerNodeTest(unittest.TestCase):
     def test_zz_long_plans_starve_neither_short_plans_nor_map_updates(self):
         """Two long plans on a large map run while a new map arrives and a short plan is asked: the
         short one is answered on the new map before either long one ends."""
-        big = np.zeros((5000, 5000), np.int8)
-        big_map = dataclasses.replace(self.map, grid=big)
+        big_map = dataclasses.replace(self.map, grid=split_map())
         pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2)
         deadline = rospy.Time.now() + rospy.Duration(30)
         while pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
@@ -323,9 +322,18 @@ class PlannerNodeTest(unittest.TestCase):
         self.assertEqual(res.map_stamp, rospy.Time(8000), "the new map was taken in during the long plans")
         for thread in threads:
             thread.join(120)
-        self.assertEqual([finished[k][1] for k in range(2)], [R.OK, R.OK])
+        self.assertEqual([finished[k][1] for k in range(2)], [R.NO_PATH, R.NO_PATH])
         self.assertLess(short_done, min(t for t, _ in finished.values()),
                         "the short plan and the map update waited behind the long plans")
+
+
+def split_map() -> np.ndarray:
+    """5000 x 5000 cells, a wall down the middle: a plan from one corner to the other is the longest this
+    map has, whichever way it searches (both ends flood their half before NO_PATH). A plan thread's first
+    plan on it also pays for its buffers; an empty map's corner-to-corner plan was no longer than that."""
+    grid = np.zeros((5000, 5000), np.int8)
+    grid[:, 2500] = 100
+    return grid
 
 
 if __name__ == "__main__":

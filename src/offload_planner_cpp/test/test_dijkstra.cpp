@@ -382,6 +382,23 @@ TEST(Dijkstra, AnEnclosedGoalIsProvedUnreachableByItsOwnWave) {
   expectValidPath(grid, near, {0, 0}, near.goal);
 }
 
+TEST(Dijkstra, AStartWaveThatRanDryIsNotRepeatedForTheTolerance) {
+  // A wall cuts off a small room around the start; the goal lies just beyond it. The start's wave runs dry
+  // first and has settled everything the tolerance may choose from: no second flood of the room.
+  std::vector<std::string> rows(100, std::string(200, '.'));
+  for (auto& row : rows) row[20] = '#';
+  Grid grid(rows);
+  const auto plain = grid.plan({10, 50}, {22, 50});
+  EXPECT_EQ(plain.status, PlanStatus::kNoPath);
+  PlannerOptions tolerant;
+  tolerant.goal_tolerance_cells = 3.0;
+  const auto near = grid.plan({10, 50}, {22, 50}, tolerant);
+  ASSERT_TRUE(near.ok()) << near.message;
+  EXPECT_EQ(near.goal, (Cell{19, 50}));
+  expectValidPath(grid, near, {10, 50}, {19, 50});
+  EXPECT_EQ(near.expansions, plain.expansions) << "the start's room was flooded twice";
+}
+
 TEST(Dijkstra, AgreesWithReferenceOnRandomGridsAndReusesBuffers) {
   std::mt19937 rng(7);
   DijkstraPlanner planner;  // one planner across sizes: buffers grow, shrink and get reused

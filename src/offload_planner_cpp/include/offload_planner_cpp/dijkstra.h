@@ -183,6 +183,7 @@ class DijkstraPlanner {
   double meeting_cost_ = 0.0;
   int meet_forward_ = -1;
   int meet_backward_ = -1;
+  bool start_component_settled_ = false;  // the last two-wave search's forward wave ran dry
   std::vector<std::pair<double, int>> heap_;
   std::vector<int> parent_;            // Theta*: each settled cell's parent
   std::vector<std::int8_t> inflated_;  // the grid after inflation, when asked for
