@@ -200,13 +200,7 @@ DijkstraPlanner::Wave DijkstraPlanner::startWave(std::vector<double>* dist, std:
   return wave;
 }
 
-void DijkstraPlanner::endWaves(const Wave& a, const Wave* b) {
-  int row_min = a.row_min;
-  int row_max = a.row_max;
-  if (b != nullptr) {
-    row_min = std::min(row_min, b->row_min);
-    row_max = std::max(row_max, b->row_max);
-  }
+void DijkstraPlanner::markDirtyRows(int row_min, int row_max) {
   // Relaxed cells lie at most one row beyond the settled ones.
   dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * width_;
   dirty_end_ = static_cast<std::size_t>(std::min(height_, row_max + 2)) * width_;
@@ -223,7 +217,7 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
          settleLevel(wave, stop_at_target ? target : -1, cancel, nowhere, no_meeting) == LevelEnd::kLevel) {
   }
   const bool reached = !cancelled_ && std::signbit(dist_[target]);
-  endWaves(wave, nullptr);
+  markDirtyRows(wave.row_min, wave.row_max);
   return reached;
 }
 
@@ -278,7 +272,7 @@ bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atom
     });
     if (end == LevelEnd::kStopped) break;
   }
-  endWaves(forward, &backward);
+  markDirtyRows(std::min(forward.row_min, backward.row_min), std::max(forward.row_max, backward.row_max));
   start_component_settled_ = !cancelled_ && forward.pending == 0;
   return !cancelled_ && meet_forward_ >= 0;
 }
@@ -336,9 +330,7 @@ bool DijkstraPlanner::bestFirst(int start, int target, bool stop_at_target, cons
       }
     });
   }
-  // Relaxed cells lie at most one row beyond the settled ones.
-  dirty_begin_ = static_cast<std::size_t>(std::max(0, row_min - 1)) * w;
-  dirty_end_ = static_cast<std::size_t>(std::min(h, row_max + 2)) * w;
+  markDirtyRows(row_min, row_max);
   return reached;
 }
 

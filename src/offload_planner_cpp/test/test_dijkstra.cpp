@@ -323,9 +323,7 @@ TEST(Dijkstra, TheTwoWavesJoinIntoALegalOptimalPath) {
   for (int trial = 0; trial < 40; ++trial) {
     const int w = 30 + static_cast<int>(rng() % 90), h = 30 + static_cast<int>(rng() % 90);
     std::bernoulli_distribution blocked(0.05 + 0.1 * (trial % 4));
-    Grid grid({std::string(w, '.')});
-    grid.height = h;
-    grid.data.assign(static_cast<std::size_t>(w) * h, 0);
+    Grid grid(std::vector<std::string>(h, std::string(w, '.')));
     for (auto& v : grid.data) v = blocked(rng) ? 100 : 0;
     for (int q = 0; q < 5; ++q) {
       Cell s{static_cast<int>(rng() % w), static_cast<int>(rng() % h)};
@@ -347,9 +345,7 @@ TEST(Dijkstra, TheTwoWavesJoinIntoALegalOptimalPath) {
 }
 
 TEST(Dijkstra, TwoWavesSettleAboutHalfTheCellsOfOne) {
-  Grid grid({std::string(201, '.')});
-  grid.height = 201;
-  grid.data.assign(201 * 201, 0);
+  Grid grid(std::vector<std::string>(201, std::string(201, '.')));
   const Cell s{50, 100}, g{150, 100};
   const auto r = grid.plan(s, g);
   expectValidPath(grid, r, s, g);

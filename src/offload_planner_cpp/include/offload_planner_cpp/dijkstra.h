@@ -112,8 +112,8 @@ class DijkstraPlanner {
   // (kStopped, cancelled_).
   template <class Near, class Meet>
   LevelEnd settleLevel(Wave& wave, int target, const std::atomic<bool>* cancel, Near near, Meet meet);
-  // The rows the waves touched, for the next beginSearch to reset.
-  void endWaves(const Wave& a, const Wave* b);
+  // The rows a search settled cells in (and one beyond, where it relaxed), for the next beginSearch to reset.
+  void markDirtyRows(int row_min, int row_max);
   // Runs the search from `start`; returns true when `target` was settled. Sets cancelled_ and returns false
   // when `cancel` was set. Uniform cost, Dijkstra: Dial's buckets. Anything else: a binary heap.
   bool search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
