@@ -121,6 +121,22 @@ def test_snips_and_effective_sample_size_by_hand():
     assert off_policy.effective_sample_size(pi, action, propensity) == pytest.approx(2.0)
 
 
+def test_snips_interval_is_the_jackknifes():
+    pi = off_policy.target_probabilities(np.array([1, 1, 1, 1]))
+    action, propensity = np.array([1, 1, 0, 1]), np.array([0.5, 0.25, 0.5, 0.5])
+    latency = np.array([1.0, 5.0, 9.0, 3.0])
+    estimate = off_policy.snips(pi, action, propensity, latency)
+    # Leave-one-out ratios and pseudo-values by hand: sum w y = 2 + 20 + 6 = 28, sum w = 8, value 3.5.
+    loo = np.array([26 / 6, 8 / 4, 28 / 8, 22 / 6])
+    pseudo = 4 * 3.5 - 3 * loo
+    assert estimate.value == pytest.approx(3.5)
+    assert estimate.std_error == pytest.approx(pseudo.std(ddof=1) / 2)
+    assert estimate.low < 3.5 < estimate.high
+    # One row holding all the weight leaves nothing to leave out: the interval is unbounded, not zero wide.
+    alone = off_policy.snips(pi, np.array([1, 0, 0, 0]), propensity, latency)
+    assert alone.value == pytest.approx(1.0) and alone.low == -math.inf and alone.high == math.inf
+
+
 def test_accuracy_estimates_stay_shares_and_few_samples_are_flagged():
     from offload_learner_py.offline.off_policy import Estimate, clipped, format_results
     over = clipped(Estimate(1.4, 0.801, 1.999, 0.3, 10), 0.0, 1.0)

@@ -109,21 +109,28 @@ def ips(pi: np.ndarray, action: np.ndarray, propensity: np.ndarray, outcome: np.
 
 
 def snips(pi: np.ndarray, action: np.ndarray, propensity: np.ndarray, outcome: np.ndarray) -> Estimate:
-    """Self-normalised IPS: sum w_i y_i / sum w_i, with a delta-method interval. Slightly biased, but
-    it does not swing with the count of rare large weights the way plain IPS does: when the few
-    exploratory steps of a mostly greedy logger (weight 1 / 0.05 = 20) happen to be cheap or dear,
-    plain IPS moves with them and its normal interval, estimated from those same few steps, can miss."""
+    """Self-normalised IPS: sum w_i y_i / sum w_i, with a jackknife interval. Slightly biased, but it does
+    not swing with the count of rare large weights the way plain IPS does: when the few exploratory steps
+    of a mostly greedy logger (weight 1 / 0.05 = 20) happen to be cheap or dear, plain IPS moves with them.
+    The interval comes from the leave-one-out ratios (their pseudo-values' spread and skewness, see
+    _skew_corrected): a ratio's linearised (delta-method) error understates how far it moves when one of
+    those few rows is left out, and its intervals covered the truth in 87-89 % of logs at epsilon 0.05
+    (test_off_policy_coverage.py) where the jackknife's cover 89-90 %."""
     weight = pi[np.arange(len(action)), action] / propensity
     total = weight.sum()
     n = len(action)
     if n == 0 or total <= 0:
         return Estimate(math.nan, math.nan, math.nan, math.nan, n)
-    value = float((weight * outcome).sum() / total)
-    # the delta method's linearised terms; their skewness is as heavy as plain IPS's (see ips)
-    influence = weight * (outcome - value) * (n / total)
-    std_error = float(np.sqrt(np.sum(influence ** 2)) / n)
-    second = float(np.mean(influence ** 2))
-    skewness = float(np.mean(influence ** 3)) / second ** 1.5 if second > 0 and n >= 3 else 0.0
+    weighted = weight * outcome
+    value = float(weighted.sum() / total)
+    rest = total - weight
+    if n < 3 or np.any(rest <= 0):   # one row holds all the weight: nothing to leave out
+        return Estimate(value, -math.inf, math.inf, math.inf, n)
+    pseudo = n * value - (n - 1) * (weighted.sum() - weighted) / rest
+    deviation = pseudo - pseudo.mean()
+    second = float(np.sum(deviation ** 2) / (n - 1))
+    std_error = math.sqrt(second / n)
+    skewness = float(np.mean(deviation ** 3)) / second ** 1.5 if second > 0 else 0.0
     return _skew_corrected(value, std_error, skewness, n)
 
 
