@@ -12,7 +12,7 @@ NOETIC := /opt/ros/noetic/setup.bash
 # Debian's own ROS 1 packages; skipped when ROS Noetic is installed in /opt/ros/noetic.
 ROS_DEBS := ros-base-dev python3-rospy python3-roslaunch python3-rostest python3-rosbag libnav-msgs-dev \
 	python3-nav-msgs catkin ros-message-generation librostest-dev python3-tf2-ros
-BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv
+BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv libzmq3-dev
 # Test and benchmark tools: HAProxy in front of several cloud servers (fleet test, make bench-fleet) and
 # systemd-analyze for the unit file check.
 TEST_DEBS := haproxy systemd
@@ -50,6 +50,9 @@ $(VENV)/.installed: requirements.txt | deps
 	@[ -x $(PY) ] || /usr/bin/python3 -m venv --system-site-packages $(VENV)
 	@touch $(VENV)/CATKIN_IGNORE
 	$(PY) -m pip install -q -r requirements.txt
+	@# A venv made before pyzmq was built on Debian's libzmq keeps the wheel's slow libsodium: rebuild it.
+	@$(PY) -c "import pathlib, sys, zmq; sys.exit(pathlib.Path(zmq.__file__).parent.parent.joinpath('pyzmq.libs').is_dir())" \
+		|| $(PY) -m pip install -q --force-reinstall --no-deps --no-binary pyzmq $$(grep '^pyzmq==' requirements.txt)
 	@touch $@
 
 venv: $(VENV)/.installed

@@ -12,6 +12,7 @@ import argparse
 import os
 import pathlib
 import select
+import signal
 import subprocess
 import sys
 import tempfile
@@ -148,33 +149,46 @@ def throughput(endpoint: str, grid, jobs, clients: int, client_keys) -> float:
     return len(done) / (time.perf_counter() - started)
 
 
+def large_plans(endpoint: str, keys_dir: str) -> None:
+    """Another robot (its own process, as on its own machine: no GIL or allocator shared with the one measured)
+    sending 64 MiB plans back to back until SIGTERM; prints how many it sent."""
+    stop = threading.Event()
+    signal.signal(signal.SIGTERM, lambda *_: stop.set())
+    sent = 0
+    with CloudClient(endpoint, keys_dir=keys_dir, timeout_s=120) as other:
+        rng = np.random.default_rng(1)
+        print("sending", flush=True)
+        while not stop.is_set():
+            grid = np.zeros((8000, 8000), np.int8)
+            grid[0, rng.integers(2, 8000)] = 100     # a new map each time: 64 MiB up, hashed and cached
+            other.plan(grid, (0, 1), (1, 1))
+            sent += 1
+    print(sent, flush=True)
+
+
 def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: float = 15.0):
-    """One robot's ping round trips (s) idle for `seconds`, then while another key sends 64 MiB plans."""
+    """One robot's ping round trips (s) idle for `seconds` / 3, then for `seconds` while another key sends 64 MiB
+    plans; how many it sent and for how long (s)."""
     def ping_for(client, duration_s):
         samples, end = [], time.monotonic() + duration_s
         while time.monotonic() < end:
             samples.append(client.ping())
             time.sleep(0.01)
         return np.array(samples)
-    stop, sent = threading.Event(), [0]
-
-    def large_plans():
-        with CloudClient(endpoint, keys_dir=other_keys, timeout_s=120) as other:
-            rng = np.random.default_rng(1)
-            while not stop.is_set():
-                grid = np.zeros((8000, 8000), np.int8)
-                grid[0, rng.integers(2, 8000)] = 100     # a new map each time: 64 MiB up, hashed and cached
-                other.plan(grid, (0, 1), (1, 1))
-                sent[0] += 1
     with CloudClient(endpoint, keys_dir=robot_keys, timeout_s=30) as robot:
         idle = ping_for(robot, seconds / 3)
-        sender = threading.Thread(target=large_plans, daemon=True)
-        sender.start()
-        time.sleep(2.0)
-        loaded = ping_for(robot, seconds)
-        stop.set()
-        sender.join(120)
-    return idle, loaded, sent[0]
+        sender = subprocess.Popen([sys.executable, __file__, "--large-plans", endpoint, str(other_keys)],
+                                  stdout=subprocess.PIPE, text=True)
+        try:
+            sender.stdout.readline()       # connected and sending
+            began = time.monotonic()
+            time.sleep(2.0)
+            loaded = ping_for(robot, seconds)
+        finally:
+            sender.terminate()
+            out, _ = sender.communicate(timeout=120)
+            sending_s = time.monotonic() - began
+    return idle, loaded, int(out.split()[-1]) if out.split() else 0, sending_s
 
 
 def summary(samples: np.ndarray) -> str:
@@ -186,7 +200,11 @@ def main(argv=None) -> int:
     parser.add_argument("--requests", type=int, default=2000, help="round trips per latency measurement")
     parser.add_argument("--throughput-plans", type=int, default=120, help="plans per throughput measurement")
     parser.add_argument("--echo", nargs=3, help=argparse.SUPPRESS)   # PORT REPLY_BYTES KEYS|-
+    parser.add_argument("--large-plans", nargs=2, help=argparse.SUPPRESS)   # ENDPOINT KEYS
     args = parser.parse_args(argv)
+    if args.large_plans:
+        large_plans(*args.large_plans)
+        return 0
     if args.echo:
         echo_server(int(args.echo[0]), int(args.echo[1]), None if args.echo[2] == "-" else args.echo[2])
         return 0
@@ -243,10 +261,11 @@ def main(argv=None) -> int:
             for io_threads in (1, 2):
                 port = free_port()
                 processes.append(spawn_cloud(port, server_keys, 1, io_threads))
-                idle, loaded, sent = pings_under_large_plans(f"tcp://{LOOPBACK}:{port}", client_keys,
-                                                             str(pathlib.Path(tmp) / "other"))
+                idle, loaded, sent, sending_s = pings_under_large_plans(f"tcp://{LOOPBACK}:{port}", client_keys,
+                                                                        str(pathlib.Path(tmp) / "other"))
                 print(f"[fairness] {io_threads} I/O thread(s): one robot's ping idle {summary(idle)}; while another "
-                      f"key sent {sent} plans of 64 MiB {summary(loaded)}, max {loaded.max() * 1e3:.1f} ms "
+                      f"key sent {sent} plans of 64 MiB ({sent * 64 / sending_s:.0f} MiB/s over CURVE) "
+                      f"{summary(loaded)}, max {loaded.max() * 1e3:.1f} ms "
                       f"(p99 {np.percentile(loaded, 99) / np.percentile(idle, 99):.1f}x idle; bar: 3x)")
         finally:
             for process in processes:

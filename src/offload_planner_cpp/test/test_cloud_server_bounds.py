@@ -92,7 +92,9 @@ def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_pat
     print(f"{frames} frames x {frame_bytes} B: RSS {idle / MIB:.1f} MiB, peak +{grown / MIB:.1f} MiB")
     assert not answered and "cut the connection" in log
     # The per-connection bound is (receive HWM + 1) x max message + 1 MiB: 4 MiB here (landed code: +143 MiB).
-    assert grown <= (8 if not FULL else 400) * MIB
+    # The guard samples every 25 ms: what arrives in between is beyond it. With the system's libsodium CURVE takes
+    # in about 1 GB/s here (the cut came at 17-18 MB held), so the allowance is 32 MiB, far under the 200 MiB sent.
+    assert grown <= (32 if not FULL else 400) * MIB
 
 
 class FakeServer:

@@ -25,7 +25,7 @@ from typing import Optional
 import zmq
 from zmq.utils.monitor import parse_monitor_message
 
-from offload_planner_cpp.cloud import protocol
+from offload_planner_cpp.cloud import curve_speed, protocol
 from offload_planner_cpp.cloud.admission import Admission, AdmissionConfig, Client
 from offload_planner_cpp.cloud.auth import RateLimitedLog, curve_server, user_of
 from offload_planner_cpp.cloud.connection_guard import GUARD_SLACK_BYTES, Connection, ConnectionGuard, peer_address, \
@@ -107,6 +107,10 @@ class CloudServer:
             else:
                 self._auth = curve_server(self._context, frontend, config.keys_dir, self._log_limited)
                 self._key_names = self._auth.names
+                if curve_speed.bundled_libsodium():
+                    LOG.warning("CURVE runs through the libsodium bundled in pyzmq's wheel, about 25x slower than "
+                                "the system's: a large map holds an I/O thread for seconds. Fix: %s",
+                                curve_speed.REMEDY)
             if config.bind.endswith(":0"):
                 host = config.bind.rsplit(":", 1)[0]
                 port = frontend.bind_to_random_port(host)
