@@ -77,19 +77,33 @@ bool segmentClear(const std::int8_t* grid, int width, int height, Cell a, Cell b
   return walkSegment(a, b, width, [&](int i) { return isPassable(grid[i], options); }, [](int, double) {});
 }
 
-void DijkstraPlanner::beginSearch() {
+bool DijkstraPlanner::beginSearch(const std::atomic<bool>* cancel) {
   constexpr double kUnseen = std::numeric_limits<double>::infinity();
+  // A first plan on a big map fills 8 bytes per cell and wave (400 MB on 5000 x 5000), seconds of page faults
+  // in a cold VM: the fill goes a chunk at a time and stops at a cancel, leaving the buffer short, so the next
+  // search fills it again.
+  constexpr std::size_t kFillChunk = std::size_t{1} << 20;
+  auto cancelled = [&] { return cancel != nullptr && cancel->load(std::memory_order_relaxed); };
   const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
+  expansions_ = 0;
+  cancelled_ = false;
   for (std::vector<double>* dist : {&dist_, &back_}) {
     if (dist == &back_ && !two_waves_) continue;  // no memory for a backward wave until one runs
     if (dist->size() != cells) {
-      dist->assign(cells, kUnseen);
+      if (cancelled_) continue;  // left short
+      dist->clear();
+      dist->reserve(cells);
+      while (dist->size() < cells && !(cancelled_ = cancelled())) {
+        dist->insert(dist->end(), std::min(kFillChunk, cells - dist->size()), kUnseen);
+      }
     } else if (dirty_end_ > dirty_begin_) {
       std::fill(dist->begin() + dirty_begin_, dist->begin() + dirty_end_, kUnseen);
     }
   }
+  // Every buffer of full size is clean now; one left short is filled whole next time.
   dirty_begin_ = dirty_end_ = 0;
-  expansions_ = 0;
+  cancelled_ = cancelled_ || cancelled();
+  return !cancelled_;
 }
 
 template <class Visit>
@@ -207,9 +221,7 @@ void DijkstraPlanner::markDirtyRows(int row_min, int row_max) {
 }
 
 bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
-  beginSearch();
-  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
-  if (cancelled_) return false;
+  if (!beginSearch(cancel)) return false;
   Wave wave = startWave(&dist_, buckets_, start);
   auto nowhere = [](int, int) { return false; };
   auto no_meeting = [](int, int, double) {};
@@ -239,9 +251,7 @@ bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atom
     return false;
   }
   two_waves_ = true;  // from now on beginSearch sizes and resets back_ too
-  beginSearch();
-  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
-  if (cancelled_) return false;
+  if (!beginSearch(cancel)) return false;
   Wave forward = startWave(&dist_, buckets_, start);
   Wave backward = startWave(&back_, back_buckets_, target);
   meeting_cost_ = std::numeric_limits<double>::infinity();
@@ -290,9 +300,7 @@ double DijkstraPlanner::heuristic(int index) const {
 template <class Estimate, class Relax>
 bool DijkstraPlanner::bestFirst(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel,
                                 std::uint64_t cancel_check, Estimate estimate, Relax relax) {
-  beginSearch();
-  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
-  if (cancelled_) return false;
+  if (!beginSearch(cancel)) return false;
   const int w = width_;
   const int h = height_;
   double* const dist = dist_.data();

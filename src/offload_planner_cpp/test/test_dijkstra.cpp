@@ -275,6 +275,40 @@ TEST(Dijkstra, ACancelFromAnotherThreadStopsARunningPlan) {
   EXPECT_EQ(after.expansions, grid.size());
 }
 
+TEST(Dijkstra, ACancelDuringAFirstPlansBufferFillStopsItAndTheNextPlansStayExact) {
+  // A cold planner's first plan on a big map fills 16 bytes per cell (two waves): 256 MB here. The cancel
+  // comes while that fill runs; it stops there, and the buffers it left short or dirty are readied again.
+  const int n = 4000;
+  std::vector<std::int8_t> grid(static_cast<std::size_t>(n) * n, 0);
+  for (int y = 0; y < n - 1; ++y) grid[static_cast<std::size_t>(y) * n + n / 2] = 100;   // a wall with a gap
+  DijkstraPlanner planner;
+  // A plan on a smaller map first leaves settled (negative) distances in both buffers, where the big map's
+  // first cells lie: a buffer the cancelled fill never reached must not keep them.
+  const int small = 300;
+  std::vector<std::int8_t> open_map(static_cast<std::size_t>(small) * small, 0);
+  ASSERT_TRUE(planner.plan(open_map.data(), open_map.size(), small, small, {0, 0}, {small - 1, small - 1}).ok());
+  PlannerOptions o;
+  std::atomic<bool> cancel{false};
+  o.cancel = &cancel;
+  std::thread canceller([&] {
+    std::this_thread::sleep_for(std::chrono::milliseconds(2));
+    cancel = true;
+  });
+  const auto r = planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {n - 1, 0}, o);
+  canceller.join();
+  ASSERT_EQ(r.status, PlanStatus::kCancelled) << r.message;
+  EXPECT_EQ(r.expansions, 0u) << "cancelled before the waves began";
+  cancel = false;
+  DijkstraPlanner fresh;
+  for (const Cell goal : {Cell{n - 1, 0}, Cell{3, 5}, Cell{n - 1, n - 1}}) {
+    const auto after = planner.plan(grid.data(), grid.size(), n, n, {0, 0}, goal, o);
+    const auto expected = fresh.plan(grid.data(), grid.size(), n, n, {0, 0}, goal);
+    ASSERT_TRUE(after.ok()) << after.message;
+    EXPECT_DOUBLE_EQ(after.cost, expected.cost);
+    EXPECT_EQ(after.expansions, expected.expansions);
+  }
+}
+
 TEST(Dijkstra, Errors) {
   Grid g({"..#", "...", "..."});
   DijkstraPlanner p;

@@ -156,7 +156,8 @@ class DijkstraPlanner {
   // so relaxation needs no separate flag.
   bool settled(int index) const { return std::signbit(dist_[index]); }
   double distance(int index) const { return std::fabs(dist_[index]); }
-  void beginSearch();
+  // Readies the distance buffers (+inf everywhere); false, with cancelled_ set, when `cancel` came first.
+  bool beginSearch(const std::atomic<bool>* cancel);
 
   // Set per call.
   const std::int8_t* grid_ = nullptr;
