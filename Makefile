@@ -51,7 +51,7 @@ $(VENV)/.installed: requirements.txt | deps
 	@touch $(VENV)/CATKIN_IGNORE
 	$(PY) -m pip install -q -r requirements.txt
 	@# A venv made before pyzmq was built on Debian's libzmq keeps the wheel's slow libsodium: rebuild it.
-	@$(PY) -c "import pathlib, sys, zmq; sys.exit(pathlib.Path(zmq.__file__).parent.parent.joinpath('pyzmq.libs').is_dir())" \
+	@$(PY) src/offload_planner_cpp/src/offload_planner_cpp/cloud/curve_speed.py \
 		|| $(PY) -m pip install -q --force-reinstall --no-deps --no-binary pyzmq $$(grep '^pyzmq==' requirements.txt)
 	@touch $@
 

@@ -179,6 +179,7 @@ def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: floa
         idle = ping_for(robot, seconds / 3)
         sender = subprocess.Popen([sys.executable, __file__, "--large-plans", endpoint, str(other_keys)],
                                   stdout=subprocess.PIPE, text=True)
+        began = time.monotonic()
         try:
             sender.stdout.readline()       # connected and sending
             began = time.monotonic()
@@ -188,7 +189,8 @@ def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: floa
             sender.terminate()
             out, _ = sender.communicate(timeout=120)
             sending_s = time.monotonic() - began
-    return idle, loaded, int(out.split()[-1]) if out.split() else 0, sending_s
+    last = out.split()[-1] if out.split() else ""
+    return idle, loaded, int(last) if last.isdigit() else 0, sending_s
 
 
 def summary(samples: np.ndarray) -> str:

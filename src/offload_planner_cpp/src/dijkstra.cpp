@@ -244,12 +244,6 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
 // strictly different levels of each wave, so the crossing above never needs one. The moves are symmetric
 // (same length and corner rule both ways), so the backward wave runs the same code.
 bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atomic<bool>* cancel) {
-  // A cancel that came first skips the buffers too (a planner's first plan on a big map fills them).
-  if (cancel != nullptr && cancel->load(std::memory_order_relaxed)) {
-    cancelled_ = true;
-    expansions_ = 0;
-    return false;
-  }
   two_waves_ = true;  // from now on beginSearch sizes and resets back_ too
   if (!beginSearch(cancel)) return false;
   Wave forward = startWave(&dist_, buckets_, start);

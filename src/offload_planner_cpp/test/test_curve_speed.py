@@ -1,6 +1,8 @@
 """curve_speed.py: the workspace's pyzmq encrypts CURVE with the system's libsodium, not the slow one a pyzmq
 wheel bundles, and a server that finds the bundled one says so and how to fix it."""
 import logging
+import subprocess
+import sys
 
 from offload_planner_cpp.cloud import curve_speed
 
@@ -19,6 +21,12 @@ def test_the_workspace_pyzmq_uses_the_systems_libsodium():
     # The wheel's libsodium ran crypto_box at 57 MiB/s here, Debian's at 1.3-1.5 GiB/s.
     assert not curve_speed.bundled_libsodium(), curve_speed.loaded_libraries()
     assert any("libsodium" in path for path in curve_speed.loaded_libraries())
+
+
+def test_as_a_script_it_exits_0_on_the_systems_libsodium():
+    # The Makefile runs it before the workspace is built, and rebuilds pyzmq when it exits 1.
+    done = subprocess.run([sys.executable, curve_speed.__file__], capture_output=True, text=True, timeout=60)
+    assert done.returncode == 0, done.stderr
 
 
 def test_the_bundled_libsodium_is_recognised_from_the_memory_map(tmp_path):

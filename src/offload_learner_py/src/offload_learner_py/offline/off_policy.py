@@ -124,7 +124,7 @@ def snips(pi: np.ndarray, action: np.ndarray, propensity: np.ndarray, outcome: n
     weighted = weight * outcome
     value = float(weighted.sum() / total)
     rest = total - weight
-    if n < 3 or np.any(rest <= 0):   # one row holds all the weight: nothing to leave out
+    if np.any(rest <= 0):   # one row holds all the weight: nothing to leave out
         return Estimate(value, -math.inf, math.inf, math.inf, n)
     pseudo = n * value - (n - 1) * (weighted.sum() - weighted) / rest
     deviation = pseudo - pseudo.mean()
