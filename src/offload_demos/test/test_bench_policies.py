@@ -3,7 +3,9 @@ kept to show the spread between repeats."""
 import numpy as np
 import pytest
 
-from bagtools import make_requests, write
+from bagtools import CLOUD, LOCAL, make_requests, write
+from offload_learner_py.core.reward import reward
+from offload_learner_py.data.bag_writer import probe_request
 from offload_demos.bench_policies import measure
 
 
@@ -23,3 +25,20 @@ def test_repeated_runs_are_pooled_and_each_runs_mean_is_kept(tmp_path):
     assert "run_means_s" not in alone[0]
     # each mean is its own run's, whatever order the runs are given in (the reader sorts the bags)
     assert measure(runs[::-1], 5.0)["run_means_s"] == pytest.approx(pooled["run_means_s"][::-1])
+
+
+def test_the_hedge_runs_first_side_is_the_oracles_choice_and_only_its_local_plans_cost_cpu(tmp_path):
+    # Both sides on every request: the side delivered first is the faster one, and a local plan that lost
+    # (finished after the cloud's path, or was cancelled) is the probe's CPU, not what the oracle would spend.
+    requests = []
+    for i, (local_s, cloud_s, cpu_s) in enumerate([(0.05, 0.20, 0.010), (0.30, 0.10, 0.040),
+                                                   (0.08, 0.09, 0.020), (0.50, 0.12, 0.070)]):
+        decision, outcome = probe_request(2000 + i, 1.0, 0.5, 0.05, local_s, cloud_s, LOCAL, 1.0,
+                                          reward(LOCAL, local_s, cloud_s))
+        outcome.update(delivered=LOCAL if local_s <= cloud_s else CLOUD, robot_cpu_s=cpu_s)
+        requests.append((decision, outcome))
+    write(tmp_path / "offload.bag", requests)
+    figures = measure(tmp_path, 5.0)
+    assert figures["cloud_share"] == pytest.approx(0.5)
+    assert figures["first_local_cpu_s_per_request"] == pytest.approx((0.010 + 0.020) / 4)
+    assert figures["robot_cpu_s_per_request"] == pytest.approx((0.010 + 0.040 + 0.020 + 0.070) / 4)

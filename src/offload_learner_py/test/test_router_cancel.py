@@ -177,10 +177,11 @@ def test_the_local_planner_is_not_hedged_into_when_it_cannot_win_until_hedge_max
 
 def test_the_local_planner_is_hedged_into_when_it_can_win():
     clock = VirtualClock()
-    router, recorder = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.02), CancellablePlanner(clock, 0.4, held=1),
+    # (a local plan slower than the round trip: a faster one would keep the cloud choice local from the start)
+    router, recorder = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.08), CancellablePlanner(clock, 0.4, held=1),
                                   clock, probe_rate=0.0, hedge=True, hedge_deadline_s=0.05)
     for k in range(60):
-        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.02)
+        router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.08)
         router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.3 + 0.01 * (k % 3))
     assert router.route("req", STATE).response["request"] == "req"
     router.sides[CLOUD].release()

@@ -290,3 +290,27 @@ def test_a_warm_started_policy_probes_until_both_latency_models_are_ready():
     min_samples = router.config.latency_model.min_samples
     assert all(probes[:min_samples]) and not any(probes[min_samples:])
     assert all(o.learned for o in recorder.outcomes)
+
+
+def test_hedge_keeps_a_cloud_choice_local_when_the_round_trip_alone_exceeds_the_local_plans_quantile():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.1), FakePlanner(clock, 0.05)
+    routers = {}
+    for hedge in (True, False):
+        router, recorder = configured_router(AlwaysCloud("cloud"), local, cloud, clock, hedge=hedge,
+                                             probe_rate=0.0, probe_while_warming_up=False)
+        for k in range(90):      # the local plan takes 0.1 s whatever the link does
+            router.models[LOCAL].observe((1.2, 0.6, (0.01, 0.1, 0.6)[k % 3]), 0.1 * (1.0 + 0.05 * (k % 5 - 2)))
+        routers[hedge] = router, recorder
+    router, recorder = routers[True]
+    calls = len(cloud.calls)
+    router.route("req", State(1.2, 0.6, 0.02))       # a fast link: the cloud as chosen
+    router.route("req", State(1.2, 0.6, 0.5))        # 0.5 s of round trip against a 0.1 s local plan
+    finish(router)
+    assert [(r.action, r.breaker, r.decision.action) for r in recorder.routings] == [
+        (CLOUD, "closed", CLOUD), (LOCAL, "slow", CLOUD)]
+    assert len(cloud.calls) == calls + 1 and recorder.outcomes[-1].delivered == LOCAL
+    router, recorder = routers[False]                # without the hedge the policy's choice stands
+    router.route("req", State(1.2, 0.6, 0.5))
+    finish(router)
+    assert [(r.action, r.breaker) for r in recorder.routings] == [(CLOUD, "closed")]

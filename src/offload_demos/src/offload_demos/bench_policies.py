@@ -28,6 +28,7 @@ import time
 import numpy as np
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
+from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data.bags import read_bags
 from offload_demos.driver import LINK_PROFILES
 from offload_learner_py.offline.summary import delivered_figures
@@ -42,7 +43,7 @@ RUNS = {
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--hedge"],
 }
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
-          "bridge_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts")
+          "bridge_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts", "cloud_share")
 
 
 def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra,
@@ -78,6 +79,13 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
     log = data.log
     answered = np.asarray(log["has_outcome"], dtype=bool)
     delivered_s = np.asarray(log["outcome_delivered_s"], dtype=np.float64)
+    # Where both sides ran every request (the hedge run), the side delivered first is the oracle's choice: what
+    # the oracle would have offloaded, and the robot planning CPU it would have spent (the local plans that won;
+    # a losing local plan's CPU is the probe's cost, not the oracle's).
+    delivered = np.asarray(log["outcome_delivered"])[answered]
+    figures["cloud_share"] = float(np.mean(delivered == CLOUD))
+    figures["first_local_cpu_s_per_request"] = float(np.mean(np.where(
+        delivered == LOCAL, np.asarray(log["outcome_robot_cpu_s"], dtype=np.float64)[answered], 0.0)))
     figures["delivered_s"] = delivered_s[answered].tolist()
     # Once the breaker has opened, what a request waited beyond its own local plan (the bar: at most the
     # hedge deadline, and nothing at all for a request the open breaker routed locally).
@@ -98,17 +106,22 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
 
 def format_table(results: dict) -> str:
     header = (f"{'policy':<11}{'requests':>9}{'paths':>7}{'mean ms':>9}{'p50':>8}{'p95':>8}{'p99':>8}"
-              f"{'plan CPU':>9}{'bridge':>8}{'KiB/req':>9}{'timeouts':>9}   (CPU: robot ms per request)")
+              f"{'plan CPU':>9}{'bridge':>8}{'KiB/req':>9}{'timeouts':>9}{'cloud %':>8}   (CPU: robot ms per request; "
+              "cloud %: paths from the cloud)")
     lines = [header]
     for name, f in results["policies"].items():
         lines.append(f"{name:<11}{f['requests']:>9}{f['paths_delivered']:>7}{1e3 * f['mean_s']:>9.1f}"
                      f"{1e3 * f['p50_s']:>8.1f}{1e3 * f['p95_s']:>8.1f}{1e3 * f['p99_s']:>8.1f}"
                      f"{1e3 * f['robot_cpu_s_per_request']:>9.1f}{1e3 * f['bridge_cpu_s_per_request']:>8.1f}"
                      f"{f['link_bytes_per_request'] / 1024:>9.1f}"
-                     f"{f['cloud_timeouts']:>9}")
+                     f"{f['cloud_timeouts']:>9}{100 * (f.get('cloud_share') or 0.0):>8.0f}")
     if results.get("oracle_mean_s") is not None:
         lines.append(f"{'oracle':<11}{'':>9}{'':>7}{1e3 * results['oracle_mean_s']:>9.1f}   (the hedge run's probes: "
                      "the faster side of every request)")
+    if results.get("oracle_robot_cpu_s_per_request") is not None:
+        lines.append(f"oracle: {100 * results['oracle_cloud_share']:.0f} % offloaded, robot planning CPU "
+                     f"{1e3 * results['oracle_robot_cpu_s_per_request']:.1f} ms per request (the hedge run's local "
+                     "plans that came first)")
     return "\n".join(lines)
 
 
@@ -174,7 +187,7 @@ def main(argv=None) -> int:
     results = {"map": map_yaml or "nav2_warehouse (bundled)", "map_name": pathlib.Path(map_yaml).stem or "warehouse",
                "link": args.link, "plan_unknown": args.plan_unknown,
                "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
-               "oracle_mean_s": None}
+               "oracle_mean_s": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
     model = ["--model", checkpoint] if checkpoint else []
     total, began = args.repeats * len(policies) + len(outage), time.monotonic()
 
@@ -196,9 +209,12 @@ def main(argv=None) -> int:
             results["delivered_s"][name] = figures.pop("delivered_s")
             results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
                                          "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
-                                         "hedged": figures.get("hedged", 0), "run_means_s": figures.get("run_means_s")}
+                                         "hedged": figures.get("hedged", 0), "slow_link_local": figures.get("slow_link_local", 0),
+                                         "run_means_s": figures.get("run_means_s")}
             if name == "hedge":
                 results["oracle_mean_s"] = figures.get("probe_oracle_mean_s")
+                results["oracle_cloud_share"] = figures["cloud_share"]
+                results["oracle_robot_cpu_s_per_request"] = figures["first_local_cpu_s_per_request"]
             print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
     results["outage"] = {}
     for index, name in enumerate(outage, start=args.repeats * len(policies)):

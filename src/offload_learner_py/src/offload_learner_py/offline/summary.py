@@ -82,6 +82,7 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = 5.0) -> dict:
         "hedged": int(np.sum(pick("outcome_hedged") > 0)),
         "probes": int(np.sum(np.asarray(log["probe"], dtype=bool)[answered])),
         "breaker_open": int(np.sum(np.asarray(log["breaker"], dtype=object)[answered] == "open")),
+        "slow_link_local": int(np.sum(np.asarray(log["breaker"], dtype=object)[answered] == "slow")),
     })
     return figures
 

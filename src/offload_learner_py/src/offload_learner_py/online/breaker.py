@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Callable
 
 CLOSED, OPEN, TRIAL = "closed", "open", "trial"
+SLOW = "slow"   # not a breaker state: the router's hedge kept one cloud choice local (its round trip too long)
 
 
 @dataclass(frozen=True)

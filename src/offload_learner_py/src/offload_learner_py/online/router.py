@@ -24,8 +24,10 @@ for the local planner included) to the path the caller gets.
 
 Deadline hedge: when the chosen side has not answered within a deadline (a quantile of its latency model
 for this state, clamped, or a fixed bound), the other side starts and the first good path is delivered.
-Circuit breaker (breaker.py): after repeated cloud failures or a heartbeat that says the link is down or
-too slow, requests are planned locally without touching the link until the link is healthy again.
+With the hedge on, a cloud choice whose measured round trip alone exceeds the local planner's hedge quantile
+for the state is planned locally (routing `slow`): the cloud could not win it. Circuit breaker (breaker.py):
+after repeated cloud failures or a heartbeat that says the link is down or too slow, requests are planned
+locally without touching the link until the link is healthy again.
 """
 import itertools
 import math
@@ -42,7 +44,7 @@ from offload_learner_py.core.policies import Decision, Policy
 from offload_learner_py.core.reward import cloud_latency_s, reward
 from offload_learner_py.core.state import State
 from offload_learner_py.data.records import NO_PATH_DELIVERED
-from offload_learner_py.online.breaker import OPEN, TRIAL, LinkBreaker
+from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
 from offload_learner_py.online.latency_model import LatencyModel
 from offload_learner_py.online.routing import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
 
@@ -204,12 +206,21 @@ class OffloadRouter:
             probe, action = False, LOCAL      # a link known to be down is not offloaded into
         elif admitted == TRIAL:
             probe = True                      # both sides: the caller gets local at worst, the link is tested
+        elif config.hedge and not probe and action == CLOUD and self._round_trip_too_slow(state):
+            admitted, action = SLOW, LOCAL
         deadline_s = float("nan")
         if config.hedge and not probe:
             # The local planner still busy with a call someone waits for would make this one wait for it: the
             # hedge then starts the other side at once. (A call nobody waits for is cancelled instead.)
             deadline_s = 0.0 if self._lanes[action].busy() else self._deadline_s(action, state)
         return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s)
+
+    def _round_trip_too_slow(self, state: State) -> bool:
+        """The hedge's guard on a cloud choice: the measured round trip alone is longer than the local planner's
+        hedge_quantile for this state, so the cloud cannot answer before a local plan would almost surely be done
+        (a link on the slow end of its range, in a state the policy has seen too little of)."""
+        local_q = self.models[LOCAL].quantile_s(_features(state), self.config.hedge_quantile)
+        return local_q is not None and state.round_trip_s >= local_q
 
     def _deadline_s(self, side: int, state: State) -> float:
         """How long the chosen side may take before the other starts: the hedge_quantile of its latency for

@@ -53,9 +53,10 @@ class Routing:
     state: State
     decision: "Decision"
     probe: bool
-    action: int                     # side called first: the policy's action unless the breaker overrode it
+    action: int                     # side called first: the policy's action unless the breaker (or SLOW) overrode it
     mode: str
-    breaker: str = CLOSED           # CLOSED, OPEN (cloud skipped) or TRIAL (a probe to test the link)
+    breaker: str = CLOSED           # CLOSED, OPEN (cloud skipped), TRIAL (a probe to test the link) or SLOW (the
+                                    # hedge kept a cloud choice local: its round trip alone is too long)
     deadline_s: float = float("nan")   # hedge deadline of the first side; NaN when not hedged
 
 
