@@ -137,6 +137,26 @@ def test_snips_interval_is_the_jackknifes():
     assert alone.value == pytest.approx(1.0) and alone.low == -math.inf and alone.high == math.inf
 
 
+def test_interval_quantile_is_students_t_on_satterthwaites_degrees_of_freedom():
+    # Symmetric terms (no skewness): the interval is value +- t * std_error, t on 2 n / (kurtosis - 1) degrees.
+    terms = np.array([-10.0] * 2 + [0.0] * 96 + [10.0] * 2)      # a few rows carry all the variance
+    pi = off_policy.target_probabilities(np.ones(100, dtype=np.int64))
+    estimate = off_policy.ips(pi, np.ones(100, dtype=np.int64), np.ones(100), terms)
+    deviation = terms - terms.mean()
+    second = np.sum(deviation ** 2) / 99
+    kurtosis = np.mean(deviation ** 4) / second ** 2
+    from scipy.stats import t
+    quantile = t.ppf(0.975, 2 * 100 / (kurtosis - 1))
+    assert 2 * 100 / (kurtosis - 1) < 10                          # heavy tails: few degrees of freedom
+    assert estimate.high - estimate.value == pytest.approx(quantile * estimate.std_error)
+    assert estimate.value - estimate.low == pytest.approx(quantile * estimate.std_error)
+    # Normal-looking terms keep about the normal quantile.
+    normal = np.random.default_rng(3).normal(0.0, 1.0, 4000)
+    wide = off_policy.ips(off_policy.target_probabilities(np.ones(4000, dtype=np.int64)), np.ones(4000, dtype=np.int64),
+                          np.ones(4000), normal)
+    assert (wide.high - wide.low) / (2 * wide.std_error) == pytest.approx(off_policy.Z_95, rel=0.02)
+
+
 def test_accuracy_estimates_stay_shares_and_few_samples_are_flagged():
     from offload_learner_py.offline.off_policy import Estimate, clipped, format_results
     over = clipped(Estimate(1.4, 0.801, 1.999, 0.3, 10), 0.0, 1.0)
