@@ -82,7 +82,7 @@ bench-fleet: build
 # Longer coverage-guided runs than `make test` does; FUZZ_SECONDS per target.
 FUZZ_SECONDS ?= 120
 fuzz: build
-	@mkdir -p build/fuzz && cd build/fuzz && for target in protocol movingai map_yaml map_image; do \
+	@mkdir -p build/fuzz && cd build/fuzz && rm -rf offload-fuzz-* && for target in protocol movingai map_yaml map_image; do \
 		echo "== $$target ($(FUZZ_SECONDS) s)"; \
 		$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fuzz $$target -max_total_time=$(FUZZ_SECONDS) -max_len=4096 \
 			2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error' || exit 1; done; \

@@ -31,7 +31,8 @@ def seed_corpus(directory: str) -> None:
 
 def main(argv=None) -> None:
     argv = list(sys.argv if argv is None else argv)
-    work = tempfile.mkdtemp(prefix="offload-fuzz-bag-")
+    # In the working directory: libFuzzer ends the process without Python's clean-up.
+    work = tempfile.mkdtemp(prefix="offload-fuzz-bag-", dir=os.getcwd())
     corpus = os.path.join(work, "corpus")
     os.mkdir(corpus)
     seed_corpus(corpus)

@@ -49,7 +49,9 @@ def protocol_target(data: bytes) -> None:
 
 
 def loader_target(write):
-    directory = tempfile.mkdtemp(prefix="offload-fuzz-")   # one per process, rewritten at every input
+    # One per process, rewritten at every input, in the working directory (libFuzzer ends the process without
+    # Python's clean-up, so a directory in /tmp would stay behind after every run).
+    directory = tempfile.mkdtemp(prefix="offload-fuzz-", dir=os.getcwd())
 
     def target(data: bytes) -> None:
         path = write(directory, data)
