@@ -314,3 +314,29 @@ def test_hedge_keeps_a_cloud_choice_local_when_the_round_trip_alone_exceeds_the_
     router.route("req", State(1.2, 0.6, 0.5))
     finish(router)
     assert [(r.action, r.breaker) for r in recorder.routings] == [(CLOUD, "closed")]
+
+
+class BusyLearner(LearningRecorder):
+    """Spends `cpu_s` of its own thread's CPU on every transition, as a gradient step does."""
+
+    def __init__(self, action, cpu_s):
+        super().__init__(action)
+        self.cpu_s = cpu_s
+
+    def learn(self, state, action, reward_value):
+        import time
+        began = time.thread_time()
+        while time.thread_time() - began < self.cpu_s:
+            pass
+        return super().learn(state, action, reward_value)
+
+
+def test_the_learners_own_cpu_for_a_request_is_accounted():
+    clock = VirtualClock()
+    for policy, low, high in ((BusyLearner(LOCAL, 0.02), 0.04, 1.0), (AlwaysLocal("local"), 0.0, 0.01)):
+        router, recorder = configured_router(policy, FakePlanner(clock, 0.2), FakePlanner(clock, 0.05), clock,
+                                             mode="learning")
+        router.route("req", STATE)
+        finish(router)
+        (outcome,) = recorder.outcomes
+        assert low <= outcome.learner_cpu_s < high, (policy.name, outcome.learner_cpu_s)   # two transitions

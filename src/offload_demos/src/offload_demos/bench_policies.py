@@ -43,7 +43,8 @@ RUNS = {
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--hedge"],
 }
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
-          "bridge_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts", "cloud_share")
+          "bridge_cpu_s_per_request", "learner_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts",
+          "cloud_share")
 
 
 def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra,
@@ -106,13 +107,14 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
 
 def format_table(results: dict) -> str:
     header = (f"{'policy':<11}{'requests':>9}{'paths':>7}{'mean ms':>9}{'p50':>8}{'p95':>8}{'p99':>8}"
-              f"{'plan CPU':>9}{'bridge':>8}{'KiB/req':>9}{'timeouts':>9}{'cloud %':>8}   (CPU: robot ms per request; "
-              "cloud %: paths from the cloud)")
+              f"{'plan CPU':>9}{'bridge':>8}{'learn':>7}{'KiB/req':>9}{'timeouts':>9}{'cloud %':>8}   (CPU: robot ms per request, of the "
+              "planner, the bridge and the learner's learning; cloud %: paths from the cloud)")
     lines = [header]
     for name, f in results["policies"].items():
         lines.append(f"{name:<11}{f['requests']:>9}{f['paths_delivered']:>7}{1e3 * f['mean_s']:>9.1f}"
                      f"{1e3 * f['p50_s']:>8.1f}{1e3 * f['p95_s']:>8.1f}{1e3 * f['p99_s']:>8.1f}"
                      f"{1e3 * f['robot_cpu_s_per_request']:>9.1f}{1e3 * f['bridge_cpu_s_per_request']:>8.1f}"
+                     f"{1e3 * (f.get('learner_cpu_s_per_request') or 0.0):>7.1f}"
                      f"{f['link_bytes_per_request'] / 1024:>9.1f}"
                      f"{f['cloud_timeouts']:>9}{100 * (f.get('cloud_share') or 0.0):>8.0f}")
     if results.get("oracle_mean_s") is not None:

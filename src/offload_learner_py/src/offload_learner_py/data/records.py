@@ -31,7 +31,8 @@ OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH
                     "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
                     "reward": NO_VALUE, "loss_valid": False, "loss": math.nan, "delivered_s": math.nan,
                     "hedged": False, "transitions": 0, "imputed": NO_PATH_DELIVERED, "robot_cpu_s": math.nan,
-                    "bridge_cpu_s": math.nan, "link_bytes_sent": 0, "link_bytes_received": 0}
+                    "bridge_cpu_s": math.nan, "learner_cpu_s": math.nan, "link_bytes_sent": 0,
+                    "link_bytes_received": 0}
 DECISION_FIELDS = tuple(DECISION_DEFAULTS)
 OUTCOME_FIELDS = tuple(OUTCOME_DEFAULTS)
 _TEXT = ("policy", "mode", "breaker")

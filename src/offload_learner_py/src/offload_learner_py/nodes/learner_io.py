@@ -173,6 +173,7 @@ def outcome_msg(outcome) -> OffloadOutcome:
     msg.imputed = OffloadOutcome.NONE if outcome.imputed is None else outcome.imputed
     msg.transitions, msg.hedged = outcome.transitions, outcome.hedged
     msg.robot_cpu_s, msg.bridge_cpu_s = outcome.robot_cpu_s, outcome.bridge_cpu_s
+    msg.learner_cpu_s = outcome.learner_cpu_s
     msg.link_bytes_sent, msg.link_bytes_received = outcome.bytes_sent, outcome.bytes_received
     msg.loss_valid = outcome.loss is not None
     msg.loss = outcome.loss if outcome.loss is not None else float("nan")

@@ -68,6 +68,7 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = 5.0) -> dict:
     delivered_s = pick("outcome_delivered_s")
     cpu_s = pick("outcome_robot_cpu_s")
     bridge_s = pick("outcome_bridge_cpu_s")
+    learner_s = pick("outcome_learner_cpu_s")
     figures.update({
         "paths_delivered": int(np.sum(pick("outcome_delivered") != NO_PATH_DELIVERED)),
         "mean_s": float(np.mean(delivered_s)), "p50_s": float(np.percentile(delivered_s, 50)),
@@ -76,6 +77,7 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = 5.0) -> dict:
         # NaN in bags from before robot cost accounting
         "robot_cpu_s_per_request": float(np.mean(cpu_s)) if np.all(np.isfinite(cpu_s)) else float("nan"),
         "bridge_cpu_s_per_request": float(np.mean(bridge_s)) if np.all(np.isfinite(bridge_s)) else float("nan"),
+        "learner_cpu_s_per_request": float(np.mean(learner_s)) if np.all(np.isfinite(learner_s)) else float("nan"),
         "link_bytes_per_request": float(np.mean(pick("outcome_link_bytes_sent") + pick("outcome_link_bytes_received"))),
         "cloud_timeouts": int(np.sum(pick("outcome_cloud_timeout") > 0)),
         "waited_the_timeout": int(np.sum(delivered_s >= cloud_timeout_s)),
@@ -139,7 +141,8 @@ def format_summary(summary: dict) -> str:
         lines.append(f"as the caller saw it: mean {_ms(delivered['mean_s']).strip()} ms, p95 "
                      f"{_ms(delivered['p95_s']).strip()} ms, p99 {_ms(delivered['p99_s']).strip()} ms; per request: robot "
                      f"planning CPU {1000 * delivered['robot_cpu_s_per_request']:.1f} ms, cloud bridge CPU "
-                     f"{1000 * delivered['bridge_cpu_s_per_request']:.1f} ms, link "
+                     f"{1000 * delivered['bridge_cpu_s_per_request']:.1f} ms, learner CPU "
+                     f"{1000 * delivered['learner_cpu_s_per_request']:.1f} ms, link "
                      f"{delivered['link_bytes_per_request'] / 1024:.1f} KiB")
     unfinished = summary["requests"] - summary["answered"]
     if unfinished:

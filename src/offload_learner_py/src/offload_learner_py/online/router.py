@@ -428,7 +428,10 @@ class OffloadRouter:
                 else:
                     outcome.cloud = result
                     self._score_cloud(outcome)
+            # The learner's own CPU on the robot: training runs in this thread (one torch thread).
+            began_cpu = time.thread_time()
             self._learn(outcome)
+            outcome.learner_cpu_s = time.thread_time() - began_cpu
             self.on_outcome(outcome)
         finally:
             self._done()

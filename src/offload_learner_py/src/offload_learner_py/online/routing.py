@@ -82,6 +82,7 @@ class Outcome:
     routing: Optional[Routing] = None
     robot_cpu_s: float = 0.0        # robot planning CPU: the local planner node's own, for this request
     bridge_cpu_s: float = 0.0       # the cloud bridge's CPU on the robot for this request (serialising, waiting)
+    learner_cpu_s: float = 0.0      # the learner's CPU learning from it (latency models, transitions, training)
     bytes_sent: int = 0
     bytes_received: int = 0
     local_lower_bound_s: Optional[float] = None   # a local call cancelled after running this long (l_local
