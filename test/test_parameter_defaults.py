@@ -144,6 +144,9 @@ def test_the_learners_dqn_settings_are_documented_as_shipped():
     row = next(line for line in readme.read_text().splitlines() if line.startswith("| `~dqn` |"))
     for name, value in yaml_values(CONFIG / "learner.yaml", None)["dqn"].items():
         assert f"{name}: {value}" in row, (name, value, row)
+    row = next(line for line in readme.read_text().splitlines() if line.startswith("| `~deployed_dqn` |"))
+    for name, value in yaml_values(CONFIG / "learner.yaml", None)["deployed_dqn"].items():
+        assert f"{name}: {value}" in row, (name, value, row)
 
 
 def test_the_checker_reads_all_three_sources():

@@ -105,3 +105,11 @@ def test_close_stores_the_last_transition_and_saves(tmp_path):
     session.policy.learn(State(1.0, 0.5, 0.05), CLOUD, -0.2)
     assert session.agent.steps == 0                   # pending until its successor (or close) arrives
     assert session.close() and path.exists() and session.agent.steps == 1
+
+
+def test_deployed_mode_takes_the_deployed_dqn_settings_over_the_common_ones():
+    from offload_learner_py.online.session import dqn_settings
+    common, deployed = {"train_frequency": 1, "gamma": 0.0}, {"train_frequency": 8}
+    assert dqn_settings("deployed", common, deployed) == {"train_frequency": 8, "gamma": 0.0}
+    assert dqn_settings("learning", common, deployed) == common
+    assert dqn_settings("deployed", common, None) == common

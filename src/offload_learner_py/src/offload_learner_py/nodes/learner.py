@@ -23,7 +23,7 @@ from offload_learner_py.online.breaker import BreakerConfig
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.routing import RouterConfig, Statuses
-from offload_learner_py.online.session import LearnerSession, SessionConfig
+from offload_learner_py.online.session import LearnerSession, SessionConfig, dqn_settings
 from offload_planner_cpp.gc_pauses import freeze_startup_heap
 
 
@@ -31,12 +31,13 @@ class LearnerNode:
     def __init__(self):
         p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
         seed, alpha = int(p("seed", 1)), float(p("alpha", 0.5))
+        dqn = dqn_settings(str(p("mode", "deployed")), p("dqn", {}), p("deployed_dqn", {}))
         self.session = LearnerSession(SessionConfig(
             policy=str(p("policy", "dqn")), checkpoint=str(p("checkpoint", "")), model=str(p("model", "")),
             checkpoint_every=int(p("checkpoint_every", 50)), learn=bool(p("learn", True)),
             # Learning mode runs both sides anyway and deployed mode explores with its probes:
             # epsilon-greedy exploration would only cost the robot time, so it is off unless asked for.
-            explore=bool(p("explore", False)), seed=seed, dqn=p("dqn", {}) or {},
+            explore=bool(p("explore", False)), seed=seed, dqn=dqn,
             threshold_input_size=float(p("threshold_input_size", 1.1)), stats_window=int(p("stats_window", 50)),
             progress_every=int(p("progress_every", 25))), RosLog)
         breaker = BreakerConfig(failures_to_open=int(p("breaker_failures", 3)),

@@ -15,6 +15,7 @@ from offload_learner_py.core.checkpoint import load_checkpoint, remove_orphaned_
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import faster_actions
+from offload_learner_py.online.routing import DEPLOYED
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, Policy, \
     RandomPolicy
 
@@ -42,6 +43,12 @@ class SessionConfig:
         if not isinstance(self.dqn, dict):
             raise ValueError(f"~dqn must be a dictionary of DQNConfig fields, got {self.dqn!r}")
         self.checkpoint, self.model = os.path.expanduser(self.checkpoint), os.path.expanduser(self.model)
+
+
+def dqn_settings(mode: str, dqn: dict, deployed_dqn: dict) -> dict:
+    """The DQNConfig fields for a mode: ~dqn, and in deployed mode ~deployed_dqn over it (there the robot's CPU
+    pays for every gradient step, so the shipped settings train less often)."""
+    return {**(dqn or {}), **((deployed_dqn or {}) if mode == DEPLOYED else {})}
 
 
 def make_policy(config: SessionConfig, log: logging.Logger = LOG) -> Tuple[Policy, Optional[DQNAgent]]:
