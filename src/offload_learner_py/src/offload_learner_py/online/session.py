@@ -6,7 +6,7 @@ import logging
 import os
 import threading
 from collections import deque
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Optional, Tuple
 
 import numpy as np
@@ -45,6 +45,12 @@ class SessionConfig:
         self.checkpoint, self.model = os.path.expanduser(self.checkpoint), os.path.expanduser(self.model)
 
 
+# DQNConfig fields a loaded model takes from the node's settings: how training goes on. The rest (the network's
+# shape, its input encoding, the optimizer and the replay memory it was built with, the seed) stay the model's.
+TRAINING_SCHEDULE = ("gamma", "batch_size", "train_frequency", "gradient_steps", "target_update_interval", "epsilon",
+                     "huber_delta", "max_grad_norm")
+
+
 def dqn_settings(mode: str, dqn: dict, deployed_dqn: dict) -> dict:
     """The DQNConfig fields for a mode: ~dqn, and in deployed mode ~deployed_dqn over it (there the robot's CPU
     pays for every gradient step, so the shipped settings train less often)."""
@@ -67,6 +73,11 @@ def make_policy(config: SessionConfig, log: logging.Logger = LOG) -> Tuple[Polic
     if source:
         agent = load_checkpoint(source, dqn)
         log.info("loaded %s: %d steps, %d gradient steps", source, agent.steps, agent.gradient_steps)
+        # The network comes from the checkpoint; how it goes on training is this node's to say (a robot deployed
+        # from a learning run's model trains on the deployed schedule, not the learning run's).
+        schedule = {name: value for name, value in config.dqn.items() if name in TRAINING_SCHEDULE}
+        if schedule:
+            agent.config = replace(agent.config, **schedule)
     else:
         agent = DQNAgent(dqn)
         log.warning("no checkpoint at %r and no ~model: the DQN starts untrained", config.checkpoint)
