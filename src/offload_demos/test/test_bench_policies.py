@@ -42,3 +42,15 @@ def test_the_hedge_runs_first_side_is_the_oracles_choice_and_only_its_local_plan
     assert figures["cloud_share"] == pytest.approx(0.5)
     assert figures["first_local_cpu_s_per_request"] == pytest.approx((0.010 + 0.020) / 4)
     assert figures["robot_cpu_s_per_request"] == pytest.approx((0.010 + 0.040 + 0.020 + 0.070) / 4)
+
+
+def test_cloud_failures_count_link_failures_not_the_planners_verdicts(tmp_path):
+    # A run the link-down window never touched has no cloud failure, and the bench says so instead of
+    # reporting its figures as a link failure's.
+    requests = []
+    for i, status in enumerate((0, 9, 10, 7, 0)):       # OK, CLOUD_TIMEOUT, CLOUD_ERROR, NO_PATH, OK
+        decision, outcome = probe_request(3000 + i, 1.0, 0.5, 0.05, 0.1, 0.2, CLOUD, 1.0, 0.0, probe=False)
+        outcome.update(cloud_status=status)
+        requests.append((decision, outcome))
+    write(tmp_path / "offload.bag", requests)
+    assert measure(tmp_path, 5.0)["cloud_failures"] == 2

@@ -28,6 +28,7 @@ import time
 import numpy as np
 
 from offload_planner_cpp.cli_args import bounded_float, bounded_int
+from offload_msgs.srv import PlanPathResponse
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data.bags import read_bags
 from offload_demos.driver import LINK_PROFILES
@@ -42,6 +43,8 @@ RUNS = {
     "dqn": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05"],
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--hedge"],
 }
+# PlanPath statuses of a cloud call the link failed (offload_msgs/PlanPath: CLOUD_TIMEOUT, CLOUD_ERROR).
+LINK_FAILED = (PlanPathResponse.CLOUD_TIMEOUT, PlanPathResponse.CLOUD_ERROR)
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
           "bridge_cpu_s_per_request", "learner_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts",
           "cloud_share")
@@ -96,6 +99,8 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
         excess = delivered_s[after] - np.asarray(log["outcome_local_s"], dtype=np.float64)[after]
         figures["worst_wait_beyond_local_after_trip_s"] = float(np.nanmax(excess)) if len(excess) else 0.0
         figures["max_deadline_s"] = float(np.nanmax(np.asarray(log["deadline_s"], dtype=np.float64)))
+    figures["cloud_failures"] = int(np.sum(answered & np.asarray(log["outcome_cloud_measured"], dtype=bool)
+                                           & np.isin(np.asarray(log["outcome_cloud_status"]), LINK_FAILED)))
     figures["run_dir"] = ", ".join(map(str, run_dirs))
     if len(run_dirs) > 1:     # each run's mean: the spread between repeats is the noise of the machine
         run = np.asarray(log["bag"])[answered]        # index into the reader's (sorted) bag list
@@ -162,8 +167,11 @@ def main(argv=None) -> int:
     parser.add_argument("--learning-steps", type=bounded_int("--learning-steps", 10, 100000), default=300)
     parser.add_argument("--outage-policies", default="dqn_hedge",
                         help="policies run again with the link down for --outage-s mid-run ('' to skip)")
-    parser.add_argument("--outage-at-s", type=bounded_float("--outage-at-s", 0.0), default=45.0,
+    parser.add_argument("--outage-at-s", type=bounded_float("--outage-at-s", 0.0), default=30.0,
                         help="seconds after the WAN emulator starts (requests begin about 15 s after it)")
+    parser.add_argument("--outage-steps", type=bounded_int("--outage-steps", 10, 100000), default=400,
+                        help="requests of the link-down run: enough that the link comes back before its end (400 "
+                             "requests last about 70 s at 0.15 s each)")
     parser.add_argument("--outage-s", type=bounded_float("--outage-s", 0.0, low_open=True), default=30.0)
     parser.add_argument("--jump-trace", default="launch/config/rtt_jump.txt")
     parser.add_argument("--cloud-timeout-s", type=float, default=5.0)
@@ -222,12 +230,13 @@ def main(argv=None) -> int:
     for index, name in enumerate(outage, start=args.repeats * len(policies)):
         extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario + [
             "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
-        figures = measure(run_demo(args.launch, out / f"outage-{name}", args.steps, args.seed, map_yaml, extra,
+        figures = measure(run_demo(args.launch, out / f"outage-{name}", args.outage_steps, args.seed, map_yaml, extra,
                                    progress(index)), args.cloud_timeout_s)
         figures.pop("delivered_s")
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
-            "hedged", "breaker_open", "worst_wait_beyond_local_after_trip_s", "max_deadline_s", "run_dir")}
+            "hedged", "breaker_open", "worst_wait_beyond_local_after_trip_s", "max_deadline_s", "run_dir",
+            "cloud_failures")}
     with open(out / "results.json", "w") as stream:
         json.dump({key: value for key, value in results.items() if key != "delivered_s"}, stream, indent=2)
     if results["policies"]:
@@ -238,6 +247,11 @@ def main(argv=None) -> int:
         for name, f in results["policies"].items():
             print(f"{name}: run means " + ", ".join(f"{1e3 * m:.1f}" for m in f["run_means_s"]) + " ms")
     for name, f in results["outage"].items():
+        if not (f.get("cloud_failures") or f.get("breaker_open")):
+            print(f"link down {args.outage_s:g} s from {args.outage_at_s:g} s, {name}: no request met the outage (no "
+                  "cloud failure, the breaker never opened): the run ended before it or routed around it; its "
+                  "figures say nothing of a link failure (--outage-at-s, --outage-steps)")
+            continue
         print(f"link down {args.outage_s:g} s mid-run, {name}: {f['paths_delivered']}/{f['requests']} paths, worst "
               f"wait {1e3 * f['max_s']:.0f} ms, {f['waited_the_timeout']} waited the {args.cloud_timeout_s:g} s "
               f"timeout, {f['breaker_open']} routed locally by the open breaker, {f['hedged']} hedged; after the "
