@@ -113,14 +113,19 @@ def test_deployed_mode_takes_the_deployed_dqn_settings_over_the_common_ones():
     assert dqn_settings("deployed", common, deployed) == {"train_frequency": 8, "gamma": 0.0}
     assert dqn_settings("learning", common, deployed) == common
     assert dqn_settings("deployed", common, None) == common
+    with pytest.raises(ValueError, match="~deployed_dqn must be a dictionary"):
+        dqn_settings("deployed", common, "train_frequency: 8")
 
 
 def test_a_loaded_model_trains_on_the_nodes_schedule_and_keeps_its_network(tmp_path):
-    model = saved_agent(tmp_path / "model.pt", 30)      # saved with train_frequency 2, epsilon 0.1
+    saved = DQNAgent(DQNConfig(learning_starts=0, seed=2, train_frequency=5))
+    saved.steps = 30
+    model = str(tmp_path / "model.pt")
+    save_checkpoint(saved, model)
     _, agent = make_policy(SessionConfig(model=model, dqn={"train_frequency": 8, "epsilon": 0.0,
                                                            "learning_rate": 0.5}))
     assert agent.config.train_frequency == 8 and agent.config.epsilon == 0.0
     assert agent.config.learning_rate == DQNConfig().learning_rate and agent.config.seed == 2   # the model's own
     assert agent.steps == 30
-    _, agent = make_policy(SessionConfig(model=model))
-    assert agent.config.train_frequency == DQNConfig().train_frequency
+    _, agent = make_policy(SessionConfig(model=model))     # nothing set: the model's own schedule
+    assert agent.config.train_frequency == 5

@@ -171,7 +171,7 @@ def main(argv=None) -> int:
                         help="seconds after the WAN emulator starts (requests begin about 15 s after it)")
     parser.add_argument("--outage-steps", type=bounded_int("--outage-steps", 10, 100000), default=400,
                         help="requests of the link-down run: enough that the link comes back before its end (400 "
-                             "requests last about 70 s at 0.15 s each)")
+                             "requests last about 70 s at 0.175 s each)")
     parser.add_argument("--outage-s", type=bounded_float("--outage-s", 0.0, low_open=True), default=30.0)
     parser.add_argument("--jump-trace", default="launch/config/rtt_jump.txt")
     parser.add_argument("--cloud-timeout-s", type=float, default=5.0)
@@ -236,7 +236,9 @@ def main(argv=None) -> int:
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
             "hedged", "breaker_open", "worst_wait_beyond_local_after_trip_s", "max_deadline_s", "run_dir",
-            "cloud_failures")}
+            "cloud_failures", "slow_link_local")}
+        results["outage"][name].update(outage_at_s=args.outage_at_s, outage_s=args.outage_s,
+                                       outage_steps=args.outage_steps)
     with open(out / "results.json", "w") as stream:
         json.dump({key: value for key, value in results.items() if key != "delivered_s"}, stream, indent=2)
     if results["policies"]:

@@ -31,6 +31,10 @@ class LearnerNode:
     def __init__(self):
         p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
         seed, alpha = int(p("seed", 1)), float(p("alpha", 0.5))
+        # One thread: fastest for this small network, leaves the robot's other cores to the planner, and keeps the
+        # learner's CPU per request (its thread's time) whole.
+        import torch
+        torch.set_num_threads(int(p("torch_threads", 1)))
         dqn = dqn_settings(str(p("mode", "deployed")), p("dqn", {}), p("deployed_dqn", {}))
         self.session = LearnerSession(SessionConfig(
             policy=str(p("policy", "dqn")), checkpoint=str(p("checkpoint", "")), model=str(p("model", "")),

@@ -68,7 +68,7 @@ def _skew_corrected(value: float, std_error: float, skewness: float, n: int, kur
     disagree and large on the few rows a rare logged action was taken with a heavy-tailed latency: when
     those rows happen to be few or cheap the mean is low and so is the sample variance, so the normal
     interval misses on the low side far more often than 2.5 %. The transformed interval extends upward
-    by as much as the skewness says. With no skewness it is the normal interval.
+    by as much as the skewness says. With no skewness it is the symmetric t interval below.
 
     The quantile is Student's t with Satterthwaite's degrees of freedom for a variance estimated from terms
     of this kurtosis, 2 n / (kurtosis - 1) (n for normal terms): when a handful of rows carry the variance,

@@ -54,6 +54,9 @@ TRAINING_SCHEDULE = ("gamma", "batch_size", "train_frequency", "gradient_steps",
 def dqn_settings(mode: str, dqn: dict, deployed_dqn: dict) -> dict:
     """The DQNConfig fields for a mode: ~dqn, and in deployed mode ~deployed_dqn over it (there the robot's CPU
     pays for every gradient step, so the shipped settings train less often)."""
+    for name, value in (("~dqn", dqn), ("~deployed_dqn", deployed_dqn)):
+        if value is not None and not isinstance(value, dict):
+            raise ValueError(f"{name} must be a dictionary of DQNConfig fields, got {value!r}")
     return {**(dqn or {}), **((deployed_dqn or {}) if mode == DEPLOYED else {})}
 
 

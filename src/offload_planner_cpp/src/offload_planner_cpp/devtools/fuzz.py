@@ -80,11 +80,12 @@ def _map_server(yaml_bytes, image_bytes):
     return write
 
 
+# Built only for the target fuzzed: a loader target makes its scratch directory.
 TARGETS = {
-    "protocol": protocol_target,
-    "movingai": loader_target(_movingai),
-    "map_yaml": loader_target(_map_server(None, PGM)),
-    "map_image": loader_target(_map_server(YAML, None)),
+    "protocol": lambda: protocol_target,
+    "movingai": lambda: loader_target(_movingai),
+    "map_yaml": lambda: loader_target(_map_server(None, PGM)),
+    "map_image": lambda: loader_target(_map_server(YAML, None)),
 }
 
 
@@ -93,7 +94,7 @@ def main(argv=None) -> None:
     if len(argv) < 2 or argv[1] not in TARGETS:
         print(f"usage: {argv[0]} {{{','.join(TARGETS)}}} [libFuzzer options]", file=sys.stderr)
         sys.exit(2)
-    target = TARGETS[argv[1]]
+    target = TARGETS[argv[1]]()
     atheris.Setup([argv[0]] + argv[2:], target)
     atheris.Fuzz()
 
