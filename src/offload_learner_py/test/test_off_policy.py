@@ -165,3 +165,19 @@ def test_accuracy_estimates_stay_shares_and_few_samples_are_flagged():
     result = {"latency_ips_s": empty, "latency_snips_s": empty, "latency_dr_s": empty, "effective_sample_size": 4.0}
     assert "effective sample size under 30 for few" in format_results({"few": result})
     assert "warning" not in format_results({"many": {**result, "effective_sample_size": 300.0}})
+
+
+def test_a_request_the_router_kept_local_whatever_the_draw_has_propensity_one(tmp_path):
+    # An exploring policy drew cloud with propensity 0.05, but the open breaker (or the slow-link guard) sent the
+    # request to the local planner: local was certain, so its latency must not be weighted 1 / 0.05.
+    requests = []
+    for i, breaker in enumerate(("closed", "open", "slow")):
+        decision, outcome = probe_request(4000 + i, 1.0, 0.5, 0.05, 0.1, 0.2, CLOUD, 0.05, 0.0, probe=False)
+        decision.update(routed=LOCAL, breaker=breaker, action=CLOUD)
+        outcome.update(action=CLOUD, delivered=LOCAL, local_measured=True, local_s=0.1, cloud_measured=False,
+                       cloud_s=0.0)
+        requests.append((decision, outcome))
+    data = bags.read_bags([write(tmp_path / "kept_local.bag", requests)])
+    steps = off_policy.LoggedSteps.from_log(data.log)
+    assert list(steps.action) == [LOCAL] * 3
+    assert list(steps.propensity) == [0.05, 1.0, 1.0]

@@ -30,6 +30,9 @@ from offload_learner_py.data.records import RequestLog
 Z_95 = 1.959963984540054
 
 
+# Routing (the decision's `breaker` field) that sends a request to the local planner whatever the policy chose.
+FORCED_LOCAL = ("open", "slow")
+
 MIN_EFFECTIVE_SAMPLES = 30   # below it, an importance-weighted figure rests on a handful of steps
 
 
@@ -227,14 +230,18 @@ class LoggedSteps:
     def from_log(cls, log: RequestLog, rows: Optional[np.ndarray] = None) -> "LoggedSteps":
         pick = (lambda name: np.asarray(log[name])) if rows is None else (lambda name: np.asarray(log[name])[rows])
         # The behaviour is what the router did: the side it called first (the decided action unless the circuit
-        # breaker kept a cloud decision local).
+        # breaker kept a cloud decision local). Where the breaker was open, or the hedge's slow-link guard applied,
+        # the router would have called the local planner whatever the policy drew: that side's propensity is 1,
+        # not the drawn decision's.
         action = pick("routed" if "routed" in log.columns else "action").astype(np.int64)
+        forced = np.isin(np.asarray(pick("breaker"), dtype=object), FORCED_LOCAL) if "breaker" in log.columns \
+            else np.zeros(len(action), dtype=bool)
         local_s, cloud_s = pick("outcome_local_s").astype(np.float64), pick("outcome_cloud_s").astype(np.float64)
         both = np.isfinite(local_s) & np.isfinite(cloud_s) & (local_s > 0) & (cloud_s > 0)
         probe = pick("probe").astype(bool) & both
         return cls(states=np.stack([pick("input_size"), pick("cpu_availability"), pick("round_trip_s")],
                                    axis=1).astype(np.float64),
-                   action=action, propensity=pick("action_propensity").astype(np.float64),
+                   action=action, propensity=np.where(forced, 1.0, pick("action_propensity").astype(np.float64)),
                    latency_s=np.where(action == CLOUD, cloud_s, local_s), probe=probe, local_s=local_s,
                    cloud_s=cloud_s)
 
