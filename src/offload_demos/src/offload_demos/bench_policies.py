@@ -31,6 +31,7 @@ from offload_planner_cpp.cli_args import bounded_float, bounded_int
 from offload_msgs.srv import PlanPathResponse
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data.bags import read_bags
+from offload_learner_py.online.breaker import OPEN
 from offload_demos.driver import LINK_PROFILES
 from offload_learner_py.offline.summary import delivered_figures
 
@@ -93,7 +94,7 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
     figures["delivered_s"] = delivered_s[answered].tolist()
     # Once the breaker has opened, what a request waited beyond its own local plan (the bar: at most the
     # hedge deadline, and nothing at all for a request the open breaker routed locally).
-    opened = np.nonzero(np.asarray(log["breaker"], dtype=object) == "open")[0]
+    opened = np.nonzero(np.asarray(log["breaker"], dtype=object) == OPEN)[0]
     if len(opened):
         after = answered & (np.arange(len(log)) >= opened[0]) & (np.asarray(log["outcome_delivered"]) == 0)
         excess = delivered_s[after] - np.asarray(log["outcome_local_s"], dtype=np.float64)[after]

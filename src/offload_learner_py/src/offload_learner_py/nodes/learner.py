@@ -6,6 +6,7 @@ README; their defaults in launch/config/learner.yaml."""
 import time
 
 import rospy
+import torch
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
@@ -33,7 +34,6 @@ class LearnerNode:
         seed, alpha = int(p("seed", 1)), float(p("alpha", 0.5))
         # One thread: fastest for this small network, leaves the robot's other cores to the planner, and keeps the
         # learner's CPU per request (its thread's time) whole.
-        import torch
         torch.set_num_threads(int(p("torch_threads", 1)))
         dqn = dqn_settings(str(p("mode", "deployed")), p("dqn", {}), p("deployed_dqn", {}))
         self.session = LearnerSession(SessionConfig(

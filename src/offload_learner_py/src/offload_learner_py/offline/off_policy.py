@@ -26,12 +26,13 @@ import numpy as np
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.dqn import greedy_actions
 from offload_learner_py.data.records import RequestLog
+from offload_learner_py.online.breaker import OPEN, SLOW
 
 Z_95 = 1.959963984540054
 
 
 # Routing (the decision's `breaker` field) that sends a request to the local planner whatever the policy chose.
-FORCED_LOCAL = ("open", "slow")
+FORCED_LOCAL = (OPEN, SLOW)
 
 MIN_EFFECTIVE_SAMPLES = 30   # below it, an importance-weighted figure rests on a handful of steps
 

@@ -12,6 +12,7 @@ from offload_learner_py.core.dqn import greedy_actions
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.evaluation import accuracy, evaluate, learned_cpu_threshold, oracle_actions
 from offload_learner_py.data.records import NO_PATH_DELIVERED, RequestLog
+from offload_learner_py.online.breaker import OPEN, SLOW
 
 FEATURES = (("input_size", "d_t"), ("cpu_availability", "u_t"), ("round_trip_s", "b_t"))
 
@@ -66,25 +67,26 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = 5.0) -> dict:
         return figures
     pick = lambda name: np.asarray(log[name], dtype=np.float64)[answered]  # noqa: E731
     delivered_s = pick("outcome_delivered_s")
-    cpu_s = pick("outcome_robot_cpu_s")
-    bridge_s = pick("outcome_bridge_cpu_s")
-    learner_s = pick("outcome_learner_cpu_s")
+    breaker = np.asarray(log["breaker"], dtype=object)[answered]
+
+    def cost_per_request(name: str) -> float:   # NaN in bags from before robot cost accounting
+        values = pick(name)
+        return float(np.mean(values)) if np.all(np.isfinite(values)) else float("nan")
     figures.update({
         "paths_delivered": int(np.sum(pick("outcome_delivered") != NO_PATH_DELIVERED)),
         "mean_s": float(np.mean(delivered_s)), "p50_s": float(np.percentile(delivered_s, 50)),
         "p95_s": float(np.percentile(delivered_s, 95)), "p99_s": float(np.percentile(delivered_s, 99)),
         "max_s": float(np.max(delivered_s)),
-        # NaN in bags from before robot cost accounting
-        "robot_cpu_s_per_request": float(np.mean(cpu_s)) if np.all(np.isfinite(cpu_s)) else float("nan"),
-        "bridge_cpu_s_per_request": float(np.mean(bridge_s)) if np.all(np.isfinite(bridge_s)) else float("nan"),
-        "learner_cpu_s_per_request": float(np.mean(learner_s)) if np.all(np.isfinite(learner_s)) else float("nan"),
+        "robot_cpu_s_per_request": cost_per_request("outcome_robot_cpu_s"),
+        "bridge_cpu_s_per_request": cost_per_request("outcome_bridge_cpu_s"),
+        "learner_cpu_s_per_request": cost_per_request("outcome_learner_cpu_s"),
         "link_bytes_per_request": float(np.mean(pick("outcome_link_bytes_sent") + pick("outcome_link_bytes_received"))),
         "cloud_timeouts": int(np.sum(pick("outcome_cloud_timeout") > 0)),
         "waited_the_timeout": int(np.sum(delivered_s >= cloud_timeout_s)),
         "hedged": int(np.sum(pick("outcome_hedged") > 0)),
         "probes": int(np.sum(np.asarray(log["probe"], dtype=bool)[answered])),
-        "breaker_open": int(np.sum(np.asarray(log["breaker"], dtype=object)[answered] == "open")),
-        "slow_link_local": int(np.sum(np.asarray(log["breaker"], dtype=object)[answered] == "slow")),
+        "breaker_open": int(np.sum(breaker == OPEN)),
+        "slow_link_local": int(np.sum(breaker == SLOW)),
     })
     return figures
 

@@ -15,9 +15,9 @@ from offload_learner_py.core.checkpoint import load_checkpoint, remove_orphaned_
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import faster_actions
-from offload_learner_py.online.routing import DEPLOYED
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, Policy, \
     RandomPolicy
+from offload_learner_py.online.routing import DEPLOYED
 
 POLICIES = ("dqn", "local", "cloud", "random", "threshold")
 LOG = logging.getLogger("offload_learner_py.online.session")
@@ -53,7 +53,7 @@ TRAINING_SCHEDULE = ("gamma", "batch_size", "train_frequency", "gradient_steps",
 
 def dqn_settings(mode: str, dqn: dict, deployed_dqn: dict) -> dict:
     """The DQNConfig fields for a mode: ~dqn, and in deployed mode ~deployed_dqn over it (there the robot's CPU
-    pays for every gradient step, so the shipped settings train less often)."""
+    pays for every gradient step, so a robot may train less often; learner.yaml ships none)."""
     for name, value in (("~dqn", dqn), ("~deployed_dqn", deployed_dqn)):
         if value is not None and not isinstance(value, dict):
             raise ValueError(f"{name} must be a dictionary of DQNConfig fields, got {value!r}")
