@@ -79,31 +79,36 @@ bool segmentClear(const std::int8_t* grid, int width, int height, Cell a, Cell b
 
 bool DijkstraPlanner::beginSearch(const std::atomic<bool>* cancel) {
   constexpr double kUnseen = std::numeric_limits<double>::infinity();
-  // A first plan on a big map fills 8 bytes per cell and wave (400 MB on 5000 x 5000), seconds of page faults
-  // in a cold VM: the fill goes a chunk at a time and stops at a cancel, leaving the buffer short, so the next
+  // A first plan on a big map fills 8 bytes per cell (200 MB on 5000 x 5000), seconds of page faults in a
+  // cold VM: the fill goes a chunk at a time and stops at a cancel, leaving the buffer short, so the next
   // search fills it again.
   constexpr std::size_t kFillChunk = std::size_t{1} << 20;
   auto cancelled = [&] { return cancel != nullptr && cancel->load(std::memory_order_relaxed); };
   const std::size_t cells = static_cast<std::size_t>(width_) * static_cast<std::size_t>(height_);
   expansions_ = 0;
   cancelled_ = false;
-  for (std::vector<double>* dist : {&dist_, &back_}) {
-    if (dist == &back_ && !two_waves_) continue;  // no memory for a backward wave until one runs
-    if (dist->size() != cells) {
-      if (cancelled_) continue;  // left short
-      dist->clear();
-      dist->reserve(cells);
-      while (dist->size() < cells && !(cancelled_ = cancelled())) {
-        dist->insert(dist->end(), std::min(kFillChunk, cells - dist->size()), kUnseen);
-      }
-    } else if (dirty_end_ > dirty_begin_) {
-      std::fill(dist->begin() + dirty_begin_, dist->begin() + dirty_end_, kUnseen);
+  if (dist_.size() != cells) {
+    dist_.clear();
+    dist_.reserve(cells);
+    while (dist_.size() < cells && !(cancelled_ = cancelled())) {
+      dist_.insert(dist_.end(), std::min(kFillChunk, cells - dist_.size()), kUnseen);
     }
+  } else if (dirty_end_ > dirty_begin_) {
+    std::fill(dist_.begin() + dirty_begin_, dist_.begin() + dirty_end_, kUnseen);
   }
-  // Every buffer of full size is clean now; one left short is filled whole next time.
+  // A buffer of full size is clean now; one left short is filled whole next time.
   dirty_begin_ = dirty_end_ = 0;
   cancelled_ = cancelled_ || cancelled();
   return !cancelled_;
+}
+
+void DijkstraPlanner::Bucket::reserveMore(std::size_t more) {
+  if (size_ + more <= capacity_) return;
+  const std::size_t capacity = std::max(size_ + more, 2 * capacity_);
+  std::unique_ptr<int[]> grown(new int[capacity]);
+  std::copy(data_.get(), data_.get() + size_, grown.get());
+  data_.swap(grown);
+  capacity_ = capacity;
 }
 
 template <class Visit>
@@ -123,6 +128,50 @@ inline void DijkstraPlanner::forEachMove(int i, int x, int y, Visit visit) const
   if (fs && fe && passable(i + w + 1)) visit(i + w + 1, kDiagonal);
 }
 
+// A wave keeps the rows within this many of every cell it settled derived: a settled cell reads its own
+// neighbours' rows, and the other wave's meeting test reads up to three rows beyond its settled box.
+constexpr int kDerivedMargin = 3;
+// Rows derived at a time beyond the one that needed them.
+constexpr int kDeriveAhead = 16;
+
+void DijkstraPlanner::deriveRows(Wave& wave, int lo, int hi) {
+  constexpr double kBlocked = -std::numeric_limits<double>::infinity();
+  constexpr double kUnseen = std::numeric_limits<double>::infinity();
+  lo = std::max(lo, 0);
+  hi = std::min(hi, height_ + 1);
+  const int w = width_;
+  const int lethal = lethal_;
+  const bool open_unknown = open_unknown_;
+  auto derive = [&](int row) {
+    double* const out = wave.dist + static_cast<std::size_t>(row) * stride_;
+    if (row == 0 || row == height_ + 1) {
+      std::fill(out, out + stride_, kBlocked);
+      return;
+    }
+    const std::int8_t* const cells = grid_ + static_cast<std::size_t>(row - 1) * w;
+    out[0] = out[w + 1] = kBlocked;
+    // isPassable, written so the compiler can vectorise it.
+    for (int x = 0; x < w; ++x) {
+      const int v = cells[x];
+      out[x + 1] = ((v >= 0) & (v < lethal)) | ((v < 0) & open_unknown) ? kUnseen : kBlocked;
+    }
+  };
+  if (wave.derived_hi < wave.derived_lo) {
+    for (int row = lo; row <= hi; ++row) derive(row);
+    wave.derived_lo = lo;
+    wave.derived_hi = hi;
+  } else {
+    for (int row = lo; row < wave.derived_lo; ++row) derive(row);
+    for (int row = wave.derived_hi + 1; row <= hi; ++row) derive(row);
+    wave.derived_lo = std::min(wave.derived_lo, lo);
+    wave.derived_hi = std::max(wave.derived_hi, hi);
+  }
+  // At the frame there is nothing further to derive.
+  wave.safe_begin = wave.derived_lo == 0 ? 0 : (wave.derived_lo + kDerivedMargin) * stride_;
+  wave.safe_end = wave.derived_hi == height_ + 1 ? (height_ + 2) * stride_
+                                                  : (wave.derived_hi + 1 - kDerivedMargin) * stride_;
+}
+
 // Dial's bucket queue with bucket width 1, the smallest step cost (Dinitz): every cell in the lowest
 // non-empty bucket already has its final distance, so buckets are settled in any order with O(1) queue
 // work. Steps cost at most sqrt(2) < 2, so three buckets in a ring hold everything pending.
@@ -130,23 +179,44 @@ template <class Near, class Meet>
 DijkstraPlanner::LevelEnd DijkstraPlanner::settleLevel(Wave& wave, int target, const std::atomic<bool>* cancel,
                                                        Near near, Meet meet) {
   constexpr std::uint64_t kCancelCheck = 4096;  // a relaxed load costs nothing at that rate
+  constexpr double kBlocked = -std::numeric_limits<double>::infinity();
+  Bucket* const buckets = wave.buckets;
+  const Bucket& bucket = buckets[wave.level % 3];
+  const std::size_t entries = bucket.size();
+  // Relaxations from this level land in the next two, never in this one (steps cost >= 1): an orthogonal
+  // move always in the next, a diagonal one in the next or the one after. At most eight per entry.
+  Bucket& next = buckets[(wave.level + 1) % 3];
+  Bucket& after = buckets[(wave.level + 2) % 3];
+  next.reserveMore(8 * entries);
+  after.reserveMore(8 * entries);
+  int* next_end = next.end();
+  int* after_end = after.end();
+  const double after_level = static_cast<double>(wave.level + 2);
   // The wave's counters live in locals while the level runs: stores through dist could alias the
   // members, which would keep the compiler from holding them in registers.
-  std::vector<int>* const buckets = wave.buckets;
-  const std::vector<int>& bucket = buckets[wave.level % 3];
-  const std::size_t entries = bucket.size();
   double* const dist = wave.dist;
-  const int w = width_;
-  std::size_t pending = wave.pending;
+  const int s = stride_;
+  std::size_t pushed = 0;
   std::uint64_t expansions = expansions_;
   int row_min = wave.row_min;
   int row_max = wave.row_max;
   int col_min = wave.col_min;
   int col_max = wave.col_max;
+  int safe_begin = wave.safe_begin;
+  int safe_end = wave.safe_end;
   LevelEnd end = LevelEnd::kLevel;
-  // Relaxations from this bucket land in the next two, never in this one (steps cost >= 1).
+  // The search waits on memory, not arithmetic: a level's cells are scattered along the wave's front, each
+  // on three rows of its own. The bucket says which cells come next, so their rows are fetched ahead.
+  constexpr std::size_t kPrefetchAhead = 8;
+  const int* const entry = bucket.data();
   for (std::size_t k = 0; k < entries; ++k) {
-    const int i = bucket[k];
+    const int i = entry[k];
+    if (k + kPrefetchAhead < entries) {
+      const int ahead = entry[k + kPrefetchAhead];
+      __builtin_prefetch(dist + ahead - s, 1);
+      __builtin_prefetch(dist + ahead, 1);
+      __builtin_prefetch(dist + ahead + s, 1);
+    }
     const double d = dist[i];
     if (std::signbit(d)) continue;  // stale duplicate of an improved entry
     dist[i] = -d;
@@ -156,8 +226,13 @@ DijkstraPlanner::LevelEnd DijkstraPlanner::settleLevel(Wave& wave, int target, c
       end = LevelEnd::kStopped;
       break;
     }
-    const int y = i / w;
-    const int x = i - y * w;
+    const int y = i / s;
+    const int x = i - y * s;
+    if (i < safe_begin || i >= safe_end) {
+      deriveRows(wave, y - kDeriveAhead, y + kDeriveAhead);
+      safe_begin = wave.safe_begin;
+      safe_end = wave.safe_end;
+    }
     row_min = std::min(row_min, y);
     row_max = std::max(row_max, y);
     col_min = std::min(col_min, x);
@@ -166,52 +241,102 @@ DijkstraPlanner::LevelEnd DijkstraPlanner::settleLevel(Wave& wave, int target, c
       end = LevelEnd::kTarget;
       break;
     }
-    auto label = [&](int j, double nd) {
-      dist[j] = nd;
-      buckets[static_cast<std::size_t>(nd) % 3].push_back(j);
-      ++pending;
-    };
+    const double d1 = d + 1.0;
+    const double d2 = d + kDiagonal;
+    const bool fw = dist[i - 1] != kBlocked;
+    const bool fe = dist[i + 1] != kBlocked;
+    const bool fn = dist[i - s] != kBlocked;
+    const bool fs = dist[i + s] != kBlocked;
+    // A diagonal move lands in the bucket after next when it crosses that level.
+    const bool diagonal_after = d2 >= after_level;
     // Only a cell near the other wave can offer a crossing: elsewhere the moves skip looking at it.
     if (near(x, y)) {
-      forEachMove(i, x, y, [&](int j, double length) {
+      auto offer = [&](int j, double nd, bool legal) {
         const double old = dist[j];
         // A cell this wave has settled gains nothing, and offers no crossing the proof needs (those run
-        // from a cell settled here to one not yet settled here).
-        if (std::signbit(old)) return;
-        const double nd = d + length;
+        // from a cell settled here to one not yet settled here). Nor does a blocked one (-inf).
+        if (!legal || std::signbit(old)) return;
         meet(i, j, nd);
-        if (nd < old) label(j, nd);
-      });
-    } else {
-      forEachMove(i, x, y, [&](int j, double length) {
-        const double nd = d + length;
-        if (nd < dist[j]) label(j, nd);  // false for settled cells, whose stored distance is negative
-      });
+        if (nd < old) {
+          dist[j] = nd;
+          if (nd < after_level) *next_end++ = j; else *after_end++ = j;
+          ++pushed;
+        }
+      };
+      // forEachMove's order, which the meeting's ties follow.
+      offer(i - 1, d1, true);
+      offer(i + 1, d1, true);
+      offer(i - s, d1, true);
+      offer(i + s, d1, true);
+      offer(i - s - 1, d2, fn && fw);
+      offer(i - s + 1, d2, fn && fe);
+      offer(i + s - 1, d2, fs && fw);
+      offer(i + s + 1, d2, fs && fe);
+      continue;
     }
+    // Elsewhere without a branch on each move's outcome: on a cluttered map whether a move is legal, and
+    // whether it improves its cell, is a coin toss, and a mispredicted branch costs more than the store.
+    auto relax = [&](int j, double nd, bool legal, int*& out) {
+      const double old = dist[j];
+      const bool better = legal & (nd < old);   // false for settled (negative) and blocked (-inf) cells
+      dist[j] = better ? nd : old;
+      *out = j;
+      out += better;
+      pushed += better;
+    };
+    relax(i - 1, d1, true, next_end);
+    relax(i + 1, d1, true, next_end);
+    relax(i - s, d1, true, next_end);
+    relax(i + s, d1, true, next_end);
+    int* out = diagonal_after ? after_end : next_end;
+    relax(i - s - 1, d2, fn & fw, out);
+    relax(i - s + 1, d2, fn & fe, out);
+    relax(i + s - 1, d2, fs & fw, out);
+    relax(i + s + 1, d2, fs & fe, out);
+    after_end = diagonal_after ? out : after_end;
+    next_end = diagonal_after ? next_end : out;
   }
+  next.setEnd(next_end);
+  after.setEnd(after_end);
   expansions_ = expansions;
   wave.row_min = row_min;
   wave.row_max = row_max;
   wave.col_min = col_min;
   wave.col_max = col_max;
-  wave.pending = pending;
+  wave.pending += pushed;
   if (end != LevelEnd::kLevel) return end;
-  wave.pending -= std::min(pending, entries);
+  wave.pending -= std::min(wave.pending, entries);
   buckets[wave.level % 3].clear();
   ++wave.level;
   return LevelEnd::kLevel;
 }
 
-DijkstraPlanner::Wave DijkstraPlanner::startWave(std::vector<double>* dist, std::vector<int>* buckets, int source) {
+DijkstraPlanner::Wave DijkstraPlanner::startWave(int which, Bucket* buckets, int source) {
+  // Allocated, never filled: deriveRows writes each row before the wave reads it.
+  const std::size_t cells = static_cast<std::size_t>(stride_) * static_cast<std::size_t>(height_ + 2);
+  if (wave_cells_[which] != cells) {
+    wave_dist_[which].reset();  // the old buffer goes before the new one comes
+    wave_dist_[which].reset(new double[cells]);
+    wave_cells_[which] = cells;
+  }
   for (int k = 0; k < 3; ++k) buckets[k].clear();
-  Wave wave{dist->data(), buckets};
-  wave.dist[source] = 0.0;
-  // The source's row is dirty even if the wave never settles it (the other wave may finish first).
-  wave.row_min = wave.row_max = source / width_;
-  wave.col_min = wave.col_max = source % width_;
-  buckets[0].push_back(source);
+  Wave wave{wave_dist_[which].get(), buckets};
+  const int p = padded(source);
+  const int y = p / stride_;
+  deriveRows(wave, y - kDeriveAhead, y + kDeriveAhead);
+  wave.dist[p] = 0.0;
+  // The source is in the box even if the wave never settles it (the other wave may finish first).
+  wave.row_min = wave.row_max = y;
+  wave.col_min = wave.col_max = p % stride_;
+  buckets[0].reserveMore(1);
+  *buckets[0].end() = p;
+  buckets[0].setEnd(buckets[0].end() + 1);
   wave.pending = 1;
   return wave;
+}
+
+DijkstraPlanner::Labels DijkstraPlanner::labels(const Wave& wave) const {
+  return Labels{wave.dist, width_, stride_, wave.derived_lo, wave.derived_hi};
 }
 
 void DijkstraPlanner::markDirtyRows(int row_min, int row_max) {
@@ -220,17 +345,22 @@ void DijkstraPlanner::markDirtyRows(int row_min, int row_max) {
   dirty_end_ = static_cast<std::size_t>(std::min(height_, row_max + 2)) * width_;
 }
 
+bool DijkstraPlanner::beginWaves(const std::atomic<bool>* cancel) {
+  expansions_ = 0;
+  cancelled_ = cancel != nullptr && cancel->load(std::memory_order_relaxed);
+  return !cancelled_;
+}
+
 bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
-  if (!beginSearch(cancel)) return false;
-  Wave wave = startWave(&dist_, buckets_, start);
+  if (!beginWaves(cancel)) return false;
+  Wave wave = startWave(0, buckets_, start);
   auto nowhere = [](int, int) { return false; };
   auto no_meeting = [](int, int, double) {};
-  while (wave.pending > 0 &&
-         settleLevel(wave, stop_at_target ? target : -1, cancel, nowhere, no_meeting) == LevelEnd::kLevel) {
+  const int goal = stop_at_target ? padded(target) : -1;
+  while (wave.pending > 0 && settleLevel(wave, goal, cancel, nowhere, no_meeting) == LevelEnd::kLevel) {
   }
-  const bool reached = !cancelled_ && std::signbit(dist_[target]);
-  markDirtyRows(wave.row_min, wave.row_max);
-  return reached;
+  last_ = labels(wave);
+  return !cancelled_ && std::signbit(last_(target));
 }
 
 // Bidirectional: a wave from each end, the one with the smaller next level goes on, each relaxation into a
@@ -244,10 +374,9 @@ bool DijkstraPlanner::search(int start, int target, bool stop_at_target, const s
 // strictly different levels of each wave, so the crossing above never needs one. The moves are symmetric
 // (same length and corner rule both ways), so the backward wave runs the same code.
 bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atomic<bool>* cancel) {
-  two_waves_ = true;  // from now on beginSearch sizes and resets back_ too
-  if (!beginSearch(cancel)) return false;
-  Wave forward = startWave(&dist_, buckets_, start);
-  Wave backward = startWave(&back_, back_buckets_, target);
+  if (!beginWaves(cancel)) return false;
+  Wave forward = startWave(0, buckets_, start);
+  Wave backward = startWave(1, back_buckets_, target);
   meeting_cost_ = std::numeric_limits<double>::infinity();
   meet_forward_ = meet_backward_ = -1;
   while (forward.pending > 0 && backward.pending > 0 &&
@@ -262,7 +391,8 @@ bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atom
     const Wave& far = ahead ? backward : forward;
     const double* const other = far.dist;
     // The other wave has labelled only cells within one of the cells it settled, so a cell whose moves can
-    // reach them lies within two of that box.
+    // reach them lies within two of that box (and the moves it offers within three: rows the other wave has
+    // derived, kDerivedMargin).
     auto near = [&](int x, int y) {
       return x >= far.col_min - 2 && x <= far.col_max + 2 && y >= far.row_min - 2 && y <= far.row_max + 2;
     };
@@ -276,7 +406,12 @@ bool DijkstraPlanner::searchBidirectional(int start, int target, const std::atom
     });
     if (end == LevelEnd::kStopped) break;
   }
-  markDirtyRows(std::min(forward.row_min, backward.row_min), std::max(forward.row_max, backward.row_max));
+  last_ = labels(forward);
+  backward_ = labels(backward);
+  if (meet_forward_ >= 0) {
+    meet_forward_ = unpadded(meet_forward_);
+    meet_backward_ = unpadded(meet_backward_);
+  }
   start_component_settled_ = !cancelled_ && forward.pending == 0;
   return !cancelled_ && meet_forward_ >= 0;
 }
@@ -339,13 +474,15 @@ bool DijkstraPlanner::bestFirst(int start, int target, bool stop_at_target, cons
 // Dijkstra or A*, with a heap: for weighted moves, where buckets of width one would not hold, and for A*.
 bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel) {
   // dist_ is read through the member: bestFirst's beginSearch may reallocate it.
-  return bestFirst(start, target, stop_at_target, cancel, 4096, [&](int j) { return heuristic(j); },
+  const bool reached = bestFirst(start, target, stop_at_target, cancel, 4096, [&](int j) { return heuristic(j); },
                    [&](int i, double d, int j, double length) {
                      const double nd = d + moveCost(i, j, length);
                      if (!(nd < dist_[j])) return false;  // always false for settled cells (negative)
                      dist_[j] = nd;
                      return true;
                    });
+  last_ = Labels{dist_.data(), width_};
+  return reached;
 }
 
 double DijkstraPlanner::segmentCost(int from, int to) const {
@@ -427,18 +564,19 @@ void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
   path->swap(pulled);
 }
 
-void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path, const double* dist) const {
+void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path, const Labels& labels) const {
   const int w = width_;
   path->clear();
   int i = goal;
   path->push_back({i % w, i / w});
-  while (std::fabs(dist[i]) > 0.0) {
+  while (std::fabs(labels(i)) > 0.0) {
     const int y = i / w;
     int best = -1;
     double best_dist = std::numeric_limits<double>::infinity();
     forEachMove(i, i - y * w, y, [&](int j, double length) {
-      if (!std::signbit(dist[j])) return;  // not settled
-      const double through = std::fabs(dist[j]) + moveCost(j, i, length);
+      const double label = labels(j);
+      if (!std::signbit(label)) return;  // not settled
+      const double through = std::fabs(label) + moveCost(j, i, length);
       if (through < best_dist) {
         best_dist = through;
         best = j;
@@ -464,7 +602,7 @@ int DijkstraPlanner::nearestWithin(Cell goal, double radius, bool settled_only) 
     for (long long x = x_begin; x <= x_end; ++x) {
       const long long d2 = (x - goal.x) * (x - goal.x) + (y - goal.y) * (y - goal.y);
       const int i = static_cast<int>(y * width_ + x);
-      if (d2 < best_d2 && static_cast<double>(d2) <= limit && passable(i) && (!settled_only || settled(i))) {
+      if (d2 < best_d2 && static_cast<double>(d2) <= limit && passable(i) && (!settled_only || std::signbit(last_(i)))) {
         best = i;
         best_d2 = d2;
       }
@@ -498,7 +636,8 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
         << " values";
     return finish(PlanStatus::kInvalidMap, msg.str());
   }
-  if (static_cast<std::size_t>(width) * static_cast<std::size_t>(height) >
+  // Indices are ints, in the grid and in the waves' buffers (the grid with a frame of one cell).
+  if ((static_cast<std::size_t>(width) + 2) * (static_cast<std::size_t>(height) + 2) >
       static_cast<std::size_t>(std::numeric_limits<int>::max())) {
     return finish(PlanStatus::kInvalidMap, "map too large: more than 2^31 cells");
   }
@@ -526,6 +665,9 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   grid_ = data;
   width_ = width;
   height_ = height;
+  stride_ = width + 2;
+  lethal_ = options.lethal_threshold;
+  open_unknown_ = !options.unknown_is_obstacle;
   weighted_ = options.cost_factor > 0.0;
   astar_ = options.algorithm == Algorithm::kAStar;
   min_weight_ = weighted_ ? options.neutral_cost : 1.0;
@@ -591,15 +733,15 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   }
   if (met) {
     // Start to the meeting move on the forward wave, then on to the target on the backward one.
-    tracePath(meet_forward_, &result.path, dist_.data());
+    tracePath(meet_forward_, &result.path, last_);
     std::vector<Cell> tail;
-    tracePath(meet_backward_, &tail, back_.data());
+    tracePath(meet_backward_, &tail, backward_);
     result.path.insert(result.path.end(), tail.rbegin(), tail.rend());
     result.cost = result.weighted_cost = meeting_cost_;
   } else {
-    tracePath(reached, &result.path, dist_.data());
-    result.cost = weighted_ ? 0.0 : distance(reached);
-    result.weighted_cost = distance(reached);
+    tracePath(reached, &result.path, last_);
+    result.cost = weighted_ ? 0.0 : std::fabs(last_(reached));
+    result.weighted_cost = std::fabs(last_(reached));
   }
   if (options.any_angle) {
     // Two candidates, the cheaper wins: the optimal cell path pulled tight (never costlier than it), and

@@ -275,15 +275,16 @@ TEST(Dijkstra, ACancelFromAnotherThreadStopsARunningPlan) {
   EXPECT_EQ(after.expansions, grid.size());
 }
 
-TEST(Dijkstra, ACancelDuringAFirstPlansBufferFillStopsItAndTheNextPlansStayExact) {
-  // A cold planner's first plan on a big map fills 16 bytes per cell (two waves): 256 MB here. The cancel
-  // comes while that fill runs; it stops there, and the buffers it left short or dirty are readied again.
+TEST(Dijkstra, ACancelDuringAColdPlannersFirstPlanStopsItAndTheNextPlansStayExact) {
+  // A cold planner's first plan on a big map allocates 256 MB of wave buffers here and derives their rows as
+  // the waves reach them. The cancel comes during that first plan; the rows it derived must not leak into
+  // the next plans.
   const int n = 4000;
   std::vector<std::int8_t> grid(static_cast<std::size_t>(n) * n, 0);
   for (int y = 0; y < n - 1; ++y) grid[static_cast<std::size_t>(y) * n + n / 2] = 100;   // a wall with a gap
   DijkstraPlanner planner;
   // A plan on a smaller map first leaves settled (negative) distances in both buffers, where the big map's
-  // first cells lie: a buffer the cancelled fill never reached must not keep them.
+  // first cells lie.
   const int small = 300;
   std::vector<std::int8_t> open_map(static_cast<std::size_t>(small) * small, 0);
   ASSERT_TRUE(planner.plan(open_map.data(), open_map.size(), small, small, {0, 0}, {small - 1, small - 1}).ok());
@@ -297,7 +298,7 @@ TEST(Dijkstra, ACancelDuringAFirstPlansBufferFillStopsItAndTheNextPlansStayExact
   const auto r = planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {n - 1, 0}, o);
   canceller.join();
   ASSERT_EQ(r.status, PlanStatus::kCancelled) << r.message;
-  EXPECT_EQ(r.expansions, 0u) << "cancelled before the waves began";
+  EXPECT_LT(r.expansions, grid.size() / 2);
   cancel = false;
   DijkstraPlanner fresh;
   for (const Cell goal : {Cell{n - 1, 0}, Cell{3, 5}, Cell{n - 1, n - 1}}) {
@@ -462,6 +463,46 @@ TEST(Dijkstra, AgreesWithReferenceOnRandomGridsAndReusesBuffers) {
     }
   }
   EXPECT_GT(checked, 100);
+}
+
+TEST(Dijkstra, RowsFromAnEarlierMapOfTheSameSizeAreNeverRead) {
+  // The waves derive their rows from the grid as they reach them and never reset the rest: a row left over
+  // from an earlier map (same size, other walls) must never be read. Tall and narrow maps, so the waves
+  // derive many row blocks and meet far from both ends; every map is new and the planner is the same.
+  std::mt19937 rng(23);
+  DijkstraPlanner planner;
+  int checked = 0;
+  for (int trial = 0; trial < 40; ++trial) {
+    const int w = 3 + static_cast<int>(rng() % 12);
+    const int h = 150 + static_cast<int>(rng() % 100);
+    std::bernoulli_distribution blocked(trial % 4 == 0 ? 0.0 : 0.05 + 0.1 * (trial % 3));
+    std::vector<std::int8_t> grid(static_cast<std::size_t>(w) * h);
+    for (auto& v : grid) v = blocked(rng) ? 100 : 0;
+    // Start and goal anywhere: near the ends, in the middle, or close together.
+    Cell s{static_cast<int>(rng() % w), static_cast<int>(rng() % h)};
+    Cell g{static_cast<int>(rng() % w), trial % 2 ? static_cast<int>(rng() % h) : h - 1 - s.y};
+    grid[s.y * w + s.x] = 0;
+    grid[g.y * w + g.x] = 0;
+    const double expected = referenceCost(grid, w, h, s, g);
+    for (const bool stop_at_goal : {true, false}) {
+      PlannerOptions o;
+      o.stop_at_goal = stop_at_goal;
+      const auto r = planner.plan(grid.data(), grid.size(), w, h, s, g, o);
+      if (std::isinf(expected)) {
+        EXPECT_EQ(r.status, PlanStatus::kNoPath) << "trial " << trial;
+        continue;
+      }
+      ASSERT_TRUE(r.ok()) << r.message << " trial " << trial;
+      EXPECT_NEAR(r.cost, expected, 1e-9) << "trial " << trial;
+      for (std::size_t k = 1; k < r.path.size(); ++k) {
+        const Cell a = r.path[k - 1], b = r.path[k];
+        ASSERT_LE(std::max(std::abs(a.x - b.x), std::abs(a.y - b.y)), 1);
+        ASSERT_EQ(grid[b.y * w + b.x], 0) << "the path enters a wall of this map, trial " << trial;
+      }
+      ++checked;
+    }
+  }
+  EXPECT_GT(checked, 40);
 }
 
 int main(int argc, char** argv) {

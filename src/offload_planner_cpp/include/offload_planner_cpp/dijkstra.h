@@ -18,6 +18,7 @@
 #include <cstddef>
 #include <cstdint>
 #include <limits>
+#include <memory>
 #include <string>
 #include <vector>
 
@@ -93,26 +94,72 @@ class DijkstraPlanner {
                   const PlannerOptions& options = PlannerOptions());
 
  private:
-  // One wave of Dial's bucket queue (uniform cost): its distances, its three buckets, the next level to
-  // settle (every cell nearer than that is settled) and the rows it touched.
+  // A bucket of Dial's queue: cell indices in an array grown before each level, so a push is a store and an
+  // add, with no test of capacity and no branch on whether the move improved its cell.
+  class Bucket {
+   public:
+    std::size_t size() const { return size_; }
+    const int* data() const { return data_.get(); }
+    int* end() { return data_.get() + size_; }
+    void clear() { size_ = 0; }
+    void setEnd(const int* end) { size_ = static_cast<std::size_t>(end - data_.get()); }
+    // Room for `more` pushes beyond size().
+    void reserveMore(std::size_t more);
+
+   private:
+    std::unique_ptr<int[]> data_;
+    std::size_t size_ = 0;
+    std::size_t capacity_ = 0;
+  };
+  // One wave of Dial's bucket queue (uniform cost). Its distances live in a padded buffer: the grid with a
+  // frame of one blocked cell, row length stride_, where a blocked cell holds -inf. So the inner loop reads
+  // no grid and tests no border: a blocked cell is never improved (nothing is below -inf), a settled one
+  // neither (its distance is stored negated). Rows are derived from the grid as the wave reaches them, so a
+  // search pays only for the rows it touches and never resets anything.
   struct Wave {
     double* dist;
-    std::vector<int>* buckets;
-    std::size_t level = 0;
+    Bucket* buckets;
+    std::size_t level = 0;    // the next level to settle: every cell nearer than that is settled
     std::size_t pending = 0;
-    int row_min = std::numeric_limits<int>::max();
+    int row_min = std::numeric_limits<int>::max();  // padded coordinates of the cells it settled
     int row_max = -1;
     int col_min = std::numeric_limits<int>::max();
     int col_max = -1;
+    int derived_lo = 0;       // padded rows derived from the grid in this search
+    int derived_hi = -1;
+    int safe_begin = 0;       // padded indices whose rows within kDerivedMargin are derived
+    int safe_end = 0;
+  };
+  // The distances of a finished search by cell index, from a wave's padded buffer or from dist_.
+  struct Labels {
+    const double* dist = nullptr;
+    int width = 0;
+    int stride = 0;           // 0: dist is indexed by cell; else a wave's padded buffer
+    int row_lo = 0;           // padded rows the wave derived: outside them nothing was labelled
+    int row_hi = -1;
+    double operator()(int cell) const {
+      if (stride == 0) return dist[cell];
+      const int y = cell / width;
+      if (y + 1 < row_lo || y + 1 > row_hi) return std::numeric_limits<double>::infinity();
+      return dist[(y + 1) * stride + (cell - y * width) + 1];
+    }
   };
   enum class LevelEnd { kLevel, kTarget, kStopped };
-  Wave startWave(std::vector<double>* dist, std::vector<int>* buckets, int source);
+  int padded(int cell) const { return (cell / width_ + 1) * stride_ + cell % width_ + 1; }
+  int unpadded(int index) const { return (index / stride_ - 1) * width_ + index % stride_ - 1; }
+  // Starts a bucket search's count; false, with cancelled_ set, when `cancel` is set already.
+  bool beginWaves(const std::atomic<bool>* cancel);
+  // Readies wave buffer `which` (0 forward, 1 backward) and starts a wave there from the cell `source`.
+  Wave startWave(int which, Bucket* buckets, int source);
+  // Derives padded rows [lo, hi] (clipped to the frame) of the wave's buffer from the grid, where not yet.
+  void deriveRows(Wave& wave, int lo, int hi);
+  Labels labels(const Wave& wave) const;
   // Settles the wave's current level; meet(i, j, d) sees every move i -> j offered at distance d by a cell
-  // i = (x, y) with near(x, y). Stops early when `target` is settled (kTarget) or `cancel` was set
-  // (kStopped, cancelled_).
+  // i = (x, y) with near(x, y) (padded indices and coordinates). Stops early when `target` is settled
+  // (kTarget) or `cancel` was set (kStopped, cancelled_).
   template <class Near, class Meet>
   LevelEnd settleLevel(Wave& wave, int target, const std::atomic<bool>* cancel, Near near, Meet meet);
-  // The rows a search settled cells in (and one beyond, where it relaxed), for the next beginSearch to reset.
+  // The rows a heap search settled cells in (and one beyond, where it relaxed), for the next beginSearch.
   void markDirtyRows(int row_min, int row_max);
   // Runs the search from `start`; returns true when `target` was settled. Sets cancelled_ and returns false
   // when `cancel` was set. Uniform cost, Dijkstra: Dial's buckets. Anything else: a binary heap.
@@ -133,9 +180,9 @@ class DijkstraPlanner {
   // The free cell nearest to `goal` within `radius` cells (settled by the last search if
   // `settled_only`), ties to the first in row order; -1 if there is none.
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
-  // Walks back from `goal` to the source of the distances `dist` along settled cells, each step to the
+  // Walks back from `goal` to the source of the distances `labels` along settled cells, each step to the
   // neighbour with the smallest distance; the path runs from that source to `goal`.
-  void tracePath(int goal, std::vector<Cell>* path, const double* dist) const;
+  void tracePath(int goal, std::vector<Cell>* path, const Labels& labels) const;
   // Pulls `path` tight along lines of sight that never raise its cost.
   void pullTight(std::vector<Cell>* path) const;
   // Theta* (any-angle A*: a cell's parent may be any cell in sight) from start to target; the corners of
@@ -153,10 +200,10 @@ class DijkstraPlanner {
   }
   double heuristic(int index) const;
   // A settled cell stores its distance negated (the start -0.0): `nd < dist` then never holds for it,
-  // so relaxation needs no separate flag.
+  // so relaxation needs no separate flag. These two read dist_, the heap searches' buffer.
   bool settled(int index) const { return std::signbit(dist_[index]); }
   double distance(int index) const { return std::fabs(dist_[index]); }
-  // Readies the distance buffers (+inf everywhere); false, with cancelled_ set, when `cancel` came first.
+  // Readies dist_ (+inf everywhere); false, with cancelled_ set, when `cancel` came first.
   bool beginSearch(const std::atomic<bool>* cancel);
 
   // Set per call.
@@ -172,15 +219,22 @@ class DijkstraPlanner {
   std::uint64_t expansions_ = 0;
   bool cancelled_ = false;
 
-  // Reused between calls: +inf except in cells [dirty_begin_, dirty_end_), the rows the last search
-  // touched, which the next search resets: a short search on a big map does not pay to clear it all.
+  // Reused between calls: the heap searches' distances, +inf except in cells [dirty_begin_, dirty_end_), the
+  // rows the last search touched, which the next search resets: a short search on a big map does not pay to
+  // clear it all.
   std::vector<double> dist_;
   std::size_t dirty_begin_ = 0;
   std::size_t dirty_end_ = 0;
-  std::vector<int> buckets_[3];
-  std::vector<double> back_;           // the bidirectional search's backward wave (same dirty rows)
-  bool two_waves_ = false;             // back_ in use
-  std::vector<int> back_buckets_[3];
+  // The bucket searches' padded buffers (forward and backward wave), allocated but never filled whole.
+  int stride_ = 0;
+  bool open_unknown_ = false;          // unknown cells passable (the grid rule of deriveRows)
+  int lethal_ = 50;
+  std::unique_ptr<double[]> wave_dist_[2];
+  std::size_t wave_cells_[2] = {0, 0};
+  Bucket buckets_[3];
+  Bucket back_buckets_[3];
+  Labels last_;                        // the last search's distances (the forward wave's)
+  Labels backward_;                    // the last two-wave search's backward distances
   double meeting_cost_ = 0.0;
   int meet_forward_ = -1;
   int meet_backward_ = -1;
