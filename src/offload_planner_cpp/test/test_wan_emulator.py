@@ -154,3 +154,32 @@ def test_taken_port_is_a_clear_error_at_once():
         elapsed = time.monotonic() - started
     assert run.returncode == 2 and f"cannot listen on tcp://127.0.0.1:{port}" in run.stderr
     assert "Traceback" not in run.stderr and elapsed < 9, elapsed   # the landed code waited 10 s
+
+
+def test_trace_and_outages_run_from_the_schedule_origin():
+    """A run's shared epoch: the trace and the outages are the same function of time since it, whenever the
+    emulator itself started; before it the trace's first sample holds and no outage runs."""
+    link = LinkModel(trace=[(0.0, 0.010), (10.0, 0.200)], outages=[(2.0, 3.0)], schedule_origin_s=5.0)
+    assert link.round_trip_s(0.0) == 0.010     # before the origin
+    assert link.round_trip_s(14.0) == 0.010    # 9 s into the trace
+    assert link.round_trip_s(15.5) == 0.200    # 10.5 s into it
+    assert link.outage_end(6.5) is None        # 1.5 s after the origin: not yet
+    assert link.outage_end(7.5) == 10.0        # 2.5 s after: down until 5 + 2 + 3 on the emulator's clock
+    assert link.outage_end(10.0) is None
+
+
+def test_emulator_takes_its_schedule_origin_from_the_epoch():
+    upstream = Upstream()
+    epoch = time.monotonic() + 30.0
+    emulator = WanEmulator("tcp://127.0.0.1:0", upstream.endpoint, LinkModel(rtt_s=0.0), epoch=epoch)
+    try:
+        emulator.start()
+        # the emulator started a moment ago: the epoch lies about 30 s ahead on its clock
+        assert 29.0 < emulator.link.schedule_origin_s <= 30.0
+        # and before it the link still carries traffic
+        assert _round_trip_s(emulator) < 5.0
+    finally:
+        emulator.stop()
+        upstream.close()
+    with pytest.raises(ValueError, match="epoch"):
+        WanEmulator("tcp://127.0.0.1:0", upstream.endpoint, LinkModel(), epoch=float("nan"))

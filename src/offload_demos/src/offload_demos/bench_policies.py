@@ -2,7 +2,10 @@
 
 Each policy runs the demo's whole stack (`make demo`: the robot's processes on one core inside a CPU budget
 with the seeded workload schedule, the cloud server on the other core behind the WAN emulator and its RTT
-trace, the same seeded goal sequence) for STEPS requests:
+trace, the same seeded goal sequence) for STEPS requests. The conditions are the same request by request:
+the RTT trace, the workload schedule and the goals start together (--start-lead-s after the launch) and the
+requests arrive open-loop (--goal-rate-hz), so request k meets the same moment of the link and the load in
+every run. (Paced by the answers instead, a slower policy met later, other parts of the schedules.)
 
 - local, cloud: always plan on the robot / always offload (deployed, no probes);
 - hedge: both sides on every request, the caller gets the first good path (learning mode, frozen policy);
@@ -176,6 +179,10 @@ def main(argv=None) -> int:
     parser.add_argument("--outage-s", type=bounded_float("--outage-s", 0.0, low_open=True), default=30.0)
     parser.add_argument("--jump-trace", default="launch/config/rtt_jump.txt")
     parser.add_argument("--cloud-timeout-s", type=float, default=5.0)
+    parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0), default=4.0,
+                        help="open-loop request rate (0: each request 0.1 s after the previous answer)")
+    parser.add_argument("--start-lead-s", type=bounded_float("--start-lead-s", 0.0, 600.0), default=20.0,
+                        help="the run's schedules and goals start together this long after each launch")
     parser.add_argument("--repeats", type=bounded_int("--repeats", 1, 100), default=1,
                         help="runs per policy, interleaved (local, cloud, ..., local, cloud, ...) and pooled: on a "
                              "shared machine one run's mean moves by several per cent")
@@ -189,7 +196,8 @@ def main(argv=None) -> int:
     out = pathlib.Path(args.runs_dir).resolve() / time.strftime("bench-policies-%Y%m%d-%H%M%S")
     out.mkdir(parents=True)
     map_yaml = os.path.abspath(args.map) if args.map else ""
-    scenario = ["--link", args.link] + (["--plan-unknown"] if args.plan_unknown else [])
+    scenario = ["--link", args.link, "--goal-rate-hz", f"{args.goal_rate_hz:g}", "--start-lead-s",
+                f"{args.start_lead_s:g}"] + (["--plan-unknown"] if args.plan_unknown else [])
     checkpoint = os.path.abspath(args.checkpoint) if args.checkpoint else ""
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
         learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
@@ -197,7 +205,8 @@ def main(argv=None) -> int:
         checkpoint = str(learning / "checkpoint.pt")
     results = {"map": map_yaml or "nav2_warehouse (bundled)", "map_name": pathlib.Path(map_yaml).stem or "warehouse",
                "link": args.link, "plan_unknown": args.plan_unknown,
-               "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "policies": {}, "delivered_s": {},
+               "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint,
+               "goal_rate_hz": args.goal_rate_hz, "start_lead_s": args.start_lead_s, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
     model = ["--model", checkpoint] if checkpoint else []
     total, began = args.repeats * len(policies) + len(outage), time.monotonic()

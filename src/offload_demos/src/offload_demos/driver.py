@@ -158,6 +158,11 @@ def main(argv=None) -> int:
     parser.add_argument("--robot-core", default="0")
     parser.add_argument("--cloud-core", default="1")
     parser.add_argument("--rtt-profile", default="")
+    parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0), default=0.0,
+                        help="open-loop requests at this rate (0: the next request 0.1 s after each answer)")
+    parser.add_argument("--start-lead-s", type=bounded_float("--start-lead-s", 0.0, 600.0), default=0.0,
+                        help="start the RTT trace, the workload schedule and the goals together, this long after "
+                             "the launch (time for every node to come up; 0: each on its own)")
     parser.add_argument("--rviz", action="store_true")
     parser.add_argument("--analyse-only", metavar="RUN_DIR", help="summarise an existing run directory")
     args = parser.parse_args(argv)
@@ -192,7 +197,8 @@ def main(argv=None) -> int:
                    f"keys_root:={keys_root}", f"server_port:={free_port()}", f"wan_port:={free_port()}",
                    f"robot_prefix:={robot_prefix}", f"cloud_prefix:=taskset -c {args.cloud_core}",
                    f"cpu_cgroup:={cgroup if budget else ''}", f"cpu_cores:={args.robot_core}",
-                   f"budget_cores:={args.budget_cores if budget else 1.0}", f"rviz:={str(args.rviz).lower()}"]
+                   f"budget_cores:={args.budget_cores if budget else 1.0}", f"rviz:={str(args.rviz).lower()}",
+                   f"goal_rate_hz:={args.goal_rate_hz}"]
     if args.map:
         launch_args.append(f"map:={os.path.abspath(args.map)}")
     if args.model:
@@ -208,6 +214,9 @@ def main(argv=None) -> int:
           f"{'known and unknown' if args.plan_unknown else 'known'} free space, robot on core {args.robot_core} with "
           f"{args.budget_cores if budget else 'no'} core budget, cloud on core {args.cloud_core}; output {out_dir}",
           flush=True)
+    if args.start_lead_s > 0:
+        # CLOCK_MONOTONIC is one clock for every process on the machine.
+        launch_args.append(f"epoch:={time.monotonic() + args.start_lead_s:.3f}")
     launch = subprocess.Popen(["roslaunch", "-p", str(master_port), args.launch]
                               + launch_args, env=env, start_new_session=True, preexec_fn=end_with_parent)
     interrupted = False

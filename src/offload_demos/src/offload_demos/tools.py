@@ -1,9 +1,11 @@
 """The demo's non-ROS processes started by roslaunch (which appends __name:= and __log:= arguments
 that their own command lines would reject): the cloud server with demo keys made on first run, the WAN
 emulator, and the robot workload."""
+import math
 import multiprocessing
 import sys
 import threading
+import time
 
 import rospy
 from std_msgs.msg import Float64
@@ -31,8 +33,8 @@ def wan_emulator_main():
     sys.exit(wan_emulator.main(rospy.myargv(sys.argv)[1:]))
 
 
-def _burn(schedule, budget_share, stop_event):
-    run_workload(schedule, budget_share, stop_event.is_set)
+def _burn(schedule, budget_share, stop_event, began):
+    run_workload(schedule, budget_share, stop_event.is_set, began=began)
 
 
 def workload_main():
@@ -45,6 +47,8 @@ def workload_main():
       ~processes (int, 1)            processes sharing the burn: the kernel shares a cgroup's quota
                                      between runnable tasks, so more of them leave the planner less
       ~seed (int, 1)
+      ~epoch (float, 0.0)            CLOCK_MONOTONIC second at which the schedule starts, shared with the
+                                     run's other schedules (goal generator, WAN emulator); 0: this node's start
     Topics: publishes ~load (std_msgs/Float64, latched): the current level, for the bag.
     """
     rospy.init_node("robot_workload")
@@ -53,8 +57,11 @@ def workload_main():
                                 float(rospy.get_param("~phase_s", 8.0)), int(rospy.get_param("~seed", 1)))
         budget_cores = float(rospy.get_param("~budget_cores", 1.0))
         processes = int(rospy.get_param("~processes", 1))
+        epoch = float(rospy.get_param("~epoch", 0.0))
         if not budget_cores > 0 or processes < 1:
             raise ValueError(f"~budget_cores must be positive and ~processes >= 1, got {budget_cores}, {processes}")
+        if not (math.isfinite(epoch) and epoch >= 0):
+            raise ValueError(f"~epoch must be a finite CLOCK_MONOTONIC time >= 0, got {epoch}")
     except ValueError as error:
         rospy.logfatal("%s", error)
         raise SystemExit(1) from None
@@ -63,7 +70,9 @@ def workload_main():
     # with this process because the schedule is a function of time since start and the seed.
     context = multiprocessing.get_context("fork")
     stop_helpers = context.Event()
-    helpers = [context.Process(target=_burn, args=(schedule, budget_cores / processes, stop_helpers), daemon=True)
+    began = epoch if epoch > 0 else time.monotonic()
+    helpers = [context.Process(target=_burn, args=(schedule, budget_cores / processes, stop_helpers, began),
+                               daemon=True)
                for _ in range(processes - 1)]
     for helper in helpers:
         helper.start()
@@ -71,7 +80,7 @@ def workload_main():
     rospy.on_shutdown(stopped.set)
     try:
         run_workload(schedule, budget_cores / processes, stopped.is_set,
-                     on_level=lambda level: load_pub.publish(Float64(level)))
+                     on_level=lambda level: load_pub.publish(Float64(level)), began=began)
     finally:
         stop_helpers.set()
         for helper in helpers:

@@ -5,7 +5,7 @@ robot's budget, then sleeps to the end of the slice."""
 import math
 import time
 from dataclasses import dataclass
-from typing import Callable, Sequence, Tuple
+from typing import Callable, Optional, Sequence, Tuple
 
 import numpy as np
 
@@ -33,11 +33,13 @@ class LoadSchedule:
 def run_workload(schedule: LoadSchedule, budget_cores: float, stop: Callable[[], bool],
                  on_level: Callable[[float], None] = lambda level: None, slice_s: float = 0.02,
                  clock: Callable[[], float] = time.monotonic, cpu_clock: Callable[[], float] = time.thread_time,
-                 sleep: Callable[[float], None] = time.sleep) -> None:
-    """Burn schedule.level_at(t) x budget_cores of CPU per second until stop() is true."""
+                 sleep: Callable[[float], None] = time.sleep, began: Optional[float] = None) -> None:
+    """Burn schedule.level_at(t) x budget_cores of CPU per second until stop() is true; t runs from `began` (a
+    clock() reading shared with the rest of a run, so every process's schedule starts at the same instant;
+    before it the first level holds), by default from the call."""
     if not budget_cores > 0:
         raise ValueError(f"budget_cores must be positive, got {budget_cores}")
-    began = clock()
+    began = clock() if began is None else began
     level = None
     while not stop():
         slice_start = clock()

@@ -4,6 +4,7 @@ it required and end the run."""
 import math
 import os
 import signal
+import time
 
 import numpy as np
 import rospy
@@ -33,8 +34,13 @@ def main():
       ~service (str, /offload_learner/plan)  PlanPath service to call
       ~count (int, 100)              requests to send, then exit; 0 sends until shutdown
       ~period_s (float, 0.1)         pause between the answer to one request and the next request
-      ~rate_hz (float, 0)            instead, send at this fixed rate (a request still waits for the
-                                     previous answer); 0 uses ~period_s
+      ~rate_hz (float, 0)            instead, open-loop arrivals: request k is sent k / rate_hz seconds after
+                                     the start, whatever the answers took (one still waits for the previous
+                                     answer; a late one goes at once and the schedule is kept); 0 uses ~period_s
+      ~epoch (float, 0.0)            CLOCK_MONOTONIC second of the first request, shared with the run's other
+                                     schedules (workload, WAN emulator), so with ~rate_hz every request meets
+                                     the same moment of them in every run; 0: as soon as the map and the
+                                     service are there
       ~seed (int, 1)                 goal draws
       ~start_x, ~start_y (float)     start in the map frame (default: free cell nearest the map centre)
       ~min_distance_m (float, 0.0)   goals at least this far from the start
@@ -50,7 +56,10 @@ def main():
     p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
     service = str(p("service", "/offload_learner/plan"))
     count, period_s, rate_hz = int(p("count", 100)), float(p("period_s", 0.1)), float(p("rate_hz", 0.0))
+    epoch = float(p("epoch", 0.0))
     try:
+        if not (math.isfinite(rate_hz) and rate_hz >= 0 and math.isfinite(epoch) and epoch >= 0):
+            raise ValueError(f"~rate_hz and ~epoch must be finite and >= 0, got {rate_hz}, {epoch}")
         grid_msg = rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=float(p("map_wait_s", 60.0)))
         info = grid_msg.info
         q = info.origin.orientation
@@ -81,8 +90,21 @@ def main():
     plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
     tolerance = float(p("tolerance", 0.0))
     sent = delivered = 0
-    rate = rospy.Rate(rate_hz) if rate_hz > 0 else None
+    began = epoch if epoch > 0 else time.monotonic()
+    if epoch > 0 and time.monotonic() > epoch + (1.0 / rate_hz if rate_hz > 0 else 0.0):
+        rospy.logwarn("goal generator: ready %.1f s after the run's epoch: the first requests go at once to catch "
+                      "up, and meet other moments of the run's schedules than in a run that started in time",
+                      time.monotonic() - epoch)
+
+    def wait_until(when: float) -> None:
+        left = when - time.monotonic()
+        if left > 0:
+            rospy.sleep(left)
     while not rospy.is_shutdown() and (count <= 0 or sent < count):
+        try:
+            wait_until(began + sent / rate_hz if rate_hz > 0 else began)
+        except rospy.ROSInterruptException:
+            break
         goal = pose(frame_id, frame.cell_to_world(*sampler.draw()))
         goal_pub.publish(goal)
         try:
@@ -98,9 +120,7 @@ def main():
             plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
         sent += 1
         try:
-            if rate is not None:
-                rate.sleep()
-            elif period_s > 0:
+            if rate_hz <= 0 and period_s > 0:
                 rospy.sleep(period_s)
         except rospy.ROSInterruptException:
             break

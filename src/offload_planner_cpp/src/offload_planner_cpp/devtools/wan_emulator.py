@@ -30,7 +30,8 @@ _QUEUED_CHUNKS = 1024      # per direction: at most 64 MiB held during a stall
 
 @dataclass
 class LinkModel:
-    """The emulated link. Times are seconds since the emulator started."""
+    """The emulated link. Times are seconds since the emulator started; the trace and the outages run from
+    schedule_origin_s on that clock (a run's shared epoch), before which the trace's first sample holds."""
     rtt_s: float = 0.0
     jitter_s: float = 0.0                 # one-way delay varies uniformly by +- jitter_s / 2
     bandwidth_bps: float = 0.0            # per direction; 0 is unlimited
@@ -41,6 +42,7 @@ class LinkModel:
     loop_trace: bool = False
     reset_on_outage: bool = False         # close connections at an outage instead of stalling them
     seed: Optional[int] = None
+    schedule_origin_s: float = 0.0
 
     def __post_init__(self):
         for name in ("rtt_s", "jitter_s", "bandwidth_bps", "retransmission_s"):
@@ -63,6 +65,7 @@ class LinkModel:
         """The base round trip at time t: from the trace when there is one, else rtt_s."""
         if not self.trace:
             return self.rtt_s
+        t = max(t - self.schedule_origin_s, 0.0)
         if self.loop_trace and self._trace_times[-1] > 0:
             t = t % self._trace_times[-1]
         k = bisect.bisect_right(self._trace_times, t) - 1
@@ -76,9 +79,10 @@ class LinkModel:
 
     def outage_end(self, t: float) -> Optional[float]:
         """End of the outage containing t, or None."""
+        t -= self.schedule_origin_s
         for start, duration in self.outages:
             if start <= t < start + duration:
-                return start + duration
+                return self.schedule_origin_s + start + duration
         return None
 
 
@@ -128,7 +132,12 @@ def read_trace(path: str) -> List[Tuple[float, float]]:
 class WanEmulator:
     """The proxy. run() serves in the calling thread until stop(); start() runs it in a thread."""
 
-    def __init__(self, listen: str, upstream: str, link: LinkModel):
+    def __init__(self, listen: str, upstream: str, link: LinkModel, epoch: Optional[float] = None):
+        """`epoch`: the time.monotonic() second at which the link's trace and outages start, shared with the
+        run's other schedules; None: when the emulator starts."""
+        if epoch is not None and not math.isfinite(epoch):
+            raise ValueError(f"epoch must be a finite time.monotonic() value, got {epoch!r}")
+        self.epoch = epoch
         self.listen_host, self.listen_port = parse_endpoint(listen)
         self.upstream = parse_endpoint(upstream)
         self.link = link
@@ -171,7 +180,9 @@ class WanEmulator:
     async def _serve(self) -> None:
         self._loop = asyncio.get_running_loop()
         self._stopped = asyncio.Event()
-        self._started_at = self._loop.time()
+        self._started_at = self._loop.time()   # the event loop's clock is time.monotonic()
+        if self.epoch is not None:
+            self.link.schedule_origin_s = self.epoch - self._started_at
         server = await asyncio.start_server(self._on_client, self.listen_host, self.listen_port)
         self.listen_port = server.sockets[0].getsockname()[1]
         watcher = asyncio.create_task(self._reset_at_outages()) if self.link.reset_on_outage else None
@@ -189,7 +200,7 @@ class WanEmulator:
 
     async def _reset_at_outages(self) -> None:
         for start, _ in sorted(self.link.outages):
-            await asyncio.sleep(max(0.0, start - self._now()))
+            await asyncio.sleep(max(0.0, self.link.schedule_origin_s + start - self._now()))
             LOG.info("outage: resetting %d connections", len(self._writers))
             for writer in list(self._writers):
                 writer.transport.abort()
@@ -284,6 +295,9 @@ def main(argv: Sequence[str] = None) -> int:
     parser.add_argument("--trace", help="file of `time_s rtt_ms` lines; overrides --rtt-ms")
     parser.add_argument("--loop-trace", action="store_true", help="repeat the trace")
     parser.add_argument("--seed", type=int, help="seed of the jitter and loss draws")
+    parser.add_argument("--epoch", type=bounded_float("--epoch", 0.0), default=0.0,
+                        help="CLOCK_MONOTONIC second at which the trace and the outages start, shared with a run's "
+                             "other schedules; 0: when the emulator starts")
     args = parser.parse_args(argv)
     logging.basicConfig(level=logging.INFO, format="%(asctime)s %(levelname)s %(message)s")
     try:
@@ -291,7 +305,7 @@ def main(argv: Sequence[str] = None) -> int:
                          bandwidth_bps=args.bandwidth_mbps * 1e6, loss=args.loss, outages=args.outage,
                          trace=read_trace(args.trace) if args.trace else [], loop_trace=args.loop_trace,
                          reset_on_outage=args.reset_on_outage, seed=args.seed)
-        emulator = WanEmulator(args.listen, args.upstream, link)
+        emulator = WanEmulator(args.listen, args.upstream, link, args.epoch or None)
         emulator.start()
     except (OSError, ValueError) as error:
         print(f"error: {error}", file=sys.stderr)
