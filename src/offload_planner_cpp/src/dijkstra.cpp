@@ -639,7 +639,10 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   // Indices are ints, in the grid and in the waves' buffers (the grid with a frame of one cell).
   if ((static_cast<std::size_t>(width) + 2) * (static_cast<std::size_t>(height) + 2) >
       static_cast<std::size_t>(std::numeric_limits<int>::max())) {
-    return finish(PlanStatus::kInvalidMap, "map too large: more than 2^31 cells");
+    std::ostringstream msg;
+    msg << "map too large: " << width << " x " << height
+        << " cells and a frame of one cell around them are more than 2^31 - 1, the planner's index range";
+    return finish(PlanStatus::kInvalidMap, msg.str());
   }
   if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
     return finish(PlanStatus::kInvalidRequest,

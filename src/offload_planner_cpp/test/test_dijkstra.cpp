@@ -310,6 +310,18 @@ TEST(Dijkstra, ACancelDuringAColdPlannersFirstPlanStopsItAndTheNextPlansStayExac
   }
 }
 
+TEST(Dijkstra, AMapBeyondTheIndexRangeIsRefusedBeforeAnyAllocationAndSaysWhy) {
+  // 1 x 715,827,881 cells are fewer than 2^31, but with the waves' frame of one cell (3 x 715,827,883) they are
+  // not: refused with a message that says so, not "more than 2^31 cells". The size check comes before the data
+  // is read, so one byte of data suffices.
+  std::int8_t cell = 0;
+  DijkstraPlanner p;
+  const int tall = 715827881;
+  const auto r = p.plan(&cell, static_cast<std::size_t>(tall), 1, tall, {0, 0}, {0, 1});
+  EXPECT_EQ(r.status, PlanStatus::kInvalidMap);
+  EXPECT_NE(r.message.find("1 x 715827881 cells and a frame of one cell"), std::string::npos) << r.message;
+}
+
 TEST(Dijkstra, Errors) {
   Grid g({"..#", "...", "..."});
   DijkstraPlanner p;
