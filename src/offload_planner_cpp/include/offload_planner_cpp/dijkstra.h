@@ -120,7 +120,6 @@ class DijkstraPlanner {
     double* dist;
     Bucket* buckets;
     std::size_t level = 0;    // the next level to settle: every cell nearer than that is settled
-    std::size_t pending = 0;
     int row_min = std::numeric_limits<int>::max();  // padded coordinates of the cells it settled
     int row_max = -1;
     int col_min = std::numeric_limits<int>::max();
@@ -129,6 +128,8 @@ class DijkstraPlanner {
     int derived_hi = -1;
     int safe_begin = 0;       // padded indices whose rows within kDerivedMargin are derived
     int safe_end = 0;
+    // Cells queued and not yet settled (stale duplicates included): the three buckets hold exactly those.
+    std::size_t pending() const { return buckets[0].size() + buckets[1].size() + buckets[2].size(); }
   };
   // The distances of a finished search by cell index, from a wave's padded buffer or from dist_.
   struct Labels {
