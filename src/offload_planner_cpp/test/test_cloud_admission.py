@@ -110,15 +110,16 @@ def test_dequeued_and_resized_keep_the_accounting():
 
 class FakeTcp:
     def __init__(self):
-        self.received, self.cut = {}, []
+        self.received, self.unread, self.cut = {}, {}, []
 
     def __call__(self, fd):
         return self.received.get(fd)
 
 
-def guard(limit=1000, total=2500, per_key=1500):
+def guard(limit=1000, total=2500, per_key=1500, **options):
     tcp = FakeTcp()
-    return ConnectionGuard(limit, total, per_key, lambda *args: None, received=tcp, cut=tcp.cut.append), tcp
+    return ConnectionGuard(limit, total, per_key, lambda *args: None, received=tcp, cut=tcp.cut.append,
+                           unread=lambda fd: tcp.unread.get(fd, 0), **options), tcp
 
 
 def test_a_connection_over_its_own_bound_is_cut():
@@ -156,3 +157,32 @@ def test_one_keys_connections_are_bounded_together():
     tcp.received.update({3: 900, 4: 500, 5: 400, 6: 900})      # robot1: 1800 held, over 1500
     g.check()
     assert tcp.cut == [3] and set(g.connections) == {4, 5, 6}   # robot2's 900 are its own business
+
+
+def test_before_its_first_message_a_connection_may_have_only_a_first_message_read():
+    g, tcp = guard(limit=10_000, total=100_000, per_key=50_000, first_limit_bytes=100)
+    for fd in (3, 4, 5, 6):
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    g.delivered(5)                                              # 5 said whose it is
+    tcp.received.update({3: 500, 4: 500, 5: 500, 6: 100})
+    tcp.unread[4] = 450                                         # the kernel holds most of 4's: libzmq read 50
+    g.check(drained=lambda: False)      # a message waits for the broker (3's first, maybe): nobody is judged
+    assert tcp.cut == []
+    g.check()
+    assert tcp.cut == [3] and set(g.connections) == {4, 5, 6}   # 5 holds 500 as a known key may; 6 is at the bound
+
+
+def test_a_key_may_have_only_so_many_connections():
+    g, tcp = guard(key_connections=2)
+    for fd in (3, 4, 5, 6, 7):
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    assert g.identify(3, g.connections[3], b"robot1-key") and g.identify(4, g.connections[4], b"robot1-key")
+    assert g.identify(6, g.connections[6], b"robot2-key")
+    assert not g.identify(5, g.connections[5], b"robot1-key")
+    assert tcp.cut == [5] and set(g.connections) == {3, 4, 6, 7}
+    assert g.identify(3, g.connections[3], b"robot1-key")     # its next messages pass
+    g.closed(3)
+    assert g.identify(7, g.connections[7], b"robot1-key")     # a closed one made room
+    assert tcp.cut == [5]

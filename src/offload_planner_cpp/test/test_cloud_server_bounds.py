@@ -2,6 +2,7 @@
 guard, replies bounded and checked by the client, absurd flags refused before any work, warnings rate
 limited. Each test reproduces an attack at a scale that runs in seconds; OFFLOAD_ATTACK_SCALE=full runs the
 larger versions (200,000 uploads)."""
+import collections
 import logging
 import threading
 import time
@@ -76,6 +77,8 @@ def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_pat
             watcher = threading.Thread(target=watch)
             watcher.start()
             attacker = curve_dealer(context, key_root / "robot2", endpoint)
+            attacker.send_multipart(protocol.encode_ping(0))   # says whose it is: the per-connection bound holds it
+            assert attacker.poll(5000) and attacker.recv_multipart()
             big = bytes(frame_bytes)   # each frame under the max message size, together far over it
             attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [big] * frames, copy=False)
             answered = attacker.poll(30000 if FULL else 4000)
@@ -97,10 +100,97 @@ def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_pat
     assert grown <= (32 if not FULL else 400) * MIB
 
 
+def test_a_first_message_over_the_first_message_bound_is_cut_and_the_client_pings_ahead_of_one(key_root, tmp_path):
+    port = free_port()
+    process = spawn_server(port, key_root / "server", log_path=tmp_path / "server.log")
+    endpoint = f"{LOOPBACK}:{port}"
+    context = zmq.Context()
+    peak, stop = [0], threading.Event()
+
+    def watch():
+        while not stop.is_set():
+            peak[0] = max(peak[0], rss_bytes(process.pid))
+            time.sleep(0.002)
+
+    try:
+        with CloudClient(endpoint, keys_dir=str(key_root / "robot"), timeout_s=5.0) as client:
+            client.ping()
+            idle = peak[0] = rss_bytes(process.pid)
+            watcher = threading.Thread(target=watch)
+            watcher.start()
+            # A connection that has not said whose it is sends 256 MiB as its first message (16 frames, each
+            # under the max message size): under the per-connection bound (321 MiB), far over a first message.
+            attacker = curve_dealer(context, key_root / "robot2", endpoint)
+            attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(16 * MIB)] * 16, copy=False)
+            answered = attacker.poll(4000)
+            stop.set()
+            watcher.join()
+            attacker.close(0)
+            grown = peak[0] - idle
+        # The package's client on a fresh connection, a 48 MiB map first: it pings ahead, so it is served.
+        grid = np.zeros((7000, 7000), np.int8)
+        with CloudClient(endpoint, keys_dir=str(key_root / "robot2"), timeout_s=20.0, retries=0) as uploader:
+            reply = uploader.upload(grid)
+    finally:
+        stop.set()
+        context.term()
+        stop_process(process)
+    log = (tmp_path / "server.log").read_text()
+    print(f"256 MiB first message: RSS {idle / MIB:.1f} MiB, peak +{grown / MIB:.1f} MiB")
+    assert not answered and "before its first message" in log
+    # 1 MiB + 1 MiB of slack, plus what arrives within one 25 ms check (about 1 GB/s here) and the frames
+    # libzmq allocated: without the rule it holds the whole 256 MiB.
+    assert grown <= 96 * MIB
+    assert reply.status == Status.OK
+
+
+def test_a_key_beyond_its_connections_is_cut_and_other_keys_are_served(key_root, tmp_path):
+    port = free_port()
+    process = spawn_server(port, key_root / "server", log_path=tmp_path / "server.log",
+                           extra_args=["--max-connections-per-key", "2"])
+    endpoint = f"{LOOPBACK}:{port}"
+    robots = [CloudClient(endpoint, keys_dir=str(key_root / "robot"), timeout_s=1.0, retries=0) for _ in range(3)]
+    try:
+        robots[0].ping()
+        robots[1].ping()
+        with pytest.raises(CloudTimeout):
+            robots[2].ping()                       # its third connection: cut at its first message
+        with CloudClient(endpoint, keys_dir=str(key_root / "robot2"), timeout_s=5.0) as other:
+            assert other.ping() > 0                # another key is served
+        robots[0].close()
+        time.sleep(0.5)                            # the server sees it closed
+        assert robots[2].ping() > 0                # a new connection of the key fits again
+    finally:
+        for robot in robots:
+            robot.close()
+        stop_process(process)
+    assert "already has 2 connections" in (tmp_path / "server.log").read_text()
+
+
+def test_the_client_pings_ahead_of_a_message_over_the_first_message_bound():
+    frames_of = collections.defaultdict(list)   # connection (routing id) -> kinds of its messages, in order
+
+    def record(request_id):
+        return protocol.encode_reply(Reply(request_id, Status.OK, "ok"))
+    server = FakeServer(record, on_message=lambda identity, frames: frames_of[identity].append(
+        (protocol.decode_envelope(frames[0])[0], sum(len(frame) for frame in frames))))
+    try:
+        with CloudClient(server.endpoint, insecure=True, timeout_s=5.0) as client:
+            client.upload(np.zeros((8, 8), np.int8))
+            client.upload(np.zeros((1100, 1000), np.int8))
+    finally:
+        server.close()
+    (messages,) = frames_of.values()
+    kinds = [kind for kind, _ in messages]
+    assert kinds == [Kind.UPLOAD, Kind.PING, Kind.UPLOAD]      # a small message needs no ping ahead
+    assert messages[0][1] <= protocol.FIRST_MESSAGE_MAX_BYTES < messages[2][1]
+
+
 class FakeServer:
     """A ROUTER that answers every request with reply_for(request_id)."""
 
-    def __init__(self, reply_for):
+    def __init__(self, reply_for, on_message=lambda identity, frames: None):
+        self.on_message = on_message
         self.context = zmq.Context()
         self.socket = self.context.socket(zmq.ROUTER)
         self.socket.linger = 0
@@ -115,6 +205,7 @@ class FakeServer:
         while not self.stop.is_set():
             if self.socket.poll(50):
                 frames = self.socket.recv_multipart()
+                self.on_message(frames[0], frames[1:])
                 _, request_id = protocol.decode_envelope(frames[1])
                 self.socket.send_multipart([frames[0], *self.reply_for(request_id)], copy=False)
 

@@ -3,17 +3,28 @@ frames, before the application sees any of it, and has no option to bound the fr
 watches every connection's received byte count (TCP_INFO) and cuts a connection that has received more
 than `limit_bytes` since its last delivered message; when the connections of one client key together hold
 more than `key_limit_bytes` undelivered, or all connections more than `total_limit_bytes`, it cuts the
-ones holding the most until they are back under it. (A connection's key is known once it delivered a
-message; before that only its own bound and the total hold it.)"""
+ones holding the most until they are back under it.
+
+A connection's key is known from its first delivered message (its CURVE user id), so the protocol keeps
+that message small (protocol.FIRST_MESSAGE_MAX_BYTES: clients ping ahead of a larger one). Until then the
+guard allows a connection only `first_limit_bytes` read by libzmq (received minus what still waits in the
+kernel's queue), so every byte a key holds beyond that counts against its own bound; and a key may have at
+most `key_connections` connections, counted as each says whose it is."""
+import array
+import fcntl
 import socket as pysocket
 import struct
+import termios
 from dataclasses import dataclass
 from typing import Callable, Dict, Optional
 
 import zmq
 
+from offload_planner_cpp.cloud.protocol import FIRST_MESSAGE_MAX_BYTES
+
 _TCP_INFO_BYTES_RECEIVED = 128   # offset of tcpi_bytes_received (u64) in Linux's struct tcp_info (>= 4.1)
 GUARD_SLACK_BYTES = 1 << 20      # handshake, ZMTP and CURVE framing on top of the messages themselves
+FIRST_LIMIT_BYTES = FIRST_MESSAGE_MAX_BYTES + GUARD_SLACK_BYTES   # what libzmq may read before a first message
 
 
 def tcp_bytes_received(fd: int) -> Optional[int]:
@@ -26,6 +37,16 @@ def tcp_bytes_received(fd: int) -> Optional[int]:
     if len(info) < _TCP_INFO_BYTES_RECEIVED + 8:
         return None
     return struct.unpack_from("<Q", info, _TCP_INFO_BYTES_RECEIVED)[0]
+
+
+def tcp_bytes_unread(fd: int) -> Optional[int]:
+    """Bytes received on a TCP socket that its reader (libzmq) has not read yet (FIONREAD), or None."""
+    count = array.array("i", [0])
+    try:
+        fcntl.ioctl(fd, termios.FIONREAD, count)
+    except OSError:
+        return None
+    return count[0]
 
 
 def cut_connection(fd: int) -> None:
@@ -59,6 +80,7 @@ class Connection:
     baseline: int                         # bytes received when its last message was delivered
     address: str = "?"
     user: Optional[bytes] = None          # CURVE client key (Z85) once a message came
+    identified: bool = False              # a message came (with --insecure there is no key to know)
 
 
 class ConnectionGuard:
@@ -66,9 +88,12 @@ class ConnectionGuard:
 
     def __init__(self, limit_bytes: int, total_limit_bytes: int, key_limit_bytes: int, log: Callable[..., None],
                  received: Callable[[int], Optional[int]] = tcp_bytes_received,
-                 cut: Callable[[int], None] = cut_connection):
+                 cut: Callable[[int], None] = cut_connection, *, key_connections: int = 0,
+                 first_limit_bytes: int = FIRST_LIMIT_BYTES,
+                 unread: Callable[[int], Optional[int]] = tcp_bytes_unread):
         self.limit_bytes, self.total_limit_bytes, self.key_limit_bytes = limit_bytes, total_limit_bytes, key_limit_bytes
-        self.log, self.received, self.cut = log, received, cut
+        self.key_connections, self.first_limit_bytes = key_connections, first_limit_bytes
+        self.log, self.received, self.cut, self.unread = log, received, cut, unread
         self.connections: Dict[int, Connection] = {}
         self.cuts = 0
 
@@ -83,16 +108,32 @@ class ConnectionGuard:
         connection = self.connections.get(fd) if fd is not None else None
         if connection is not None:
             connection.baseline = self.received(fd) or connection.baseline
+            connection.identified = True
         return connection
+
+    def identify(self, fd: int, connection: Connection, user: bytes) -> bool:
+        """The connection's messages come with client key `user`; False (and the connection cut) when that
+        key already has `key_connections` other connections."""
+        if connection.user == user:
+            return True
+        connection.user = user
+        if self.key_connections and sum(c.user == user for c in self.connections.values()) > self.key_connections:
+            self.log("cut the connection from %s: client key %s already has %d connections (bound %d)",
+                     connection.address, user.decode(errors="replace"), self.key_connections, self.key_connections)
+            self._drop(fd)
+            return False
+        return True
 
     def forget(self, fd: int) -> None:
         """Cut a connection the broker refuses to hear from (a revoked key)."""
         self.connections.pop(fd, None)
         self.cut(fd)
 
-    def check(self) -> None:
-        """Cut each connection over its own bound, then the largest holders while all are over the total."""
-        pending = {}
+    def check(self, drained: Callable[[], bool] = lambda: True) -> None:
+        """Cut each connection over its own bound (before its first message: over `first_limit_bytes` read,
+        judged only when `drained()` says the broker has read every message libzmq delivered), then the
+        largest holders while a key's or all connections are over their bound."""
+        pending, first = {}, {}
         for fd, connection in list(self.connections.items()):
             received = self.received(fd)
             if received is None:
@@ -101,11 +142,23 @@ class ConnectionGuard:
             if held > self.limit_bytes:
                 self.log("cut the connection from %s: %d bytes received without a complete message (bound %d "
                          "bytes: a message of too many frames)", connection.address, held, self.limit_bytes)
-                self.connections.pop(fd, None)
-                self.cuts += 1
-                self.cut(fd)
-            else:
-                pending[fd] = held
+                self._drop(fd)
+                continue
+            pending[fd] = held
+            if not connection.identified and held > self.first_limit_bytes:
+                unread = self.unread(fd)
+                if unread is not None:
+                    first[fd] = held - unread
+        # A first message sampled above and not yet read by the broker shows now as a message waiting: then
+        # the connection may have said whose it is already, and is judged at the next check.
+        if first and drained():
+            for fd, read in first.items():
+                if read > self.first_limit_bytes:
+                    self.log("cut the connection from %s: %d bytes read before its first message (bound %d bytes: a "
+                             "client pings ahead of a larger message)", self.connections[fd].address, read,
+                             self.first_limit_bytes)
+                    self._drop(fd)
+                    pending.pop(fd)
         by_key = {}
         for fd, held in pending.items():
             user = self.connections[fd].user
@@ -116,17 +169,20 @@ class ConnectionGuard:
                               f"client key {user.decode(errors='replace')}'s connections")
         self._cut_largest(dict(pending), self.total_limit_bytes, pending, "all connections")
 
+    def _drop(self, fd: int) -> None:
+        self.connections.pop(fd, None)
+        self.cuts += 1
+        self.cut(fd)
+
     def _cut_largest(self, holders: Dict[int, int], bound: int, pending: Dict[int, int], whose: str) -> None:
         """Cut the largest of `holders` (fd -> bytes held) until they hold at most `bound` together."""
         total = sum(holders.values())
         for fd in sorted(holders, key=holders.get, reverse=True):
             if total <= bound:
                 break
-            connection = self.connections.pop(fd)
             self.log("cut the connection from %s: it held %d of the %d bytes %s held undelivered (bound %d "
-                     "bytes)", connection.address, holders[fd], total, whose, bound)
-            self.cuts += 1
-            self.cut(fd)
+                     "bytes)", self.connections[fd].address, holders[fd], total, whose, bound)
+            self._drop(fd)
             total -= holders[fd]
             pending.pop(fd, None)
 

@@ -28,6 +28,12 @@ Reply (kind REPLY): envelope with the request's id, then
     frame 3: path, raw int32 buffer of N x 2 cells (x, y), start to goal
 
 A plan on a cached map is therefore 14 + 43 = 57 bytes of payload.
+
+A connection's first message is at most FIRST_MESSAGE_MAX_BYTES: a client sends a ping ahead of any larger
+message on the same socket, so the server knows whose connection it is (the CURVE key of its first message)
+before it holds more than that of it, and bounds each key's connections together from the start. A larger
+first message makes the server cut the connection. Added within version 2: every client of this package
+pings first; a server that predates the rule answers the extra ping.
 """
 import enum
 import hashlib
@@ -55,6 +61,8 @@ ALGORITHMS = ("dijkstra", "astar")   # PLANNER_TAIL's algorithm code is the inde
 # Largest side the planner accepts, as the ROS node's map validation.
 MAX_MAP_SIDE = 100000
 MAX_METADATA_BYTES = 1024
+# The largest first message of a connection; a client pings ahead of a larger one (see above).
+FIRST_MESSAGE_MAX_BYTES = 1 << 20
 # A stats reply is small (per-client counts are bounded by the server); a client refuses a larger one.
 MAX_STATS_BYTES = 1 << 20
 

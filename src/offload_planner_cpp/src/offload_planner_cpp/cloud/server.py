@@ -67,7 +67,8 @@ class CloudServer:
                                                    config.max_wait_s, config.rate_per_client,
                                                    config.burst_per_client))
         self.guard = ConnectionGuard(self.connection_limit_bytes, config.max_pending_bytes,
-                                     config.max_pending_bytes_per_key, lambda message, *args: LOG.warning(message, *args))
+                                     config.max_pending_bytes_per_key, lambda message, *args: LOG.warning(message, *args),
+                                     key_connections=config.max_connections_per_key)
         self.abandoned_dropped = 0      # queued requests dropped because their client went away
         self.service_s = 0.0            # moving average of a worker's time per request (broker thread only)
         self.started = time.monotonic()
@@ -247,7 +248,7 @@ class CloudServer:
                 LOG.info("%s", self.stats_line(self.stats()))
             if guard and now - checked_at >= _BACKEND_POLL_MS / 1e3:
                 checked_at = now
-                self.guard.check()
+                self.guard.check(lambda: not frontend.poll(0, zmq.POLLIN))
 
     def _on_monitor(self, event: dict, queue: RequestQueue) -> None:
         kind, fd = event["event"], event["value"]
@@ -274,14 +275,14 @@ class CloudServer:
         user = None
         if self._auth is not None:
             user = user_of(frames[-1])
-            if connection is not None:
-                connection.user = user
             if user is None or user not in self._auth.allowlist:   # revoked since its handshake
                 self._log_limited.log(logging.WARNING, ("revoked", user),
                                       "dropped a message from revoked client key %s", (user or b"?").decode())
                 if fd is not None:
                     self.guard.forget(fd)
                 return
+            if connection is not None and not self.guard.identify(fd, connection, user):
+                return   # one connection too many for its key: cut, the message dropped
         if len(frames) > self.config.max_frames + 2:
             self._log_limited.log(logging.WARNING, "frames", "dropped a message of %d frames", len(frames))
             return

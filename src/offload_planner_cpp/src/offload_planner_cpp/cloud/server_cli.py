@@ -42,6 +42,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "over it the connections holding the most are cut (default 1024)")
     parser.add_argument("--max-pending-per-key-mib", type=bounded_int("--max-pending-per-key-mib", 1, 1 << 20),
                         default=384, help="the same for the connections of one client key (default 384)")
+    parser.add_argument("--max-connections-per-key", type=bounded_int("--max-connections-per-key", 0, 65536),
+                        default=32, help="open connections one client key may have; a connection beyond it is cut at "
+                                         "its first message (default 32; 0: no bound)")
     parser.add_argument("--max-wait-s", type=bounded_float("--max-wait-s", 0, 3600, low_open=True), default=1.0,
                         help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
                              "keep it under the robots' per-attempt timeout")
@@ -78,6 +81,7 @@ def main(argv=None) -> int:
             cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
             max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
             max_pending_bytes=args.max_pending_mib << 20, max_pending_bytes_per_key=args.max_pending_per_key_mib << 20,
+            max_connections_per_key=args.max_connections_per_key,
             max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client, burst_per_client=args.burst_per_client,
             stats_log_s=args.stats_log_s, stats_admins=tuple(args.stats_admin)))
     except (OSError, ValueError, zmq.ZMQError) as error:

@@ -18,6 +18,7 @@ class ServerConfig:
     max_pending_bytes: int = 1 << 30      # bytes all connections together may hold undelivered (messages
                                           # libzmq is still receiving); over it the largest holders are cut
     max_pending_bytes_per_key: int = 384 << 20   # the same for the connections of one client key
+    max_connections_per_key: int = 32     # open connections of one client key; 0: no bound
     max_frames: int = 8                   # more frames than any valid message: dropped unread
     max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
     rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
@@ -53,5 +54,7 @@ class ServerConfig:
             raise ValueError(f"the max wait must be in (0, 3600] s, got {self.max_wait_s}")
         if self.max_queued < 1 or self.max_queued_bytes < self.max_message_bytes:
             raise ValueError("max queued must be >= 1 and the queued bytes budget at least the max message size")
+        if not 0 <= self.max_connections_per_key <= 65536:
+            raise ValueError(f"the connections per key must be in 0..65536, got {self.max_connections_per_key}")
         if min(self.max_pending_bytes, self.max_pending_bytes_per_key) < self.max_message_bytes:
             raise ValueError("the pending bytes budgets (in all and per key) must be at least the max message size")
