@@ -6,7 +6,9 @@
 2. Bytes on the wire per request after the upload: TCP payload counted by the WAN emulator (no delay).
 3. Throughput with 1 and 2 workers: plans/s from concurrent clients on a 2000 x 2000 map.
 4. One robot's ping round trip, idle and while another client key sends 64 MiB plans (a new 8000 x 8000
-   map each), with 1 libzmq I/O thread (the baseline) and with the server's default of 2.
+   map each), with 1 libzmq I/O thread (the baseline) and with the server's default of 2; and the control:
+   the same sender loading another server process, so what the robot's server adds is told apart from
+   what the machine's two cores cost.
 """
 import argparse
 import os
@@ -166,9 +168,10 @@ def large_plans(endpoint: str, keys_dir: str) -> None:
     print(sent, flush=True)
 
 
-def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: float = 15.0):
+def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: float = 15.0,
+                            sender_endpoint: str = None):
     """One robot's ping round trips (s) idle for `seconds` / 3, then for `seconds` while another key sends 64 MiB
-    plans; how many it sent and for how long (s)."""
+    plans (to `sender_endpoint`, default the same server); how many it sent and for how long (s)."""
     def ping_for(client, duration_s):
         samples, end = [], time.monotonic() + duration_s
         while time.monotonic() < end:
@@ -177,7 +180,8 @@ def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: floa
         return np.array(samples)
     with CloudClient(endpoint, keys_dir=robot_keys, timeout_s=30) as robot:
         idle = ping_for(robot, seconds / 3)
-        sender = subprocess.Popen([sys.executable, __file__, "--large-plans", endpoint, str(other_keys)],
+        sender = subprocess.Popen([sys.executable, __file__, "--large-plans", sender_endpoint or endpoint,
+                                   str(other_keys)],
                                   stdout=subprocess.PIPE, text=True)
         began = time.monotonic()
         try:
@@ -269,6 +273,19 @@ def main(argv=None) -> int:
                       f"key sent {sent} plans of 64 MiB ({sent * 64 / sending_s:.0f} MiB/s over CURVE) "
                       f"{summary(loaded)}, max {loaded.max() * 1e3:.1f} ms "
                       f"(p99 {np.percentile(loaded, 99) / np.percentile(idle, 99):.1f}x idle; bar: 3x)")
+                shared = np.percentile(loaded, 99)
+            # The control: the same sender loads another server process on this machine, so the robot's server
+            # shares nothing with it but the cores. What is left is the machine's part, not the server's.
+            ports = free_port(), free_port()
+            for port in ports:
+                processes.append(spawn_cloud(port, server_keys, 1))
+            idle, loaded, sent, sending_s = pings_under_large_plans(
+                f"tcp://{LOOPBACK}:{ports[0]}", client_keys, str(pathlib.Path(tmp) / "other"),
+                sender_endpoint=f"tcp://{LOOPBACK}:{ports[1]}")
+            print(f"[fairness] control, the sender on another server process (2 I/O threads): ping idle "
+                  f"{summary(idle)}; loaded {summary(loaded)}, max {loaded.max() * 1e3:.1f} ms "
+                  f"({np.percentile(loaded, 99) / np.percentile(idle, 99):.1f}x idle, {sent} plans sent); sharing the "
+                  f"server: p99 {shared / np.percentile(loaded, 99):.2f}x the control's")
         finally:
             for process in processes:
                 process.kill()
