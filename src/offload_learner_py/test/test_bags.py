@@ -263,6 +263,28 @@ def test_an_outcome_without_measured_latency_for_the_taken_side_is_invalid(tmp_p
     assert len(data.transition_table()) == 0
 
 
+def test_a_hedged_request_whose_other_side_won_is_a_request_and_off_policy_leaves_it_out(tmp_path):
+    """Routed local, the local plan missed the hedge deadline, the cloud answered first and the local plan was
+    cancelled: the robot waited for it like any request (it is among the delivered figures), but the taken
+    side's latency is unknown, so off-policy evaluation leaves it out and says so."""
+    from offload_learner_py.data.bag_writer import probe_request
+    from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, format_results
+    from offload_learner_py.offline.summary import delivered_figures
+    plain = [probe_request(k, 1.0, 0.5, 0.05, 0.02, 0.08, 0, 1.0, math.nan, probe=False) for k in range(1, 40)]
+    hedged = probe_request(40, 1.0, 0.5, 0.05, 0.02, 0.08, 0, 1.0, math.nan, probe=False)
+    hedged[1].update(local_measured=False, local_s=0.0, cloud_measured=True, cloud_s=0.06, delivered=1,
+                     delivered_s=0.12, hedged=True)
+    data = bags.read_bags([write(tmp_path / "run.bag", plain + [hedged])])
+    assert data.report.bags[0].invalid == 0 and len(data.log) == 40
+    figures = delivered_figures(data.log)
+    assert figures["hedged"] == 1 and figures["max_s"] == pytest.approx(0.12)
+    steps = LoggedSteps.from_log(data.log)
+    assert len(steps) == 39 and steps.censored == 1 and np.isfinite(steps.latency_s).all()
+    result = evaluate_policy(steps, np.zeros(len(steps), np.int64))
+    assert result["latency_ips_s"].value == pytest.approx(0.02)
+    assert "1 hedged requests are left out" in format_results({"always_local": result})
+
+
 def test_writer_roundtrip_of_raw_messages_with_installed_types(tmp_path):
     store = typestore_for(*installed_definitions())
     path = str(tmp_path / "raw.bag")

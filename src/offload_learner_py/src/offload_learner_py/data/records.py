@@ -113,12 +113,13 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
     if decision["probe"] is NO_VALUE:
         decision["probe"] = bool(outcome["local_measured"] and outcome["cloud_measured"])
     # The side the router called first is measured, except on a probe, where the side that lost the race may
-    # have been dropped before it started (a newer request needed it); a probe still measured one side.
-    routed = "cloud" if decision["routed"] == CLOUD else "local"
+    # have been dropped before it started (a newer request needed it), and on a hedged request, where the other
+    # side answered first and the first was cancelled; either still measured one side.
+    routed, other = ("cloud", "local") if decision["routed"] == CLOUD else ("local", "cloud")
     if decision["probe"]:
         if not (outcome["local_measured"] or outcome["cloud_measured"]):
             return "a probe with no measured latency"
-    elif not outcome[f"{routed}_measured"]:
+    elif not outcome[f"{routed}_measured"] and not (outcome["hedged"] and outcome[f"{other}_measured"]):
         return f"the routed side ({routed}) has no measured latency"
     for side in ("local", "cloud"):
         value = outcome[f"{side}_s"]

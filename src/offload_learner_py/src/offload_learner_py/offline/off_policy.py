@@ -223,6 +223,7 @@ class LoggedSteps:
     probe: np.ndarray           # both sides measured on a probe step
     local_s: np.ndarray         # NaN where not measured
     cloud_s: np.ndarray
+    censored: int = 0           # requests left out: the taken side was cancelled (a hedge whose other side won)
 
     def __len__(self):
         return len(self.action)
@@ -240,11 +241,19 @@ class LoggedSteps:
         local_s, cloud_s = pick("outcome_local_s").astype(np.float64), pick("outcome_cloud_s").astype(np.float64)
         both = np.isfinite(local_s) & np.isfinite(cloud_s) & (local_s > 0) & (cloud_s > 0)
         probe = pick("probe").astype(bool) & both
-        return cls(states=np.stack([pick("input_size"), pick("cpu_availability"), pick("round_trip_s")],
-                                   axis=1).astype(np.float64),
-                   action=action, propensity=np.where(forced, 1.0, pick("action_propensity").astype(np.float64)),
-                   latency_s=np.where(action == CLOUD, cloud_s, local_s), probe=probe, local_s=local_s,
-                   cloud_s=cloud_s)
+        latency_s = np.where(action == CLOUD, cloud_s, local_s)
+        # A hedged request whose other side answered first had its taken side cancelled: that latency is only
+        # known to exceed the deadline, so the request cannot stand in an estimate of the taken side's mean.
+        measured = np.isfinite(latency_s)
+        steps = cls(states=np.stack([pick("input_size"), pick("cpu_availability"), pick("round_trip_s")],
+                                    axis=1).astype(np.float64),
+                    action=action, propensity=np.where(forced, 1.0, pick("action_propensity").astype(np.float64)),
+                    latency_s=latency_s, probe=probe, local_s=local_s, cloud_s=cloud_s)
+        if measured.all():
+            return steps
+        kept = steps.slice(measured)
+        kept.censored = int(np.sum(~measured))
+        return kept
 
     def slice(self, rows) -> "LoggedSteps":
         return LoggedSteps(**{name: getattr(self, name)[rows] for name in
@@ -258,7 +267,7 @@ def evaluate_policy(steps: LoggedSteps, actions: np.ndarray, predicted: Optional
     pi = target_probabilities(actions)
     if predicted is None:
         predicted = fit_latency_model(steps.states, steps.action, steps.latency_s)
-    result = {"steps": len(steps), "probe_steps": int(steps.probe.sum()),
+    result = {"steps": len(steps), "probe_steps": int(steps.probe.sum()), "censored_steps": steps.censored,
               "effective_sample_size": effective_sample_size(pi, steps.action, steps.propensity),
               "latency_ips_s": ips(pi, steps.action, steps.propensity, steps.latency_s),
               "latency_snips_s": snips(pi, steps.action, steps.propensity, steps.latency_s),
@@ -301,6 +310,10 @@ def format_results(results: Dict[str, Dict]) -> str:
                      f"{result['effective_sample_size']:7.0f}"
                      f"{result.get('accuracy_probe', empty).format(100, 1):>22}"
                      f"{result.get('accuracy_ips', empty).format(100, 1):>22}")
+    censored = max((result.get("censored_steps", 0) for result in results.values()), default=0)
+    if censored:
+        lines.append(f"note: {censored} hedged requests are left out: the other side answered first and the taken "
+                     "side was cancelled, so its latency is not known (only that it exceeded the hedge deadline)")
     few = [name for name, result in results.items() if result["effective_sample_size"] < MIN_EFFECTIVE_SAMPLES]
     if few:
         lines.append(f"warning: effective sample size under {MIN_EFFECTIVE_SAMPLES} for {', '.join(few)}: their IPS, "
