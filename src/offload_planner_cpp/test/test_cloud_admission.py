@@ -160,29 +160,80 @@ def test_one_keys_connections_are_bounded_together():
 
 
 def test_before_its_first_message_a_connection_may_have_only_a_first_message_read():
-    g, tcp = guard(limit=10_000, total=100_000, per_key=50_000, first_limit_bytes=100)
+    g, tcp = guard(limit=10_000_000, total=100_000_000, per_key=50_000_000, first_limit_bytes=100_000)
     for fd in (3, 4, 5, 6):
         tcp.received[fd] = 0
         g.accepted(fd)
     g.delivered(5)                                              # 5 said whose it is
-    tcp.received.update({3: 500, 4: 500, 5: 500, 6: 100})
-    tcp.unread[4] = 450                                         # the kernel holds most of 4's: libzmq read 50
-    g.check(drained=lambda: False)      # a message waits for the broker (3's first, maybe): nobody is judged
+    tcp.received.update({3: 500_000, 4: 500_000, 5: 500_000, 6: 100_000})
+    tcp.unread[4] = 450_000                                     # the kernel holds most of 4's: libzmq read 50 kB
+    g.check(drained=lambda: False)      # a message waits for the broker (3's first, maybe): nobody is judged yet
     assert tcp.cut == []
     g.check()
-    assert tcp.cut == [3] and set(g.connections) == {4, 5, 6}   # 5 holds 500 as a known key may; 6 is at the bound
+    assert tcp.cut == [3] and set(g.connections) == {4, 5, 6}   # 5 holds 500 kB as a known key may; 6 is at the bound
 
 
-def test_a_key_may_have_only_so_many_connections():
-    g, tcp = guard(key_connections=2)
+def test_a_first_message_waiting_for_the_broker_is_judged_after_every_connection_had_its_turn():
+    """A flood of messages from other connections keeps the broker busy: a connection past its first message is
+    still judged, once the broker has read as many messages as there are connections since it was seen."""
+    g, tcp = guard(limit=10_000_000, total=100_000_000, per_key=50_000_000, first_limit_bytes=100_000)
+    for fd in (3, 4, 5):
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    tcp.received[3] = 500_000
+    busy = lambda: False                                        # noqa: E731
+    g.check(busy)                       # seen past its first bytes: the broker's turns are counted from here
+    g.delivered(4)
+    g.delivered(5)
+    g.check(busy)
+    assert tcp.cut == []                                        # two turns of three connections
+    g.delivered(4)
+    g.check(busy)
+    assert tcp.cut == [3]
+
+
+def test_connections_yet_to_say_whose_they_are_share_one_budget_and_the_oldest_go_first():
+    clock = [0.0]
+    g, tcp = guard(limit=10_000_000, total=100_000_000, per_key=50_000_000, first_limit_bytes=100_000,
+                   unidentified_limit_bytes=250_000, clock=lambda: clock[0])
+    for fd in (3, 4, 5, 6):
+        clock[0] += 1.0
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    tcp.received.update({3: 90_000, 4: 90_000, 5: 90_000, 6: 90_000})   # each under its own bound, 360 kB together
+    g.check()
+    assert tcp.cut == [3, 4] and set(g.connections) == {5, 6}
+
+
+def test_over_the_total_the_connections_yet_to_say_whose_they_are_go_first():
+    g, tcp = guard(limit=10_000, total=2500, per_key=10_000, first_limit_bytes=5000, unidentified_limit_bytes=5000)
+    for fd in (3, 4, 5):
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    g.delivered(3)
+    tcp.received.update({3: 1500, 4: 700, 5: 600})             # 2800 held; the robot that said whose holds the most
+    g.check()
+    assert tcp.cut == [4] and set(g.connections) == {3, 5}
+
+
+def test_a_key_over_its_connections_loses_its_least_recently_active_one():
+    """A connection whose peer vanished without a word (power loss, a NAT that forgot it) must not lock the
+    key out: the newest connection goes on and the one idle longest makes room."""
+    clock = [0.0]
+    g, tcp = guard(key_connections=2, clock=lambda: clock[0])
     for fd in (3, 4, 5, 6, 7):
         tcp.received[fd] = 0
         g.accepted(fd)
-    assert g.identify(3, g.connections[3], b"robot1-key") and g.identify(4, g.connections[4], b"robot1-key")
+    for fd in (3, 4):
+        clock[0] += 1.0
+        g.delivered(fd)
+        assert g.identify(fd, g.connections[fd], b"robot1-key")
     assert g.identify(6, g.connections[6], b"robot2-key")
-    assert not g.identify(5, g.connections[5], b"robot1-key")
-    assert tcp.cut == [5] and set(g.connections) == {3, 4, 6, 7}
+    clock[0] += 1.0
+    g.delivered(3)                                              # 3 is active again: 4 is now the idlest
+    clock[0] += 1.0
+    g.delivered(5)
+    assert g.identify(5, g.connections[5], b"robot1-key")
+    assert tcp.cut == [4] and set(g.connections) == {3, 5, 6, 7}
     assert g.identify(3, g.connections[3], b"robot1-key")     # its next messages pass
-    g.closed(3)
-    assert g.identify(7, g.connections[7], b"robot1-key")     # a closed one made room
-    assert tcp.cut == [5]
+    assert tcp.cut == [4]

@@ -3,18 +3,25 @@ frames, before the application sees any of it, and has no option to bound the fr
 watches every connection's received byte count (TCP_INFO) and cuts a connection that has received more
 than `limit_bytes` since its last delivered message; when the connections of one client key together hold
 more than `key_limit_bytes` undelivered, or all connections more than `total_limit_bytes`, it cuts the
-ones holding the most until they are back under it.
+ones holding the most until they are back under it (connections that have not said whose they are first).
 
 A connection's key is known from its first delivered message (its CURVE user id), so the protocol keeps
-that message small (protocol.FIRST_MESSAGE_MAX_BYTES: clients ping ahead of a larger one). Until then the
-guard allows a connection only `first_limit_bytes` read by libzmq (received minus what still waits in the
-kernel's queue), so every byte a key holds beyond that counts against its own bound; and a key may have at
-most `key_connections` connections, counted as each says whose it is."""
+that message small (protocol.FIRST_MESSAGE_MAX_BYTES: clients ping ahead of a larger one). Until then a
+connection may have had only `first_limit_bytes` read by libzmq (received minus what still waits in the
+kernel's queue), and all such connections together `unidentified_limit_bytes` (the oldest go first); a key
+may have `key_connections` connections, counted as each says whose it is (its least recently active one
+makes room for a new one, so a connection whose peer vanished never locks the key out).
+
+A connection is judged unidentified only when its first message cannot be waiting for the broker: the
+broker found no message waiting after the counts were read, or it has read a message from every open
+connection's turn since libzmq read past that connection's first message (a ROUTER takes one message from
+each connection in turn). Every frontend message must pass through delivered()."""
 import array
 import fcntl
 import socket as pysocket
 import struct
 import termios
+import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Optional
 
@@ -25,6 +32,9 @@ from offload_planner_cpp.cloud.protocol import FIRST_MESSAGE_MAX_BYTES
 _TCP_INFO_BYTES_RECEIVED = 128   # offset of tcpi_bytes_received (u64) in Linux's struct tcp_info (>= 4.1)
 GUARD_SLACK_BYTES = 1 << 20      # handshake, ZMTP and CURVE framing on top of the messages themselves
 FIRST_LIMIT_BYTES = FIRST_MESSAGE_MAX_BYTES + GUARD_SLACK_BYTES   # what libzmq may read before a first message
+# Read past this, libzmq has read a connection's handshake and at least its first message's start (a CURVE
+# handshake is under 1 KiB, a ping under 100 bytes): from then on the broker's turns are counted.
+_FIRST_BYTES_READ = 64 << 10
 
 
 def tcp_bytes_received(fd: int) -> Optional[int]:
@@ -81,6 +91,9 @@ class Connection:
     address: str = "?"
     user: Optional[bytes] = None          # CURVE client key (Z85) once a message came
     identified: bool = False              # a message came (with --insecure there is no key to know)
+    accepted_at: float = 0.0              # monotonic seconds
+    last_active: float = 0.0              # its last delivered message (or its accept)
+    first_read_at: Optional[int] = None   # broker messages read when libzmq was found past its first bytes
 
 
 class ConnectionGuard:
@@ -89,40 +102,52 @@ class ConnectionGuard:
     def __init__(self, limit_bytes: int, total_limit_bytes: int, key_limit_bytes: int, log: Callable[..., None],
                  received: Callable[[int], Optional[int]] = tcp_bytes_received,
                  cut: Callable[[int], None] = cut_connection, *, key_connections: int = 0,
-                 first_limit_bytes: int = FIRST_LIMIT_BYTES,
-                 unread: Callable[[int], Optional[int]] = tcp_bytes_unread):
+                 first_limit_bytes: int = FIRST_LIMIT_BYTES, unidentified_limit_bytes: int = 64 << 20,
+                 unread: Callable[[int], Optional[int]] = tcp_bytes_unread,
+                 clock: Callable[[], float] = time.monotonic):
         self.limit_bytes, self.total_limit_bytes, self.key_limit_bytes = limit_bytes, total_limit_bytes, key_limit_bytes
         self.key_connections, self.first_limit_bytes = key_connections, first_limit_bytes
-        self.log, self.received, self.cut, self.unread = log, received, cut, unread
+        self.unidentified_limit_bytes = unidentified_limit_bytes
+        self.log, self.received, self.cut, self.unread, self.clock = log, received, cut, unread, clock
         self.connections: Dict[int, Connection] = {}
         self.cuts = 0
+        self.messages = 0     # frontend messages the broker has read
 
     def accepted(self, fd: int, address: str = "?") -> None:
-        self.connections[fd] = Connection(self.received(fd) or 0, address)
+        now = self.clock()
+        self.connections[fd] = Connection(self.received(fd) or 0, address, accepted_at=now, last_active=now)
 
     def closed(self, fd: int) -> None:
         self.connections.pop(fd, None)
 
     def delivered(self, fd: Optional[int]) -> Optional[Connection]:
         """A message of `fd` reached the broker: what it holds undelivered starts again from here."""
+        self.messages += 1
         connection = self.connections.get(fd) if fd is not None else None
         if connection is not None:
             connection.baseline = self.received(fd) or connection.baseline
             connection.identified = True
+            connection.last_active = self.clock()
         return connection
 
     def identify(self, fd: int, connection: Connection, user: bytes) -> bool:
-        """The connection's messages come with client key `user`; False (and the connection cut) when that
-        key already has `key_connections` other connections."""
+        """The connection's messages come with client key `user`. When that key has more than
+        `key_connections` connections, its least recently active other one is cut (a connection whose peer
+        vanished without a word makes room); True while this connection may go on."""
         if connection.user == user:
             return True
         connection.user = user
-        if self.key_connections and sum(c.user == user for c in self.connections.values()) > self.key_connections:
-            self.log("cut the connection from %s: client key %s already has %d connections (bound %d)",
-                     connection.address, user.decode(errors="replace"), self.key_connections, self.key_connections)
-            self._drop(fd)
-            return False
-        return True
+        if not self.key_connections:
+            return True
+        others = [fd_ for fd_, c in self.connections.items() if c.user == user and fd_ != fd]
+        while len(others) >= self.key_connections:
+            oldest = min(others, key=lambda fd_: self.connections[fd_].last_active)
+            others.remove(oldest)
+            self.log("cut the connection from %s: client key %s has %d connections (bound %d): its least recently "
+                     "active one goes", self.connections[oldest].address, user.decode(errors="replace"),
+                     len(others) + 2, self.key_connections)
+            self._drop(oldest)
+        return fd in self.connections
 
     def forget(self, fd: int) -> None:
         """Cut a connection the broker refuses to hear from (a revoked key)."""
@@ -130,10 +155,9 @@ class ConnectionGuard:
         self.cut(fd)
 
     def check(self, drained: Callable[[], bool] = lambda: True) -> None:
-        """Cut each connection over its own bound (before its first message: over `first_limit_bytes` read,
-        judged only when `drained()` says the broker has read every message libzmq delivered), then the
-        largest holders while a key's or all connections are over their bound."""
-        pending, first = {}, {}
+        """Apply every bound once (the broker calls this every 25 ms); `drained()` says whether the broker
+        has no frontend message waiting."""
+        pending = {}
         for fd, connection in list(self.connections.items()):
             received = self.received(fd)
             if received is None:
@@ -143,22 +167,9 @@ class ConnectionGuard:
                 self.log("cut the connection from %s: %d bytes received without a complete message (bound %d "
                          "bytes: a message of too many frames)", connection.address, held, self.limit_bytes)
                 self._drop(fd)
-                continue
-            pending[fd] = held
-            if not connection.identified and held > self.first_limit_bytes:
-                unread = self.unread(fd)
-                if unread is not None:
-                    first[fd] = held - unread
-        # A first message sampled above and not yet read by the broker shows now as a message waiting: then
-        # the connection may have said whose it is already, and is judged at the next check.
-        if first and drained():
-            for fd, read in first.items():
-                if read > self.first_limit_bytes:
-                    self.log("cut the connection from %s: %d bytes read before its first message (bound %d bytes: a "
-                             "client pings ahead of a larger message)", self.connections[fd].address, read,
-                             self.first_limit_bytes)
-                    self._drop(fd)
-                    pending.pop(fd)
+            else:
+                pending[fd] = held
+        self._check_unidentified(pending, drained)
         by_key = {}
         for fd, held in pending.items():
             user = self.connections[fd].user
@@ -169,15 +180,57 @@ class ConnectionGuard:
                               f"client key {user.decode(errors='replace')}'s connections")
         self._cut_largest(dict(pending), self.total_limit_bytes, pending, "all connections")
 
+    def _check_unidentified(self, pending: Dict[int, int], drained: Callable[[], bool]) -> None:
+        """Cut unidentified connections past the first-message bound, then the oldest while they hold more than
+        their budget together; only those whose first message cannot be waiting for the broker."""
+        read = {}
+        for fd, held in pending.items():
+            connection = self.connections[fd]
+            if connection.identified or held <= 0:
+                continue
+            unread = self.unread(fd)
+            if unread is not None:
+                read[fd] = held - unread
+        if not read:
+            return
+        judged = dict(read) if drained() else {}
+        turns = len(self.connections)
+        for fd, count in read.items():
+            connection = self.connections[fd]
+            if connection.first_read_at is not None and self.messages - connection.first_read_at >= turns:
+                judged[fd] = count
+            elif connection.first_read_at is None and count > _FIRST_BYTES_READ:
+                connection.first_read_at = self.messages
+        for fd, count in list(judged.items()):
+            if count > self.first_limit_bytes:
+                self.log("cut the connection from %s: %d bytes read before its first message (bound %d bytes: a "
+                         "client pings ahead of a larger message)", self.connections[fd].address, count,
+                         self.first_limit_bytes)
+                self._drop(fd)
+                pending.pop(fd)
+                del judged[fd]
+        total = sum(judged.values())
+        for fd in sorted(judged, key=lambda fd_: self.connections[fd_].accepted_at):
+            if total <= self.unidentified_limit_bytes:
+                break
+            self.log("cut the connection from %s: the connections that have not said whose they are held %d bytes "
+                     "together (bound %d bytes): the oldest goes", self.connections[fd].address, total,
+                     self.unidentified_limit_bytes)
+            total -= judged[fd]
+            self._drop(fd)
+            pending.pop(fd)
+
     def _drop(self, fd: int) -> None:
         self.connections.pop(fd, None)
         self.cuts += 1
         self.cut(fd)
 
     def _cut_largest(self, holders: Dict[int, int], bound: int, pending: Dict[int, int], whose: str) -> None:
-        """Cut the largest of `holders` (fd -> bytes held) until they hold at most `bound` together."""
+        """Cut the largest of `holders` (fd -> bytes held) until they hold at most `bound` together, those that
+        have not said whose they are first."""
         total = sum(holders.values())
-        for fd in sorted(holders, key=holders.get, reverse=True):
+        order = sorted(holders, key=lambda fd: (self.connections[fd].identified, -holders[fd]))
+        for fd in order:
             if total <= bound:
                 break
             self.log("cut the connection from %s: it held %d of the %d bytes %s held undelivered (bound %d "

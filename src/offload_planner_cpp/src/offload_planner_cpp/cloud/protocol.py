@@ -32,8 +32,9 @@ A plan on a cached map is therefore 14 + 43 = 57 bytes of payload.
 A connection's first message is at most FIRST_MESSAGE_MAX_BYTES: a client sends a ping ahead of any larger
 message on the same socket, so the server knows whose connection it is (the CURVE key of its first message)
 before it holds more than that of it, and bounds each key's connections together from the start. A larger
-first message makes the server cut the connection. Added within version 2: every client of this package
-pings first; a server that predates the rule answers the extra ping.
+first message makes the server cut the connection (its --max-first-message-mib admits larger ones while
+robots from before the rule remain). Added within version 2: every client of this package pings first; a
+server that predates the rule answers the extra ping.
 """
 import enum
 import hashlib

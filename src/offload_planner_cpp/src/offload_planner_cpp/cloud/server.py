@@ -66,9 +66,14 @@ class CloudServer:
         self.admission = Admission(AdmissionConfig(config.workers, config.max_queued, config.max_queued_bytes,
                                                    config.max_wait_s, config.rate_per_client,
                                                    config.burst_per_client))
+        # Cuts are logged at most every 5 s per kind: one key can make many.
         self.guard = ConnectionGuard(self.connection_limit_bytes, config.max_pending_bytes,
-                                     config.max_pending_bytes_per_key, lambda message, *args: LOG.warning(message, *args),
-                                     key_connections=config.max_connections_per_key)
+                                     config.max_pending_bytes_per_key,
+                                     lambda message, *args: self._log_limited.log(logging.WARNING, ("guard", message),
+                                                                                  message, *args),
+                                     key_connections=config.max_connections_per_key,
+                                     first_limit_bytes=config.max_first_message_bytes + GUARD_SLACK_BYTES,
+                                     unidentified_limit_bytes=config.max_pending_unidentified_bytes)
         self.abandoned_dropped = 0      # queued requests dropped because their client went away
         self.service_s = 0.0            # moving average of a worker's time per request (broker thread only)
         self.started = time.monotonic()
@@ -102,6 +107,12 @@ class CloudServer:
         # memory: at most the queued bytes budget's worth of maximum-size messages, and 2 x max_queued.
         frontend.rcvhwm = config.receive_hwm
         frontend.router_mandatory = False
+        if config.heartbeat_s:
+            # A peer gone without a FIN (power loss, a NAT that forgot it) is dropped, so it neither holds
+            # memory nor counts against its key's connections. Three intervals: a large upload delays the
+            # peer's answer (the robots' own per-attempt timeout is far shorter).
+            frontend.setsockopt(zmq.HEARTBEAT_IVL, int(config.heartbeat_s * 1000))
+            frontend.setsockopt(zmq.HEARTBEAT_TIMEOUT, int(3 * config.heartbeat_s * 1000))
         try:
             if config.insecure:
                 LOG.warning("running INSECURE: plaintext and no client authentication (--insecure)")

@@ -43,8 +43,18 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max-pending-per-key-mib", type=bounded_int("--max-pending-per-key-mib", 1, 1 << 20),
                         default=384, help="the same for the connections of one client key (default 384)")
     parser.add_argument("--max-connections-per-key", type=bounded_int("--max-connections-per-key", 0, 65536),
-                        default=32, help="open connections one client key may have; a connection beyond it is cut at "
-                                         "its first message (default 32; 0: no bound)")
+                        default=32, help="open connections one client key may have; beyond it the key's least "
+                                         "recently active one is cut (default 32; 0: no bound)")
+    parser.add_argument("--max-first-message-mib", type=bounded_int("--max-first-message-mib", 1, 4096), default=1,
+                        help="largest first message of a connection, in MiB; clients of this release ping ahead of a "
+                             "larger one. Raise it to --max-message-mib while robots from before the rule remain "
+                             "(default 1)")
+    parser.add_argument("--max-pending-unidentified-mib",
+                        type=bounded_int("--max-pending-unidentified-mib", 1, 1 << 20), default=64,
+                        help="bytes the connections yet to send their first message may hold together, in MiB; over "
+                             "it the oldest are cut (default 64)")
+    parser.add_argument("--heartbeat-s", type=bounded_float("--heartbeat-s", 0, 3600), default=20.0,
+                        help="ZMTP heartbeat interval; a peer silent for three of them is dropped (default 20; 0: none)")
     parser.add_argument("--max-wait-s", type=bounded_float("--max-wait-s", 0, 3600, low_open=True), default=1.0,
                         help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
                              "keep it under the robots' per-attempt timeout")
@@ -61,6 +71,12 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     args = parser.parse_args(argv)
+    if args.max_first_message_mib > args.max_message_mib:
+        parser.error(f"--max-first-message-mib ({args.max_first_message_mib}) must be <= --max-message-mib "
+                     f"({args.max_message_mib})")
+    if args.max_pending_unidentified_mib < args.max_first_message_mib:
+        parser.error(f"--max-pending-unidentified-mib ({args.max_pending_unidentified_mib}) must be >= "
+                     f"--max-first-message-mib ({args.max_first_message_mib})")
     for name in ("max_queued_mib", "max_pending_mib", "max_pending_per_key_mib"):
         if getattr(args, name) < args.max_message_mib:
             parser.error(f"--{name.replace('_', '-')} ({getattr(args, name)}) must be >= --max-message-mib "
@@ -82,6 +98,8 @@ def main(argv=None) -> int:
             max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
             max_pending_bytes=args.max_pending_mib << 20, max_pending_bytes_per_key=args.max_pending_per_key_mib << 20,
             max_connections_per_key=args.max_connections_per_key,
+            max_first_message_bytes=args.max_first_message_mib << 20,
+            max_pending_unidentified_bytes=args.max_pending_unidentified_mib << 20, heartbeat_s=args.heartbeat_s,
             max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client, burst_per_client=args.burst_per_client,
             stats_log_s=args.stats_log_s, stats_admins=tuple(args.stats_admin)))
     except (OSError, ValueError, zmq.ZMQError) as error:

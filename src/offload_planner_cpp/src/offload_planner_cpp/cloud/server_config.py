@@ -2,6 +2,8 @@
 from dataclasses import dataclass
 from typing import Optional
 
+from offload_planner_cpp.cloud.protocol import FIRST_MESSAGE_MAX_BYTES
+
 
 @dataclass
 class ServerConfig:
@@ -19,6 +21,10 @@ class ServerConfig:
                                           # libzmq is still receiving); over it the largest holders are cut
     max_pending_bytes_per_key: int = 384 << 20   # the same for the connections of one client key
     max_connections_per_key: int = 32     # open connections of one client key; 0: no bound
+    max_first_message_bytes: int = FIRST_MESSAGE_MAX_BYTES   # largest first message of a connection; up to
+                                          # max_message_bytes for robots from before the rule
+    max_pending_unidentified_bytes: int = 64 << 20   # what connections yet to send a message hold together
+    heartbeat_s: float = 20.0             # ZMTP heartbeat interval; a peer silent for 3x it is dropped; 0: none
     max_frames: int = 8                   # more frames than any valid message: dropped unread
     max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
     rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
@@ -54,6 +60,13 @@ class ServerConfig:
             raise ValueError(f"the max wait must be in (0, 3600] s, got {self.max_wait_s}")
         if self.max_queued < 1 or self.max_queued_bytes < self.max_message_bytes:
             raise ValueError("max queued must be >= 1 and the queued bytes budget at least the max message size")
+        if not FIRST_MESSAGE_MAX_BYTES <= self.max_first_message_bytes <= self.max_message_bytes:
+            raise ValueError(f"the first message bound must be in {FIRST_MESSAGE_MAX_BYTES}..{self.max_message_bytes} "
+                             f"bytes (the protocol's to the max message size), got {self.max_first_message_bytes}")
+        if self.max_pending_unidentified_bytes < self.max_first_message_bytes:
+            raise ValueError("the unidentified connections' budget must be at least the first message bound")
+        if not 0 <= self.heartbeat_s <= 3600:
+            raise ValueError(f"the heartbeat interval must be in 0..3600 s, got {self.heartbeat_s}")
         if not 0 <= self.max_connections_per_key <= 65536:
             raise ValueError(f"the connections per key must be in 0..65536, got {self.max_connections_per_key}")
         if min(self.max_pending_bytes, self.max_pending_bytes_per_key) < self.max_message_bytes:
