@@ -237,3 +237,40 @@ def test_a_key_over_its_connections_loses_its_least_recently_active_one():
     assert tcp.cut == [4] and set(g.connections) == {3, 5, 6, 7}
     assert g.identify(3, g.connections[3], b"robot1-key")     # its next messages pass
     assert tcp.cut == [4]
+
+
+def test_many_idle_connections_do_not_put_the_judgement_off():
+    clock = [0.0]
+    g, tcp = guard(limit=10_000_000, total=100_000_000, per_key=50_000_000, first_limit_bytes=100_000,
+                   clock=lambda: clock[0])
+    for fd in range(3, 103):                                    # 100 connections, 99 of them idle
+        tcp.received[fd] = 0
+        g.accepted(fd)
+    tcp.received[3] = 500_000
+    busy = lambda: False                                        # noqa: E731
+    g.check(busy)
+    g.delivered(4)
+    clock[0] += 1.0
+    g.check(busy)
+    assert tcp.cut == []                                        # one turn of 100, 1 s: its first message may wait
+    clock[0] += 1.0
+    g.check(busy)
+    assert tcp.cut == [3]                                       # FIRST_MESSAGE_WAIT_S: no first message waits that long
+
+
+def test_a_message_an_earlier_connection_on_the_same_fd_left_waiting_is_credited_to_none():
+    """libzmq may still hand the broker messages of a connection that closed, stamped with its fd, after a new
+    connection took that fd: the ROUTER's pipe numbers tell them apart (wrapping at 2^32)."""
+    g, tcp = guard()
+    tcp.received[7] = 0
+    g.accepted(7)
+    pipe = lambda number: b"\x00" + number.to_bytes(4, "big")   # noqa: E731
+    assert g.delivered(7, pipe(1000)) is g.connections[7]
+    assert g.delivered(7, pipe(999)) is None                    # the earlier connection's, read late
+    assert g.delivered(7, b"\x07chosen") is None                # a routing id a peer chose itself
+    assert g.delivered(7, pipe(1000)) is g.connections[7]
+    tcp.received[8] = 0
+    g.accepted(8)
+    assert g.delivered(8, pipe(2**32 - 1)) is g.connections[8]
+    assert g.delivered(8, pipe(1)) is g.connections[8]          # the counter wrapped: a newer pipe
+    assert g.delivered(8, pipe(2**32 - 1)) is None

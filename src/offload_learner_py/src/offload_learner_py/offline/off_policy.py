@@ -223,7 +223,7 @@ class LoggedSteps:
     probe: np.ndarray           # both sides measured on a probe step
     local_s: np.ndarray         # NaN where not measured
     cloud_s: np.ndarray
-    censored: int = 0           # requests left out: the taken side was cancelled (a hedge whose other side won)
+    censored: int = 0           # requests at a lower bound: the taken side was cancelled (a hedge's other side won)
 
     def __len__(self):
         return len(self.action)
@@ -242,22 +242,22 @@ class LoggedSteps:
         both = np.isfinite(local_s) & np.isfinite(cloud_s) & (local_s > 0) & (cloud_s > 0)
         probe = pick("probe").astype(bool) & both
         latency_s = np.where(action == CLOUD, cloud_s, local_s)
-        # A hedged request whose other side answered first had its taken side cancelled: that latency is only
-        # known to exceed the deadline, so the request cannot stand in an estimate of the taken side's mean.
-        measured = np.isfinite(latency_s)
+        # A hedged request whose other side answered first had its taken side cancelled then: that side would
+        # have taken longer than the request's delivery time, which enters as its latency (a lower bound, so the
+        # estimate errs low by less than leaving the slow request out would).
+        censored = ~np.isfinite(latency_s)
+        latency_s = np.where(censored, pick("outcome_delivered_s").astype(np.float64), latency_s)
         steps = cls(states=np.stack([pick("input_size"), pick("cpu_availability"), pick("round_trip_s")],
                                     axis=1).astype(np.float64),
                     action=action, propensity=np.where(forced, 1.0, pick("action_propensity").astype(np.float64)),
-                    latency_s=latency_s, probe=probe, local_s=local_s, cloud_s=cloud_s)
-        if measured.all():
-            return steps
-        kept = steps.slice(measured)
-        kept.censored = int(np.sum(~measured))
-        return kept
+                    latency_s=latency_s, probe=probe, local_s=local_s, cloud_s=cloud_s, censored=int(censored.sum()))
+        known = np.isfinite(latency_s)
+        return steps if known.all() else steps.slice(known)   # nothing known of it at all: left out
 
     def slice(self, rows) -> "LoggedSteps":
         return LoggedSteps(**{name: getattr(self, name)[rows] for name in
-                              ("states", "action", "propensity", "latency_s", "probe", "local_s", "cloud_s")})
+                              ("states", "action", "propensity", "latency_s", "probe", "local_s", "cloud_s")},
+                           censored=self.censored)
 
 
 def evaluate_policy(steps: LoggedSteps, actions: np.ndarray, predicted: Optional[np.ndarray] = None) -> Dict:
@@ -312,8 +312,8 @@ def format_results(results: Dict[str, Dict]) -> str:
                      f"{result.get('accuracy_ips', empty).format(100, 1):>22}")
     censored = max((result.get("censored_steps", 0) for result in results.values()), default=0)
     if censored:
-        lines.append(f"note: {censored} hedged requests are left out: the other side answered first and the taken "
-                     "side was cancelled, so its latency is not known (only that it exceeded the hedge deadline)")
+        lines.append(f"note: {censored} hedged requests enter at their delivery time, a lower bound of the taken "
+                     "side's latency: the other side answered first and the taken side was cancelled")
     few = [name for name, result in results.items() if result["effective_sample_size"] < MIN_EFFECTIVE_SAMPLES]
     if few:
         lines.append(f"warning: effective sample size under {MIN_EFFECTIVE_SAMPLES} for {', '.join(few)}: their IPS, "

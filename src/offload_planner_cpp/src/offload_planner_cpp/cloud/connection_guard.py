@@ -15,7 +15,9 @@ makes room for a new one, so a connection whose peer vanished never locks the ke
 A connection is judged unidentified only when its first message cannot be waiting for the broker: the
 broker found no message waiting after the counts were read, or it has read a message from every open
 connection's turn since libzmq read past that connection's first message (a ROUTER takes one message from
-each connection in turn). Every frontend message must pass through delivered()."""
+each connection in turn), or FIRST_MESSAGE_WAIT_S have passed since. Every frontend message must pass
+through delivered(), with its routing id: a message an earlier connection on the same fd left waiting is
+credited to none."""
 import array
 import fcntl
 import socket as pysocket
@@ -35,6 +37,22 @@ FIRST_LIMIT_BYTES = FIRST_MESSAGE_MAX_BYTES + GUARD_SLACK_BYTES   # what libzmq 
 # Read past this, libzmq has read a connection's handshake and at least its first message's start (a CURVE
 # handshake is under 1 KiB, a ping under 100 bytes): from then on the broker's turns are counted.
 _FIRST_BYTES_READ = 64 << 10
+# However many connections wait their turn, a first message waits for the broker no longer than this (a
+# broker that far behind answers BUSY, --max-wait-s); so many idle connections cannot put the judgement off.
+FIRST_MESSAGE_WAIT_S = 2.0
+
+
+def _pipe_number(routing_id: bytes) -> Optional[int]:
+    """The number libzmq's ROUTER gave a pipe (its routing id: a zero byte and a 32-bit counter), or None for a
+    routing id a peer chose itself (this project's clients never do)."""
+    if len(routing_id) != 5 or routing_id[0] != 0:
+        return None
+    return int.from_bytes(routing_id[1:], "big")
+
+
+def _serial_not_before(number: int, other: int) -> bool:
+    """`number` was given at or after `other` (32-bit serial arithmetic: the counter starts at random and wraps)."""
+    return (number - other) % (1 << 32) < (1 << 31)
 
 
 def tcp_bytes_received(fd: int) -> Optional[int]:
@@ -94,6 +112,8 @@ class Connection:
     accepted_at: float = 0.0              # monotonic seconds
     last_active: float = 0.0              # its last delivered message (or its accept)
     first_read_at: Optional[int] = None   # broker messages read when libzmq was found past its first bytes
+    first_read_time: float = 0.0          # and when
+    routing_id: Optional[int] = None      # the ROUTER's number for its pipe, from its messages
 
 
 class ConnectionGuard:
@@ -120,10 +140,18 @@ class ConnectionGuard:
     def closed(self, fd: int) -> None:
         self.connections.pop(fd, None)
 
-    def delivered(self, fd: Optional[int]) -> Optional[Connection]:
-        """A message of `fd` reached the broker: what it holds undelivered starts again from here."""
+    def delivered(self, fd: Optional[int], routing_id: Optional[bytes] = None) -> Optional[Connection]:
+        """A message of `fd` reached the broker: what it holds undelivered starts again from here. None when it
+        is no connection's the guard knows, such as a message an earlier connection on the same fd left waiting
+        (the ROUTER numbers its pipes in order: an older number is an older connection's)."""
         self.messages += 1
         connection = self.connections.get(fd) if fd is not None else None
+        if connection is not None and routing_id is not None:
+            number = _pipe_number(routing_id)
+            if number is None or (connection.routing_id is not None
+                                  and not _serial_not_before(number, connection.routing_id)):
+                return None
+            connection.routing_id = number
         if connection is not None:
             connection.baseline = self.received(fd) or connection.baseline
             connection.identified = True
@@ -194,13 +222,14 @@ class ConnectionGuard:
         if not read:
             return
         judged = dict(read) if drained() else {}
-        turns = len(self.connections)
+        turns, now = len(self.connections), self.clock()
         for fd, count in read.items():
             connection = self.connections[fd]
-            if connection.first_read_at is not None and self.messages - connection.first_read_at >= turns:
+            if connection.first_read_at is not None and (self.messages - connection.first_read_at >= turns
+                                                         or now - connection.first_read_time >= FIRST_MESSAGE_WAIT_S):
                 judged[fd] = count
             elif connection.first_read_at is None and count > _FIRST_BYTES_READ:
-                connection.first_read_at = self.messages
+                connection.first_read_at, connection.first_read_time = self.messages, now
         for fd, count in list(judged.items()):
             if count > self.first_limit_bytes:
                 self.log("cut the connection from %s: %d bytes read before its first message (bound %d bytes: a "

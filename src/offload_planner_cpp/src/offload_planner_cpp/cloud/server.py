@@ -107,12 +107,14 @@ class CloudServer:
         # memory: at most the queued bytes budget's worth of maximum-size messages, and 2 x max_queued.
         frontend.rcvhwm = config.receive_hwm
         frontend.router_mandatory = False
-        if config.heartbeat_s:
-            # A peer gone without a FIN (power loss, a NAT that forgot it) is dropped, so it neither holds
-            # memory nor counts against its key's connections. Three intervals: a large upload delays the
-            # peer's answer (the robots' own per-attempt timeout is far shorter).
-            frontend.setsockopt(zmq.HEARTBEAT_IVL, int(config.heartbeat_s * 1000))
-            frontend.setsockopt(zmq.HEARTBEAT_TIMEOUT, int(3 * config.heartbeat_s * 1000))
+        if config.keepalive_s:
+            # A peer gone without a FIN (power loss, a NAT that forgot the connection) is dropped, so it neither
+            # holds memory nor counts against its key's connections. The kernel's keepalive, not ZMTP heartbeats:
+            # those wait for a whole message, so they would drop a robot whose large upload takes longer.
+            frontend.setsockopt(zmq.TCP_KEEPALIVE, 1)
+            frontend.setsockopt(zmq.TCP_KEEPALIVE_IDLE, max(1, round(config.keepalive_s)))
+            frontend.setsockopt(zmq.TCP_KEEPALIVE_INTVL, 10)
+            frontend.setsockopt(zmq.TCP_KEEPALIVE_CNT, 3)
         try:
             if config.insecure:
                 LOG.warning("running INSECURE: plaintext and no client authentication (--insecure)")
@@ -282,7 +284,7 @@ class CloudServer:
     def _on_frontend(self, frontend: zmq.Socket, frames, queue: RequestQueue) -> None:
         # [identity, (empty delimiter if the client is a REQ socket), envelope, body...]
         fd = source_fd(frames[-1])
-        connection = self.guard.delivered(fd)
+        connection = self.guard.delivered(fd, frames[0].bytes)
         user = None
         if self._auth is not None:
             user = user_of(frames[-1])

@@ -24,7 +24,8 @@ class ServerConfig:
     max_first_message_bytes: int = FIRST_MESSAGE_MAX_BYTES   # largest first message of a connection; up to
                                           # max_message_bytes for robots from before the rule
     max_pending_unidentified_bytes: int = 64 << 20   # what connections yet to send a message hold together
-    heartbeat_s: float = 20.0             # ZMTP heartbeat interval; a peer silent for 3x it is dropped; 0: none
+    keepalive_s: float = 30.0             # TCP keepalive: idle seconds before the first probe (3 probes, 10 s
+                                          # apart); a peer gone without a FIN is dropped; 0: none
     max_frames: int = 8                   # more frames than any valid message: dropped unread
     max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
     rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
@@ -65,8 +66,8 @@ class ServerConfig:
                              f"bytes (the protocol's to the max message size), got {self.max_first_message_bytes}")
         if self.max_pending_unidentified_bytes < self.max_first_message_bytes:
             raise ValueError("the unidentified connections' budget must be at least the first message bound")
-        if not 0 <= self.heartbeat_s <= 3600:
-            raise ValueError(f"the heartbeat interval must be in 0..3600 s, got {self.heartbeat_s}")
+        if not 0 <= self.keepalive_s <= 86400:
+            raise ValueError(f"the keepalive idle time must be in 0..86400 s, got {self.keepalive_s}")
         if not 0 <= self.max_connections_per_key <= 65536:
             raise ValueError(f"the connections per key must be in 0..65536, got {self.max_connections_per_key}")
         if min(self.max_pending_bytes, self.max_pending_bytes_per_key) < self.max_message_bytes:
