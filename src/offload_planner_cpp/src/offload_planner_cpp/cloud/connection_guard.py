@@ -158,15 +158,15 @@ class ConnectionGuard:
             connection.last_active = self.clock()
         return connection
 
-    def identify(self, fd: int, connection: Connection, user: bytes) -> bool:
+    def identify(self, fd: int, connection: Connection, user: bytes) -> None:
         """The connection's messages come with client key `user`. When that key has more than
         `key_connections` connections, its least recently active other one is cut (a connection whose peer
-        vanished without a word makes room); True while this connection may go on."""
+        vanished without a word makes room; this one goes on)."""
         if connection.user == user:
-            return True
+            return
         connection.user = user
         if not self.key_connections:
-            return True
+            return
         others = [fd_ for fd_, c in self.connections.items() if c.user == user and fd_ != fd]
         while len(others) >= self.key_connections:
             oldest = min(others, key=lambda fd_: self.connections[fd_].last_active)
@@ -175,7 +175,6 @@ class ConnectionGuard:
                      "active one goes", self.connections[oldest].address, user.decode(errors="replace"),
                      len(others) + 2, self.key_connections)
             self._drop(oldest)
-        return fd in self.connections
 
     def forget(self, fd: int) -> None:
         """Cut a connection the broker refuses to hear from (a revoked key)."""

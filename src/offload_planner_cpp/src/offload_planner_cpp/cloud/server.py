@@ -294,8 +294,8 @@ class CloudServer:
                 if fd is not None:
                     self.guard.forget(fd)
                 return
-            if connection is not None and not self.guard.identify(fd, connection, user):
-                return   # one connection too many for its key: cut, the message dropped
+            if connection is not None:
+                self.guard.identify(fd, connection, user)
         if len(frames) > self.config.max_frames + 2:
             self._log_limited.log(logging.WARNING, "frames", "dropped a message of %d frames", len(frames))
             return
