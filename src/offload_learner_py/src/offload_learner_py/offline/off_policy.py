@@ -245,8 +245,9 @@ class LoggedSteps:
         # A hedged request whose other side answered first had its taken side cancelled then: that side would
         # have taken longer than the request's delivery time, which enters as its latency (a lower bound, so the
         # estimate errs low by less than leaving the slow request out would).
-        censored = ~np.isfinite(latency_s)
-        latency_s = np.where(censored, pick("outcome_delivered_s").astype(np.float64), latency_s)
+        delivered_s = pick("outcome_delivered_s").astype(np.float64)
+        censored = ~np.isfinite(latency_s) & np.isfinite(delivered_s)
+        latency_s = np.where(censored, delivered_s, latency_s)
         steps = cls(states=np.stack([pick("input_size"), pick("cpu_availability"), pick("round_trip_s")],
                                     axis=1).astype(np.float64),
                     action=action, propensity=np.where(forced, 1.0, pick("action_propensity").astype(np.float64)),
