@@ -5,6 +5,7 @@ import pathlib
 import select
 import subprocess
 import sys
+import threading
 import time
 
 import numpy as np
@@ -83,6 +84,31 @@ def rss_bytes(pid: int) -> int:
             if line.startswith("VmRSS:"):
                 return int(line.split()[1]) * 1024
     raise RuntimeError(f"no VmRSS for process {pid}")
+
+
+class PeakRss:
+    """A process's peak RSS above its size at start(), sampled every 2 ms in a thread until stop()."""
+
+    def __init__(self, pid: int):
+        self.pid, self.idle, self.peak = pid, 0, 0
+        self._stop = threading.Event()
+        self._thread = threading.Thread(target=self._watch, daemon=True)
+
+    def start(self) -> None:
+        self.idle = self.peak = rss_bytes(self.pid)
+        self._thread.start()
+
+    def _watch(self) -> None:
+        while not self._stop.is_set():
+            self.peak = max(self.peak, rss_bytes(self.pid))
+            time.sleep(0.002)
+
+    def stop(self) -> int:
+        """Bytes the peak was above the start."""
+        self._stop.set()
+        if self._thread.is_alive():
+            self._thread.join()
+        return self.peak - self.idle
 
 
 def random_map(width: int, height: int, obstacle_share: float, seed: int) -> np.ndarray:

@@ -20,7 +20,8 @@ from offload_planner_cpp.cloud.client import CloudClient, CloudTimeout
 from offload_planner_cpp.cloud.protocol import Kind, PlanOptions, Reply, Status
 from offload_planner_cpp.cloud.server_cli import parse_args
 
-from cloud_test_helpers import (FULL, MIB, LOOPBACK, curve_dealer, free_port, rss_bytes, spawn_server, start_server, stop_process)
+from cloud_test_helpers import (FULL, MIB, LOOPBACK, PeakRss, curve_dealer, free_port, rss_bytes, spawn_server,
+                                start_server, stop_process)
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -67,36 +68,26 @@ def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_pat
                                        "--max-queued-mib", str(2 * max_message_mib if not FULL else 256)])
     endpoint = f"{LOOPBACK}:{port}"
     context = zmq.Context()
-    peak, stop = [0], threading.Event()
-
-    def watch():
-        while not stop.is_set():
-            peak[0] = max(peak[0], rss_bytes(process.pid))
-            time.sleep(0.002)
-
+    rss = PeakRss(process.pid)
     try:
         with CloudClient(endpoint, keys_dir=str(key_root / "robot"), timeout_s=5.0) as client:
             client.ping()
-            idle = peak[0] = rss_bytes(process.pid)
-            watcher = threading.Thread(target=watch)
-            watcher.start()
+            rss.start()
             attacker = curve_dealer(context, key_root / "robot2", endpoint)
             attacker.send_multipart(protocol.encode_ping(0))   # says whose it is: the per-connection bound holds it
             assert attacker.poll(5000) and attacker.recv_multipart()
             big = bytes(frame_bytes)   # each frame under the max message size, together far over it
             attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [big] * frames, copy=False)
             answered = attacker.poll(30000 if FULL else 4000)
-            stop.set()
-            watcher.join()
+            grown = rss.stop()
             attacker.close(0)
             assert client.ping() > 0     # the server lives and serves
-        grown = peak[0] - idle
     finally:
-        stop.set()
+        rss.stop()
         context.term()
         stop_process(process)
     log = (tmp_path / "server.log").read_text()
-    print(f"{frames} frames x {frame_bytes} B: RSS {idle / MIB:.1f} MiB, peak +{grown / MIB:.1f} MiB")
+    print(f"{frames} frames x {frame_bytes} B: RSS {rss.idle / MIB:.1f} MiB, peak +{grown / MIB:.1f} MiB")
     assert not answered and "cut the connection" in log
     # The per-connection bound is (receive HWM + 1) x max message + 1 MiB: 4 MiB here (landed code: +143 MiB).
     # The guard samples every 25 ms: what arrives in between is beyond it. With the system's libsodium CURVE takes
@@ -109,38 +100,28 @@ def test_a_first_message_over_the_first_message_bound_is_cut_and_the_client_ping
     process = spawn_server(port, key_root / "server", log_path=tmp_path / "server.log")
     endpoint = f"{LOOPBACK}:{port}"
     context = zmq.Context()
-    peak, stop = [0], threading.Event()
-
-    def watch():
-        while not stop.is_set():
-            peak[0] = max(peak[0], rss_bytes(process.pid))
-            time.sleep(0.002)
-
+    rss = PeakRss(process.pid)
     try:
         with CloudClient(endpoint, keys_dir=str(key_root / "robot"), timeout_s=5.0) as client:
             client.ping()
-            idle = peak[0] = rss_bytes(process.pid)
-            watcher = threading.Thread(target=watch)
-            watcher.start()
+            rss.start()
             # A connection that has not said whose it is sends 256 MiB as its first message (16 frames, each
             # under the max message size): under the per-connection bound (321 MiB), far over a first message.
             attacker = curve_dealer(context, key_root / "robot2", endpoint)
             attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(16 * MIB)] * 16, copy=False)
             answered = attacker.poll(4000)
-            stop.set()
-            watcher.join()
+            grown = rss.stop()
             attacker.close(0)
-            grown = peak[0] - idle
         # The package's client on a fresh connection, a 48 MiB map first: it pings ahead, so it is served.
         grid = np.zeros((7000, 7000), np.int8)
         with CloudClient(endpoint, keys_dir=str(key_root / "robot2"), timeout_s=20.0, retries=0) as uploader:
             reply = uploader.upload(grid)
     finally:
-        stop.set()
+        rss.stop()
         context.term()
         stop_process(process)
     log = (tmp_path / "server.log").read_text()
-    print(f"256 MiB first message: RSS {idle / MIB:.1f} MiB, peak +{grown / MIB:.1f} MiB")
+    print(f"256 MiB first message: RSS {rss.idle / MIB:.1f} MiB, peak +{grown / MIB:.1f} MiB")
     assert not answered and "before its first message" in log
     # 1 MiB + 1 MiB of slack, plus what arrives within one 25 ms check (about 1 GB/s here) and the frames
     # libzmq allocated: without the rule it holds the whole 256 MiB.
@@ -195,33 +176,23 @@ def test_a_first_message_over_the_bound_is_cut_while_another_key_floods_the_brok
     flooder = subprocess.Popen([sys.executable, "-c", _FLOODER, endpoint, str(key_root / "robot"),
                                 str(pathlib.Path(__file__).parent)], stdout=subprocess.PIPE, text=True)
     context = zmq.Context()
-    peak, stop = [0], threading.Event()
-
-    def watch():
-        while not stop.is_set():
-            peak[0] = max(peak[0], rss_bytes(process.pid))
-            time.sleep(0.002)
-
+    rss = PeakRss(process.pid)
     try:
         assert flooder.stdout.readline().strip() == "flooding"
         time.sleep(1.0)
-        idle = peak[0] = rss_bytes(process.pid)
-        watcher = threading.Thread(target=watch)
-        watcher.start()
+        rss.start()
         attacker = curve_dealer(context, key_root / "robot2", endpoint)
         attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(16 * MIB)] * 16, copy=False)
         attacker.poll(4000)
-        stop.set()
-        watcher.join()
+        grown = rss.stop()
         attacker.close(0)
         assert flooder.poll() is None, "the flooder stopped: nothing kept the broker busy"
     finally:
-        stop.set()
+        rss.stop()
         flooder.kill()
         flooder.wait()
         context.term()
         stop_process(process)
-    grown = peak[0] - idle
     print(f"256 MiB first message under a ping flood: peak +{grown / MIB:.1f} MiB")
     assert "before its first message" in (tmp_path / "server.log").read_text()
     assert grown <= 96 * MIB      # without the turns counted, the flood kept the rule from being judged: +256 MiB
