@@ -141,6 +141,16 @@ py::object cellOrNone(bool ok, Cell c) { return ok ? py::object(py::make_tuple(c
 PYBIND11_MODULE(_core, m) {
   m.doc() = "Dijkstra on an OccupancyGrid-convention int8 grid (8-connected, no corner cutting).";
 
+  // pybind11 before 2.12 fills the numpy API table in a function-local static on first use. Its first user
+  // imports numpy's C module and may release the GIL inside the static's guard; a second thread then blocks
+  // on that guard holding the GIL and both wait forever. Filling it here, while the import holds the GIL and
+  // no other thread can be in this module, leaves nothing for concurrent first calls to initialise.
+  py::detail::npy_api::get();
+  (void)py::dtype::of<std::int8_t>();
+  (void)py::array_t<std::int32_t>(0);
+  (void)py::array_t<double>(0);
+  (void)py::array_t<bool>(0);
+
   // Names come from the core (statusName), values from the enum: nothing is typed twice.
   py::enum_<PlanStatus> status(m, "PlanStatus", "Status of a planning request; the offload_msgs/PlanPath codes.");
   for (int code = 0; code < offload_planner::kPlanStatusCount; ++code) {
