@@ -51,7 +51,7 @@ $(VENV)/.installed: requirements.txt | deps
 	@touch $(VENV)/CATKIN_IGNORE
 	$(PY) -m pip install -q -r requirements.txt
 	@# A venv made before pyzmq was built on Debian's libzmq keeps the wheel's slow libsodium: rebuild it.
-	@$(PY) src/offload_planner_cpp/src/offload_planner_cpp/cloud/curve_speed.py \
+	@$(PY) src/offload_cloud/src/offload_cloud/curve_speed.py \
 		|| $(PY) -m pip install -q --force-reinstall --no-deps --no-binary pyzmq $$(grep '^pyzmq==' requirements.txt)
 	@touch $@
 
@@ -71,28 +71,28 @@ test: build
 	exit $$status
 
 bench-planner: build
-	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_planner.py
+	@$(ROSENV) $(PY) -m offload_demos.bench_planner
 
 bench-link: build
-	@$(ROSENV) $(PY) src/offload_planner_cpp/bench/bench_link.py
+	@$(ROSENV) $(PY) -m offload_demos.bench_link
 
 bench-fleet: build
-	@$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fleet --robots 50 --servers 3 --requests 40 --kill-at-s 1.5 --baseline
+	@$(ROSENV) $(PY) -m offload_demos.fleet --robots 50 --servers 3 --requests 40 --kill-at-s 1.5 --baseline
 
 # Longer coverage-guided runs than `make test` does; FUZZ_SECONDS per target.
 FUZZ_SECONDS ?= 120
 fuzz: build
 	@mkdir -p build/fuzz && cd build/fuzz && rm -rf offload-fuzz-* && for target in protocol movingai map_yaml map_image; do \
 		echo "== $$target ($(FUZZ_SECONDS) s)"; \
-		$(ROSENV) $(PY) -m offload_planner_cpp.devtools.fuzz $$target -max_total_time=$(FUZZ_SECONDS) -max_len=4096 \
+		$(ROSENV) $(PY) -m offload_demos.fuzz $$target -max_total_time=$(FUZZ_SECONDS) -max_len=4096 \
 			2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error' || exit 1; done; \
 	echo "== bag reader ($(FUZZ_SECONDS) s)"; \
-	$(ROSENV) $(PY) -m offload_learner_py.devtools.fuzz_bag -max_total_time=$(FUZZ_SECONDS) -max_len=65536 \
+	$(ROSENV) $(PY) -m offload_demos.fuzz_bag -max_total_time=$(FUZZ_SECONDS) -max_len=65536 \
 		-rss_limit_mb=2048 2>&1 | grep -E '^(Done|==[0-9]+== ERROR)|Error'
 
 
 bench-decision: build
-	@$(ROSENV) $(PY) -m offload_learner_py.bench.decision
+	@$(ROSENV) $(PY) -m offload_demos.bench_decision
 
 STEPS ?= 360
 POLICY ?= dqn
@@ -108,13 +108,13 @@ demo-options:
 
 demo: demo-options build
 	@# RViz only when asked for: it pulls a desktop stack a headless robot or CI does not need. HEADLESS=1
-	@# runs it on Xvfb and keeps its last frame as runs/<time>/rviz.png (tools/rviz_view.py).
+	@# runs it on Xvfb and keeps its last frame as runs/<time>/rviz.png (offload_demos.rviz_view).
 	@missing=$$(for p in $(if $(RVIZ)$(HEADLESS),rviz) $(if $(HEADLESS),xvfb); do \
 		dpkg-query -W -f='$${Status}\n' $$p 2>/dev/null | grep -q '^install ok installed' || echo $$p; done); \
 	if [ -n "$$missing" ]; then apt-get update -q && DEBIAN_FRONTEND=noninteractive apt-get install -y -q $$missing; fi
-	@$(ROSENV) $(if $(and $(MAP),$(RVIZ)$(HEADLESS)),mkdir -p .ros; $(PY) tools/rviz_view.py fit --map $(MAP) \
+	@$(ROSENV) $(if $(and $(MAP),$(RVIZ)$(HEADLESS)),mkdir -p .ros; $(PY) -m offload_demos.rviz_view fit --map $(MAP) \
 		--out .ros/offload.rviz; export OFFLOAD_RVIZ_CONFIG=$(ROOT)/.ros/offload.rviz;) \
-		$(if $(HEADLESS),$(PY) tools/rviz_view.py headless --runs-dir runs --) \
+		$(if $(HEADLESS),$(PY) -m offload_demos.rviz_view headless --runs-dir runs --) \
 		$(PY) -m offload_demos.driver --launch launch/offload_demo.launch --steps $(STEPS) \
 		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
 		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL)) $(if $(LINK),--link $(LINK)) \
@@ -131,7 +131,7 @@ bench-online: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_online
 
 bench-offline: build
-	@$(ROSENV) $(PY) -m offload_learner_py.bench.offline
+	@$(ROSENV) $(PY) -m offload_demos.bench_offline
 # cosmic-ray over the learner's reward, state and DQN modules and the cloud protocol (about 15 min),
 # then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 5 min).
 mutate: build

@@ -14,7 +14,7 @@ import xml.etree.ElementTree as ElementTree
 import numpy as np
 
 
-from offload_planner_cpp.devtools.loopback import free_port  # noqa: E402  (ROS-free: before the master is named)
+from offload_demos.loopback import free_port  # noqa: E402  (ROS-free: before the master is named)
 
 MASTER_PORT = free_port()
 os.environ["ROS_MASTER_URI"] = f"http://127.0.0.1:{MASTER_PORT}"
@@ -34,7 +34,7 @@ from rospy.numpy_msg import numpy_msg  # noqa: E402
 
 from offload_planner_cpp import free_cells, plan as plan_cells  # noqa: E402
 from offload_planner_cpp._core import check_map  # noqa: E402
-from offload_planner_cpp.devtools.wan_emulator import LinkModel, WanEmulator  # noqa: E402
+from offload_demos.wan_emulator import LinkModel, WanEmulator  # noqa: E402
 from offload_planner_cpp.maps import OccupancyMap, load_map  # noqa: E402
 from offload_planner_cpp.nodes.map_publisher import to_message  # noqa: E402
 
@@ -133,7 +133,7 @@ class FaultStack(WaitsForRecords):
     @classmethod
     def start_bridge(cls):
         cls.processes["bridge"] = subprocess.Popen(
-            [sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
+            [sys.executable, "-m", "offload_learner_py.nodes.cloud_bridge", "__name:=cloud_bridge",
              f"_endpoint:={cls.emulator.endpoint}", "_insecure:=true", f"_timeout_s:={CLOUD_TIMEOUT_S}",
              "_retries:=0", "_heartbeat_period_s:=0.2", "_heartbeat_timeout_s:=0.5"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)

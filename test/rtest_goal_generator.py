@@ -33,7 +33,7 @@ class GoalGeneratorScheduleTest(unittest.TestCase):
 
     def run_generator(self, *params: str) -> None:
         generator = subprocess.Popen(
-            [sys.executable, "-m", "offload_learner_py.nodes.goal_generator", "__name:=goal_generator",
+            [sys.executable, "-m", "offload_demos.goal_generator", "__name:=goal_generator",
              "_service:=/fake_plan", "_period_s:=0.02", "_seed:=3", *params],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.assertEqual(generator.wait(90), 0)
@@ -69,4 +69,4 @@ class GoalGeneratorScheduleTest(unittest.TestCase):
 
 
 if __name__ == "__main__":
-    rostest.rosrun("offload_learner_py", "rtest_goal_generator", GoalGeneratorScheduleTest)
+    rostest.rosrun("offload_demos", "rtest_goal_generator", GoalGeneratorScheduleTest)

@@ -51,7 +51,7 @@ def start_learner_node(checkpoint: str, *params: str) -> subprocess.Popen:
 def spawn_cloud_server(port: int = 0):
     """The cloud server as its own process, plaintext, one worker, on a loopback port (0: any free one);
     (process, endpoint) once it listens."""
-    server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
+    server = subprocess.Popen([sys.executable, "-m", "offload_cloud", "--bind",
                                f"tcp://127.0.0.1:{port}", "--insecure", "--workers", "1", "--log-level", "WARNING"],
                               stdout=subprocess.PIPE, text=True)
     line = server.stdout.readline()
@@ -95,7 +95,7 @@ class OnlineStackTest(WaitsForRecords):
         cls.addClassCleanup(cls.stop_all)
         cls.start_server()
         cls.processes["bridge"] = subprocess.Popen(
-            [sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
+            [sys.executable, "-m", "offload_learner_py.nodes.cloud_bridge", "__name:=cloud_bridge",
              f"_endpoint:={cls.endpoint}", "_insecure:=true", f"_timeout_s:={CLOUD_TIMEOUT_S}", "_retries:=0",
              "_heartbeat_period_s:=0.2", "_heartbeat_timeout_s:=0.5"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
@@ -145,7 +145,7 @@ class OnlineStackTest(WaitsForRecords):
 
     def test_1_requests_answered_and_recorded(self):
         generator = subprocess.Popen(
-            [sys.executable, "-m", "offload_learner_py.nodes.goal_generator", "__name:=goal_generator",
+            [sys.executable, "-m", "offload_demos.goal_generator", "__name:=goal_generator",
              f"_count:={FIRST_RUN}", "_period_s:=0.05", "_seed:=3", "_start_x:=-1.0", "_start_y:=0.5"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
         self.assertEqual(generator.wait(120), 0)

@@ -17,9 +17,8 @@ from roslib.message import get_message_class
 sys.path.insert(0, os.path.dirname(os.path.realpath(__file__)))
 from rtest_online_stack import launch_file  # noqa: E402  (shared helper)
 
-# tools/rviz_view.py reads the same configuration: one walk over its displays
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(launch_file("offload_demo.launch"))), "tools"))
-from rviz_view import displays  # noqa: E402
+# offload_demos.rviz_view reads the same configuration: one walk over its displays
+from offload_demos.rviz_view import displays  # noqa: E402
 
 # The message type each RViz display class subscribes to (rviz's default plugins).
 DISPLAY_TYPES = {"rviz/Map": "nav_msgs/OccupancyGrid", "rviz/Path": "nav_msgs/Path",
@@ -97,4 +96,4 @@ class RvizConfigTest(unittest.TestCase):
 
 
 if __name__ == "__main__":
-    rostest.rosrun("offload_learner_py", "rviz_config", RvizConfigTest)
+    rostest.rosrun("offload_demos", "rviz_config", RvizConfigTest)

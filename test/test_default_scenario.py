@@ -11,7 +11,7 @@ import yaml
 from offload_planner_cpp import free_cells
 from offload_planner_cpp.maps import load_map_server_yaml
 from offload_demos.driver import LINK_PROFILES
-from offload_learner_py.online.goals import GoalSampler, default_start_cell
+from offload_demos.goals import GoalSampler, default_start_cell
 
 WORKSPACE = Path(__file__).resolve().parents[1]
 LAUNCH = WORKSPACE / "launch"

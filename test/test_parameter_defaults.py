@@ -12,21 +12,22 @@ import yaml
 WORKSPACE = Path(__file__).resolve().parents[1]
 LEARNER = WORKSPACE / "src" / "offload_learner_py"
 PLANNER = WORKSPACE / "src" / "offload_planner_cpp"
+DEMOS = WORKSPACE / "src" / "offload_demos"
 CONFIG = WORKSPACE / "launch" / "config"
 
 # node: (README, its section heading, the code that reads the parameters, YAML file, section in it)
 NODES = {
     "offload_learner": (LEARNER / "README.md", "### offload_learner",
                         LEARNER / "src/offload_learner_py/nodes/learner.py", CONFIG / "learner.yaml", None),
-    "goal_generator": (LEARNER / "README.md", "### goal_generator",
-                       LEARNER / "src/offload_learner_py/nodes/goal_generator.py", CONFIG / "goal_generator.yaml", None),
+    "goal_generator": (DEMOS / "README.md", "### goal_generator",
+                       DEMOS / "src/offload_demos/goal_generator.py", CONFIG / "goal_generator.yaml", None),
     "planner": (PLANNER / "README.md", "### planner_node", PLANNER / "src/planner_ros.cpp",
                 CONFIG / "planner.yaml", "planner"),
     "map_publisher": (PLANNER / "README.md", "### map_publisher",
                       PLANNER / "src/offload_planner_cpp/nodes/map_publisher.py", CONFIG / "planner.yaml",
                       "map_publisher"),
-    "cloud_bridge": (PLANNER / "README_cloud.md", "## Bridge node",
-                     PLANNER / "src/offload_planner_cpp/nodes/cloud_bridge.py", CONFIG / "cloud_bridge.yaml",
+    "cloud_bridge": (LEARNER / "README.md", "### cloud_bridge",
+                     LEARNER / "src/offload_learner_py/nodes/cloud_bridge.py", CONFIG / "cloud_bridge.yaml",
                      "cloud_bridge"),
 }
 UNSET = object()

@@ -1,7 +1,6 @@
 """launch/config/offload.rviz reads at a glance on the demo's default map (the view shows its known area,
-markers sized to it), tools/rviz_view.py fits views correctly, and its headless mode fails clearly
+markers sized to it), offload_demos.rviz_view fits views correctly, and its headless mode fails clearly
 when RViz shows nothing. The topics, types and frames of the displays are checked by rviz_config.test."""
-import importlib.util
 import math
 import re
 import shutil
@@ -13,12 +12,10 @@ import numpy as np
 import pytest
 import yaml
 
+from offload_demos import rviz_view
 from offload_planner_cpp.maps import OccupancyMap, load_map
 
 WORKSPACE = Path(__file__).resolve().parents[1]
-spec = importlib.util.spec_from_file_location("rviz_view", WORKSPACE / "tools" / "rviz_view.py")
-rviz_view = importlib.util.module_from_spec(spec)
-spec.loader.exec_module(rviz_view)
 
 
 def demo_default_map() -> Path:
@@ -34,7 +31,7 @@ def config():
 def test_the_view_shows_the_known_area_of_the_default_map():
     known = rviz_view.known_extent_m(load_map(demo_default_map()))
     shown = rviz_view.shown_extent_m(config())
-    fix = f"run: .venv/bin/python tools/rviz_view.py fit --map {demo_default_map().relative_to(WORKSPACE)}"
+    fix = f"run: .venv/bin/python -m offload_demos.rviz_view fit --map {demo_default_map().relative_to(WORKSPACE)}"
     assert shown[0] <= known[0] and shown[1] >= known[1] and shown[2] <= known[2] and shown[3] >= known[3], \
         f"the view {shown} cuts the known area {known} off: {fix}"
     # ...and fills the window: the known area spans most of the tighter side.
@@ -91,7 +88,7 @@ def test_headless_gives_the_command_a_screen_and_fails_when_no_rviz_window_shows
     # no window: the screen stays one colour, so there is no frame to keep.
     probe = (f"import os, pathlib, time; from PIL import ImageGrab; pathlib.Path({str(runs / 'run1')!r}).mkdir(parents=True);"
              f" print('screen', ImageGrab.grab(xdisplay=os.environ['DISPLAY']).size, flush=True); time.sleep(1.5)")
-    done = subprocess.run([sys.executable, str(WORKSPACE / "tools" / "rviz_view.py"), "headless", "--runs-dir",
+    done = subprocess.run([sys.executable, "-m", "offload_demos.rviz_view", "headless", "--runs-dir",
                            str(runs), "--period-s", "0.5", "--", sys.executable, "-c", probe],
                           capture_output=True, text=True, timeout=60)
     assert "screen (1400, 900)" in done.stdout, done.stderr

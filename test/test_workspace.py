@@ -39,28 +39,127 @@ def run_without_ros(code):
     return subprocess.run([sys.executable, "-c", guard + code], capture_output=True, text=True)
 
 
-def test_planner_python_core_imports_without_ros():
-    done = run_without_ros("import offload_planner_cpp, offload_planner_cpp.maps, offload_planner_cpp.movingai\n"
-                           "import numpy; r = offload_planner_cpp.plan(numpy.zeros((3, 3), numpy.int8), (0, 0), (2, 2))\n"
+# What ships to a robot or a cloud host, and the subpackages of it that may use ROS (the rospy nodes).
+SHIPPED = {"offload_planner_cpp": {"nodes"}, "offload_cloud": set(), "offload_learner_py": {"nodes"}}
+
+
+def shipped_modules(package, with_ros=False):
+    """Dotted names and paths of every module of a package, walked (not listed by hand); without its rospy
+    nodes unless with_ros."""
+    root = WORKSPACE / "src" / package / "src" / package
+    for path in sorted(root.rglob("*.py")):
+        parts = path.relative_to(root).with_suffix("").parts
+        if not with_ros and parts[0] in SHIPPED.get(package, ()):
+            continue
+        yield ".".join((package,) + parts).removesuffix(".__init__"), path
+
+
+@pytest.mark.parametrize("package", sorted(SHIPPED))
+def test_ros_free_libraries_import_without_ros(package):
+    """Every module of a shipped package outside its rospy nodes imports in an interpreter where any ROS
+    import fails, and none names rospy or roslib in its text either (a lazy import inside a function)."""
+    modules = {name: path for name, path in shipped_modules(package) if not name.endswith(".__main__")}
+    assert len(modules) >= {"offload_planner_cpp": 2, "offload_cloud": 15, "offload_learner_py": 30}[package]
+    done = run_without_ros("".join(f"import {name}\n" for name in modules))
+    assert done.returncode == 0, done.stderr
+    named = [name for name, path in modules.items()
+             if re.search(r"^\s*(import|from)\s+(rospy|roslib|rosbag)\b", path.read_text(), re.M)]
+    assert not named, f"ROS imported in a ROS-free module: {named}"
+
+
+def test_the_ros_free_guard_fails_on_a_ros_import():
+    done = run_without_ros("import rospy")
+    assert done.returncode != 0 and "ROS import in a ROS-free core" in done.stderr
+
+
+def test_planner_python_core_plans_without_ros():
+    done = run_without_ros("import numpy, offload_planner_cpp\n"
+                           "r = offload_planner_cpp.plan(numpy.zeros((3, 3), numpy.int8), (0, 0), (2, 2))\n"
                            "print(round(r.cost, 6))")
     assert done.returncode == 0, done.stderr
     assert done.stdout.strip() == "2.828427"
 
 
-def test_learner_core_imports_without_rospy():
-    """Every module outside the `nodes` subpackage (core, data, offline, online, bench, devtools) is ROS-free;
-    rospy lives in `nodes` only (and in the offload_demos package, which does not ship to a robot)."""
-    package = WORKSPACE / "src" / "offload_learner_py" / "src" / "offload_learner_py"
-    files = [p for p in package.rglob("*.py") if "nodes" not in p.relative_to(package).parts and p.stem != "__init__"]
-    modules = sorted(".".join(p.relative_to(package).with_suffix("").parts) for p in files)
-    assert {"core.dqn", "data.bags", "offline.retrain", "online.router"} <= set(modules), modules
-    done = run_without_ros("".join(f"import offload_learner_py.{m}\n" for m in modules
-                                   if not m.startswith("devtools")))   # devtools need atheris
-    assert done.returncode == 0, done.stderr
-    outside = [p.name for p in files if re.search(r"^\s*(import|from)\s+rospy", p.read_text(), re.M)]
-    assert not outside, f"rospy imported outside offload_learner_py.nodes: {outside}"
-    nodes = sorted((package / "nodes").glob("*.py"))
-    assert any("import rospy" in p.read_text() for p in nodes), "the nodes subpackage holds the rospy nodes"
+@pytest.mark.parametrize("package", sorted(SHIPPED))
+def test_nothing_shipped_imports_the_demos_package(package):
+    for name, path in shipped_modules(package, with_ros=True):
+        imported = set(imported_modules(path))
+        assert "offload_demos" not in imported, f"{name} imports offload_demos, which does not ship"
+        assert "devtools" not in path.read_text(), f"{name} mentions devtools"
+
+
+def local_imports(package):
+    """module -> the modules of the same package it imports at module level or in functions."""
+    names = dict(shipped_modules(package, with_ros=True))
+    graph = {}
+    for name, path in names.items():
+        found = set()
+        for node in ast.walk(ast.parse(path.read_text())):
+            if isinstance(node, ast.Import):
+                candidates = [alias.name for alias in node.names]
+            elif isinstance(node, ast.ImportFrom) and node.level == 0 and node.module:
+                candidates = [node.module] + [f"{node.module}.{alias.name}" for alias in node.names]
+            else:
+                continue
+            found |= {c for c in candidates if c in names and c != name}
+        graph[name] = found
+    return graph
+
+
+def cycle_in(graph):
+    """One import cycle of `graph` as a list of modules, or None (a package __init__ importing its own
+    submodules is not a cycle)."""
+    state, stack = {}, []
+
+    def visit(node):
+        state[node] = "open"
+        stack.append(node)
+        for other in sorted(graph[node]):
+            if node.startswith(other + "."):
+                continue   # a submodule's import of its parent package runs the parent first anyway
+            if state.get(other) == "open":
+                return stack[stack.index(other):] + [other]
+            if other not in state and (found := visit(other)):
+                return found
+        state[node] = "done"
+        stack.pop()
+        return None
+
+    for node in sorted(graph):
+        if node not in state and (found := visit(node)):
+            return found
+    return None
+
+
+@pytest.mark.parametrize("package", sorted(SHIPPED) + ["offload_demos"])
+def test_no_import_cycle_inside_a_package(package):
+    cycle = cycle_in(local_imports(package))
+    assert cycle is None, "import cycle: " + " -> ".join(cycle)
+
+
+def test_the_cycle_check_finds_a_cycle():
+    assert cycle_in({"a.x": {"a.y"}, "a.y": {"a.z"}, "a.z": {"a.x"}}) == ["a.x", "a.y", "a.z", "a.x"]
+    assert cycle_in({"a.x": {"a.y"}, "a.y": set()}) is None
+
+
+def test_no_c_header_include_cycle():
+    include = PLANNER / "include" / "offload_planner_cpp"
+    graph = {h.name: set(re.findall(r'#include "offload_planner_cpp/(\w+\.h)"', h.read_text())) for h in include.glob("*.h")}
+    cycle = cycle_in(graph)
+    assert cycle is None, "header include cycle: " + " -> ".join(cycle)
+
+
+def python_modules():
+    return sorted(p for p in (WORKSPACE / "src").rglob("*.py") if "/test/" not in str(p)) + \
+        sorted((WORKSPACE / "tools").glob("*.py"))
+
+
+def test_no_module_over_400_lines_and_nodes_thin():
+    long = [f"{p.relative_to(WORKSPACE)}: {n}" for p in python_modules()
+            if (n := len(p.read_text().splitlines())) > 400]
+    assert not long, "modules over 400 lines: " + ", ".join(long)
+    learner_node = WORKSPACE / "src/offload_learner_py/src/offload_learner_py/nodes/learner.py"
+    assert len(learner_node.read_text().splitlines()) < 200, "the learner node is to stay under 200 lines"
 
 
 @pytest.mark.parametrize("package", ["offload_learner_py", "offload_demos"])
@@ -108,7 +207,7 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-
                "rosbags": "python3-rosbags-pip", "tqdm": "python3-tqdm", "rospy": "rospy", "rosbag": "rosbag",
                "roslaunch": "roslaunch", "rostest": "rostest", "tf2_ros": "tf2_ros", "genpy": "genpy",
                "nav_msgs": "nav_msgs", "geometry_msgs": "geometry_msgs", "std_msgs": "std_msgs",
-               "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp",
+               "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp", "offload_cloud": "offload_cloud",
                "offload_learner_py": "offload_learner_py", "rosgraph_msgs": "rosgraph_msgs",
                "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph",
                "atheris": "python3-atheris-pip", "rospkg": "python3-rospkg", "rosunit": "rosunit",
@@ -135,8 +234,8 @@ def test_package_xml_declares_what_the_code_imports(package):
             continue
         if source.suffix == "" and "python" not in source.read_text().split("\n", 1)[0]:
             continue   # a shell script
-        # Demo and test tools (devtools) may lean on test dependencies; everything else ships.
-        allowed = run | test_only if "devtools" in source.parts else run
+        # The demos package (demo and test tools) may lean on test dependencies; everything else ships.
+        allowed = run | test_only if package.name == "offload_demos" else run
         for module in set(imported_modules(source)):
             if module in sys.stdlib_module_names or module in ("_core", package.name):
                 continue
@@ -148,9 +247,9 @@ def test_package_xml_declares_what_the_code_imports(package):
 
 
 def test_ros_free_pip_install_plans_serves_and_pings(tmp_path):
-    """What a cloud host runs: `pip install ./src/offload_planner_cpp` into a venv without ROS installs the
-    core, the cloud subpackage and its commands, and none of the rospy nodes or demo tools; its declared
-    dependencies are enough to load a map_server map (YAML + PGM)."""
+    """What a cloud host runs: `pip install ./src/offload_planner_cpp ./src/offload_cloud` into a venv without
+    ROS installs the core, the cloud package and its commands, and none of the rospy nodes or demo tools; the
+    declared dependencies are enough to load a map_server map (YAML + PGM)."""
     venv = tmp_path / "venv"
     # Nothing of the sourced workspace (PYTHONPATH, ROS_*) may leak in: a host without ROS.
     env = {name: value for name, value in os.environ.items()
@@ -158,25 +257,30 @@ def test_ros_free_pip_install_plans_serves_and_pings(tmp_path):
     subprocess.run(["/usr/bin/python3", "-m", "venv", str(venv)], check=True, env=env)
     python = str(venv / "bin" / "python")
     # As README_cloud says: pyzmq built on the system's libzmq, whose libsodium is the fast one.
-    built = subprocess.run([python, "-m", "pip", "install", "-q", "--no-binary", "pyzmq", str(PLANNER)],
+    built = subprocess.run([python, "-m", "pip", "install", "-q", "--no-binary", "pyzmq", str(PLANNER),
+                            str(WORKSPACE / "src" / "offload_cloud")],
                            capture_output=True, text=True, env=env)
     assert built.returncode == 0, built.stderr[-3000:]
     code = ("import importlib.util, subprocess, sys, numpy as np, offload_planner_cpp\n"
             "assert importlib.util.find_spec('rospy') is None\n"
             "assert importlib.util.find_spec('offload_planner_cpp.nodes') is None\n"
-            "assert importlib.util.find_spec('offload_planner_cpp.devtools') is None\n"
-            "from offload_planner_cpp.cloud.server import CloudServer, ServerConfig\n"
-            "from offload_planner_cpp.cloud.client import CloudClient\n"
+            "assert importlib.util.find_spec('offload_demos') is None\n"
+            "assert importlib.util.find_spec('offload_learner_py') is None\n"
+            "from offload_cloud.server import CloudServer, ServerConfig\n"
+            "from offload_cloud.client import CloudClient\n"
             "from offload_planner_cpp.maps import load_map\n"
             f"assert load_map({str(PLANNER / 'maps' / 'turtlebot3_world' / 'map.yaml')!r}).grid.shape == (384, 384)\n"
-            "from offload_planner_cpp.cloud.curve_speed import bundled_libsodium\n"
+            "from offload_cloud.curve_speed import bundled_libsodium\n"
             "assert not bundled_libsodium()\n"
             "server = CloudServer(ServerConfig(bind='tcp://127.0.0.1:0', insecure=True, workers=1))\n"
             "endpoint = server.start()\n"
             "client = CloudClient(endpoint, insecure=True, timeout_s=10)\n"
             "reply = client.plan(np.zeros((5, 5), np.int8), (0, 0), (4, 4)).reply\n"
-            "ping = subprocess.run([sys.executable, '-m', 'offload_planner_cpp.cloud.client', endpoint, '--ping',\n"
+            "ping = subprocess.run([sys.executable, '-m', 'offload_cloud.client', endpoint, '--ping',\n"
             "                       '--insecure'], capture_output=True, text=True)\n"
+            "helped = subprocess.run([sys.executable.rsplit('/', 1)[0] + '/offload-cloud-server', '--help'],\n"
+            "                        capture_output=True, text=True)\n"
+            "assert helped.returncode == 0 and '--keys-dir' in helped.stdout, helped.stderr\n"
             "client.close(); server.stop()\n"
             "print(int(reply.status), round(reply.cost_cells, 6), ping.returncode)\n")
     done = subprocess.run([python, "-c", code], capture_output=True, text=True, cwd=tmp_path, timeout=120, env=env)

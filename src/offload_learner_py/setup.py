@@ -1,6 +1,7 @@
 """Installs the learner core. Under catkin, catkin_python_setup() reads this; on a laptop without ROS,
 `pip install ./src/offload_learner_py` installs the ROS-free core the same way."""
-PACKAGES = ["offload_learner_py", "offload_learner_py.core", "offload_learner_py.data", "offload_learner_py.offline", "offload_learner_py.online", "offload_learner_py.nodes", "offload_learner_py.bench", "offload_learner_py.devtools"]
+PACKAGES = ["offload_learner_py", "offload_learner_py.core", "offload_learner_py.data", "offload_learner_py.offline",
+            "offload_learner_py.online", "offload_learner_py.nodes"]
 
 try:
     from catkin_pkg.python_setup import generate_distutils_setup

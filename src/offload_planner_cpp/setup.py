@@ -4,6 +4,5 @@ from catkin_pkg.python_setup import generate_distutils_setup
 from setuptools import setup
 
 setup(**generate_distutils_setup(
-    packages=["offload_planner_cpp", "offload_planner_cpp.cloud", "offload_planner_cpp.nodes",
-              "offload_planner_cpp.devtools"],
+    packages=["offload_planner_cpp", "offload_planner_cpp.nodes"],
     package_dir={"": "src"}))

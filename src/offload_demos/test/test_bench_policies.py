@@ -5,7 +5,7 @@ import pytest
 
 from bagtools import CLOUD, LOCAL, make_requests, write
 from offload_learner_py.core.reward import reward
-from offload_learner_py.data.bag_writer import probe_request
+from offload_demos.bag_writer import probe_request
 from offload_demos.bench_policies import measure
 
 

@@ -5,7 +5,7 @@ import math
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.data.bag_writer import probe_request, write_requests
+from offload_demos.bag_writer import probe_request, write_requests
 from offload_learner_py.core.reward import reward
 
 

@@ -10,7 +10,7 @@ import sys
 import pytest
 
 from bagtools import make_requests, write
-from offload_learner_py.data.bag_writer import DECISION_TOPIC, BagWriter, installed_definitions, typestore_for
+from offload_demos.bag_writer import DECISION_TOPIC, BagWriter, installed_definitions, typestore_for
 from offload_learner_py.data.bags import DECISION_TYPE
 
 PEAK_RSS_BOUND_MIB = 512

@@ -9,7 +9,7 @@ import pytest
 
 from bagtools import make_requests, write
 from offload_learner_py.data import bag_records, bags, records
-from offload_learner_py.data.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
+from offload_demos.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
                                            installed_definitions, typestore_for, unindex)
 from offload_learner_py.core.reward import reward
 
@@ -267,7 +267,7 @@ def test_a_hedged_request_whose_other_side_won_is_a_request_and_enters_off_polic
     """Routed local, the local plan missed the hedge deadline, the cloud answered first and the local plan was
     cancelled: the robot waited for it like any request (it is among the delivered figures); the taken side's
     latency is only known to exceed the delivery time, at which off-policy evaluation takes it, and says so."""
-    from offload_learner_py.data.bag_writer import probe_request
+    from offload_demos.bag_writer import probe_request
     from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, format_results
     from offload_learner_py.offline.summary import delivered_figures
     plain = [probe_request(k, 1.0, 0.5, 0.05, 0.02, 0.08, 0, 1.0, math.nan, probe=False) for k in range(1, 40)]
@@ -300,7 +300,7 @@ def test_requests_the_router_routed_otherwise_are_kept(tmp_path):
     """A probe whose decided side was dropped before it started (a newer request needed it) and a cloud
     decision the open breaker kept local are requests like any other; a non-probe whose routed side has no
     latency is not."""
-    from offload_learner_py.data.bag_writer import probe_request
+    from offload_demos.bag_writer import probe_request
     cancelled = probe_request(1, 1.0, 0.5, 0.05, 0.2, 0.05, 0, 1.0, math.nan, probe=True)
     cancelled[1].update(local_measured=False, local_s=0.0, reward_valid=False, delivered=1)
     kept_local = probe_request(2, 1.0, 0.5, 0.05, 0.2, 0.05, 0, 1.0, math.nan, probe=False)

@@ -5,7 +5,7 @@ import sys
 
 import numpy as np
 
-from offload_learner_py.bench import decision as bench_decision
+from offload_demos import bench_decision as bench_decision
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 

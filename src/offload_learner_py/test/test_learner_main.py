@@ -1,5 +1,5 @@
 """The learner node freezes its start-up heap (rospy, torch) before it serves requests: a full collection
-over it cost 130 ms of CPU, 4-5 times that in a busy robot's CPU budget (offload_planner_cpp.gc_pauses)."""
+over it cost 130 ms of CPU, 4-5 times that in a busy robot's CPU budget (offload_cloud.gc_pauses)."""
 from offload_learner_py.nodes import learner
 
 

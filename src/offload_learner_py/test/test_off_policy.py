@@ -9,7 +9,7 @@ from bagtools import write
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data import bags
 from offload_learner_py.offline import off_policy
-from offload_learner_py.data.bag_writer import probe_request
+from offload_demos.bag_writer import probe_request
 from offload_learner_py.core.reward import reward
 
 

@@ -129,7 +129,7 @@ def test_a_reward_logged_with_another_alpha_is_caught(run_bag):
 
 def _bag_with_configs(path, alphas):
     """A bag of requests and, per session, the learner's latched config with that alpha."""
-    from offload_learner_py.data.bag_writer import CONFIG_TOPIC, CONFIG_TYPE, config_definition, installed_definitions, \
+    from offload_demos.bag_writer import CONFIG_TOPIC, CONFIG_TYPE, config_definition, installed_definitions, \
         typestore_for
 
     store = typestore_for(*installed_definitions(), extra={CONFIG_TYPE: config_definition()})

@@ -1,8 +1,11 @@
 """Shared fixtures: the map sets in ../shared/data/maps (skipped with a reason when absent) and the maps
-bundled with the package."""
+bundled with the package. The cloud package's test helpers serve the planner's agreement tests."""
+import sys
 from pathlib import Path
 
 import pytest
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[2] / "offload_cloud" / "test"))
 
 from planner_testdata import BUNDLED_MAPS, SHARED_MAPS
 
@@ -18,10 +21,3 @@ def shared_maps() -> Path:
 def bundled_maps() -> Path:
     return BUNDLED_MAPS
 
-
-@pytest.fixture
-def key_root(tmp_path):
-    """Server keys with an allowlist of two robots (robot, robot2) and their client keys, under tmp_path."""
-    from cloud_test_helpers import make_keys
-    make_keys(tmp_path, ["robot", "robot2"])
-    return tmp_path

@@ -8,7 +8,7 @@ from scipy.sparse import csgraph
 
 import offload_planner_cpp
 from offload_planner_cpp import NoPathError, PlanError, PlanStatus, plan
-from offload_planner_cpp.devtools.grid_graph import free_cells as grid_graph_free, grid_graph
+from offload_demos.grid_graph import free_cells as grid_graph_free, grid_graph
 from offload_planner_cpp.maps import load_map
 
 

@@ -82,7 +82,7 @@ def test_map_server_rejects_garbage_yaml(tmp_path):
 @pytest.mark.parametrize("content", [b"\xfcimage: map.pgm\n", b"[" * 20000, b"a: " + b"{b: " * 20000],
                          ids=["not utf-8", "deep list", "deep mapping"])
 def test_map_server_yaml_that_is_not_text_or_too_deep_is_a_map_format_error(tmp_path, content):
-    # Found by the fuzzer (devtools.fuzz map_yaml): a UnicodeDecodeError escaped the loader.
+    # Found by the fuzzer (offload_demos.fuzz map_yaml): a UnicodeDecodeError escaped the loader.
     path = tmp_path / "map.yaml"
     path.write_bytes(content)
     with pytest.raises(MapFormatError, match="cannot read map YAML"):

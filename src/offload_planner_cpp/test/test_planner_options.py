@@ -11,10 +11,10 @@ from scipy.sparse import csgraph
 
 import offload_planner_cpp
 from offload_planner_cpp import PlanStatus, inflate, path_clear, plan, plan_raw
-from offload_planner_cpp.cloud import protocol
-from offload_planner_cpp.cloud.client import CloudClient, reply_problem
-from offload_planner_cpp.cloud.protocol import PlanOptions, Status
-from offload_planner_cpp.devtools.grid_graph import grid_graph
+from offload_cloud import protocol
+from offload_cloud.client import CloudClient, reply_problem
+from offload_cloud.protocol import PlanOptions, Status
+from offload_demos.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map
 
 from cloud_test_helpers import start_server

@@ -7,7 +7,7 @@ import pytest
 
 from offload_planner_cpp import PlanStatus
 from offload_planner_cpp._core import check_map, in_map_frame, no_map_outcome, path_poses, resolve_request
-from offload_planner_cpp.cloud import protocol
+from offload_cloud import protocol
 
 IDENTITY = (0.0, 0.0, 0.0, 1.0)
 

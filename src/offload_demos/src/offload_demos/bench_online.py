@@ -17,8 +17,8 @@ import numpy as np
 
 from offload_planner_cpp import free_cells
 from offload_planner_cpp._core import check_map
-from offload_planner_cpp.devtools.loopback import free_port
-from offload_learner_py.online.goals import GoalSampler, default_start_cell
+from offload_demos.loopback import free_port
+from offload_demos.goals import GoalSampler, default_start_cell
 
 
 def main(argv=None) -> int:
@@ -42,7 +42,7 @@ def main(argv=None) -> int:
 
         from offload_planner_cpp.maps import load_map
 
-        server = subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.cloud.server", "--bind",
+        server = subprocess.Popen([sys.executable, "-m", "offload_cloud", "--bind",
                                    "tcp://127.0.0.1:0", "--insecure", "--workers", "1", "--log-level", "WARNING"],
                                   stdout=subprocess.PIPE, stderr=subprocess.DEVNULL, text=True, env=env)
         processes.append(server)
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
         processes += [
             subprocess.Popen(["rosrun", "offload_planner_cpp", "map_publisher", f"_map:={map_yaml}"], **quiet),
             subprocess.Popen(["rosrun", "offload_planner_cpp", "planner_node", "__name:=planner"], **quiet),
-            subprocess.Popen([sys.executable, "-m", "offload_planner_cpp.nodes.cloud_bridge", "__name:=cloud_bridge",
+            subprocess.Popen([sys.executable, "-m", "offload_learner_py.nodes.cloud_bridge", "__name:=cloud_bridge",
                               f"_endpoint:={endpoint}", "_insecure:=true"], **quiet),
             subprocess.Popen([sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
                               "_policy:=dqn", "_learn:=false", "_probe_rate:=0.0", "_cloud_service:=/planner/plan",

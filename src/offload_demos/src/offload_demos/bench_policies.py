@@ -30,7 +30,7 @@ import time
 
 import numpy as np
 
-from offload_planner_cpp.cli_args import bounded_float, bounded_int
+from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_msgs.srv import PlanPathResponse
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data.bags import read_bags

@@ -16,8 +16,8 @@ import subprocess
 import sys
 import time
 
-from offload_planner_cpp.cli_args import bounded_float, bounded_int
-from offload_planner_cpp.devtools.loopback import free_port
+from offload_cloud.cli_args import bounded_float, bounded_int
+from offload_demos.loopback import free_port
 from offload_demos.keys import ensure_demo_keys
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.offline.report import report_run

@@ -1,12 +1,12 @@
 """CURVE keys for the one-machine demo, generated on first run into one directory (server/ and robot/
-beside each other, as offload_planner_cpp.cloud.keys writes them), atomically, so the server and the
+beside each other, as offload_cloud.keys writes them), atomically, so the server and the
 bridge starting at the same moment never see half a key set."""
 import os
 import pathlib
 import shutil
 import tempfile
 
-from offload_planner_cpp.cloud import keys
+from offload_cloud import keys
 
 ROBOT = "robot"
 

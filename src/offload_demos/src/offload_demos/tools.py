@@ -15,9 +15,9 @@ from offload_demos.workload import LoadSchedule, parse_levels, run_workload
 
 
 def cloud_server_main():
-    """demo_cloud_server [--demo-keys DIR] SERVER_ARGS...: offload_planner_cpp.cloud.server, with
+    """demo_cloud_server [--demo-keys DIR] SERVER_ARGS...: offload_cloud.server, with
     --keys-dir DIR/server added after generating DIR on first run."""
-    from offload_planner_cpp.cloud import server
+    from offload_cloud import server
 
     argv = rospy.myargv(sys.argv)[1:]
     if argv[:1] == ["--demo-keys"] and len(argv) >= 2:
@@ -27,8 +27,8 @@ def cloud_server_main():
 
 
 def wan_emulator_main():
-    """demo_wan_emulator EMULATOR_ARGS...: offload_planner_cpp.devtools.wan_emulator."""
-    from offload_planner_cpp.devtools import wan_emulator
+    """demo_wan_emulator EMULATOR_ARGS...: offload_demos.wan_emulator."""
+    from offload_demos import wan_emulator
 
     sys.exit(wan_emulator.main(rospy.myargv(sys.argv)[1:]))
 

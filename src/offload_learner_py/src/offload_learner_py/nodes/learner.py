@@ -25,7 +25,7 @@ from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.routing import RouterConfig, Statuses
 from offload_learner_py.online.session import LearnerSession, SessionConfig, dqn_settings
-from offload_planner_cpp.gc_pauses import freeze_startup_heap
+from offload_cloud.gc_pauses import freeze_startup_heap
 
 
 class LearnerNode:

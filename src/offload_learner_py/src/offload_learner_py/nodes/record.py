@@ -13,7 +13,7 @@ import shutil
 import sys
 import time
 
-from offload_planner_cpp.cli_args import bounded_int
+from offload_cloud.cli_args import bounded_int
 
 MIN_FREE_MIB = 1024   # the recorder's own minimum free space (1 GB, not an option of the rosbag command):
                       # below it, it records nothing

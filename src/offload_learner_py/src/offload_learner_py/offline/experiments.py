@@ -26,7 +26,7 @@ from typing import Dict, List, Optional
 import numpy as np
 import torch
 
-from offload_planner_cpp.cli_args import bounded_float, bounded_int
+from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_learner_py.core.checkpoint import save_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.data.dataset import TransitionTable

@@ -1,0 +1,291 @@
+"""Robot-side bridge to the cloud planner, without ROS: the rospy node (nodes.cloud_bridge) only converts
+messages. The request contract (map validation, frames, request checks, world <-> cell conversion, the
+poses of a path) is the C++ core's, called through the binding exactly as the local planner node calls
+it, so both answer a request alike; only the planning runs in the cloud, and a silent cloud gives
+CLOUD_TIMEOUT."""
+import logging
+import threading
+import time
+from dataclasses import dataclass, field
+from typing import Any, Optional, Tuple
+
+import numpy as np
+import zmq
+
+from offload_planner_cpp import PlanStatus
+from offload_planner_cpp._core import MapGeometry, check_map, no_map_outcome, path_poses, resolve_request
+from offload_cloud import protocol
+from offload_cloud.client import CloudClient, CloudTimeout, KnownMaps
+from offload_cloud.protocol import PlanOptions, Status
+
+# A child of rospy's "rosout" logger: under the node its records reach /rosout and the node's log like
+# rospy.logwarn's; without ROS it is an ordinary Python logger.
+LOG = logging.getLogger("rosout.offload_cloud.bridge")
+
+
+@dataclass(frozen=True)
+class MapSnapshot:
+    grid: np.ndarray         # int8 [y, x], a view of the message's buffer
+    geometry: MapGeometry
+    frame_id: str
+    stamp: Any               # the map header's stamp, passed back untouched
+    map_hash: bytes
+
+
+@dataclass(frozen=True)
+class StampedPose:
+    """A geometry_msgs/PoseStamped in plain types; the orientation only matters for the path's ends."""
+    frame_id: str
+    x: float
+    y: float
+    z: float = 0.0
+    orientation: Tuple[float, float, float, float] = (0.0, 0.0, 0.0, 1.0)   # qx, qy, qz, qw
+
+    def pose(self) -> Tuple[float, ...]:
+        return (self.x, self.y, self.z, *self.orientation)
+
+
+@dataclass
+class BridgeResult:
+    status: PlanStatus
+    message: str = ""
+    poses: np.ndarray = field(default_factory=lambda: np.empty((0, 7)))   # x, y, z, qx, qy, qz, qw per pose
+    reached_goal: bool = False       # the path ends in the requested goal cell (not a tolerance fallback)
+    planning_time_s: float = 0.0
+    expansions: int = 0
+    cost_m: float = 0.0
+    map_stamp: Any = None
+    frame_id: str = ""
+    link_round_trip_s: Optional[float] = None   # None when the cloud was not asked
+    reachable: bool = True
+    bytes_sent: int = 0              # link payload bytes of this request, map re-uploads included
+    bytes_received: int = 0
+
+
+@dataclass(frozen=True)
+class BridgeConfig:
+    endpoint: str
+    keys_dir: Optional[str] = None
+    insecure: bool = False
+    timeout_s: float = 5.0
+    retries: int = 1
+    heartbeat_timeout_s: float = 1.0
+    upload_retry_max_s: float = 60.0   # a failed map upload is retried after the heartbeat period, doubling to this
+    lethal_threshold: int = 50
+    unknown_is_obstacle: bool = True
+    max_map_cells: int = 64_000_000   # larger maps are refused, as by the local planner node
+    # The planner options, as the local planner node's parameters (radii in metres, decay per metre).
+    algorithm: str = "dijkstra"
+    any_angle: bool = False
+    cost_factor: float = 0.0
+    neutral_cost: float = 50.0
+    robot_radius_m: float = 0.0
+    inflation_radius_m: float = 0.0
+    cost_scaling_factor: float = 10.0
+
+
+class CloudBridge:
+    """Thread safe: concurrent plan() calls each borrow their own client socket."""
+
+    def __init__(self, config: BridgeConfig):
+        self.config = config
+        self._context = zmq.Context()
+        self._known_maps = KnownMaps()
+        self._lock = threading.Lock()
+        self._idle_clients = []
+        self._map: Optional[MapSnapshot] = None
+        self._rejected = ""
+        # Fails now, not at the first request, when the keys are missing.
+        self._heartbeat_client = self._new_client(timeout_s=config.heartbeat_timeout_s, retries=0)
+        # Map uploads run beside the heartbeat (an upload the cloud never answers must not hold up the
+        # pings), one at a time, on their own client; a failed one is retried with backoff.
+        self._upload_client = self._new_client(timeout_s=config.timeout_s, retries=0)
+        self._upload_thread: Optional[threading.Thread] = None
+        self._failed_upload: Optional[bytes] = None   # hash of the map whose last upload failed
+        self._upload_retry_at = 0.0
+        self._upload_retry_s = 0.0
+        self._last_heartbeat_at: Optional[float] = None
+        self._heartbeat_period_s = 1.0                  # measured between heartbeat() calls
+        self._non_pong_warned = False
+        self.upload_attempts = 0                        # map uploads started by the heartbeat (for tests)
+
+    def _new_client(self, timeout_s: float, retries: int) -> CloudClient:
+        return CloudClient(self.config.endpoint, keys_dir=self.config.keys_dir, insecure=self.config.insecure,
+                           timeout_s=timeout_s, retries=retries, known_maps=self._known_maps,
+                           context=self._context)
+
+    def close(self) -> None:
+        self.wait_for_upload(self.config.timeout_s + 1.0)
+        with self._lock:
+            clients, self._idle_clients = self._idle_clients, []
+        for client in clients + [self._heartbeat_client, self._upload_client]:
+            client.close()
+        self._context.term()
+
+    # -- map -------------------------------------------------------------------------------------------
+
+    def set_map(self, data: np.ndarray, width: int, height: int, resolution: float, origin_x: float,
+                origin_y: float, orientation: Tuple[float, float, float, float], frame_id: str, stamp) -> str:
+        """Takes a new map (data: the message's int8 array, not copied); keeps the previous one and returns
+        why when it is malformed, else returns ""."""
+        data = np.asarray(data)
+        checked, geometry = check_map(width, height, int(data.size), resolution, origin_x, origin_y,
+                                      tuple(orientation), self.config.max_map_cells)
+        why = checked.message
+        if checked.ok and data.dtype != np.int8:
+            why = f"map data has dtype {data.dtype}, expected int8"
+        if why:
+            with self._lock:
+                self._rejected = why
+            return why
+        grid = np.ascontiguousarray(data).reshape(height, width)
+        snapshot = MapSnapshot(grid, geometry, frame_id, stamp, protocol.grid_hash(grid))
+        with self._lock:
+            self._map = snapshot
+        return ""
+
+    @property
+    def map(self) -> Optional[MapSnapshot]:
+        with self._lock:
+            return self._map
+
+    # -- heartbeat ------------------------------------------------------------------------------------
+
+    def heartbeat(self) -> Tuple[bool, float]:
+        """(reachable, round trip s) of one ping. The round trip is always measured: reachable is True
+        whenever the server answered at all (a non-pong answer too); only when nothing answered within
+        heartbeat_timeout_s is it (False, heartbeat_timeout_s). Then, when the cloud answered and has not
+        acknowledged the current map, starts its upload in the background (so the next plan carries only
+        the hash); a failed upload is retried after the heartbeat period, doubling up to
+        upload_retry_max_s, not at every heartbeat. Call from one thread only."""
+        now = time.monotonic()
+        if self._last_heartbeat_at is not None:
+            self._heartbeat_period_s = max(0.01, now - self._last_heartbeat_at)
+        self._last_heartbeat_at = now
+        try:
+            reply, round_trip_s = self._heartbeat_client.ping_reply()
+        except CloudTimeout:
+            return False, self.config.heartbeat_timeout_s
+        if reply.status != Status.OK and not self._non_pong_warned:
+            self._non_pong_warned = True
+            LOG.warning("cloud planner at %s answers pings with %s: %s", self.config.endpoint, reply.status.name,
+                        reply.message)
+        self._upload_if_due()
+        return True, round_trip_s
+
+    def _upload_if_due(self) -> None:
+        snapshot = self.map
+        if snapshot is None or snapshot.map_hash in self._known_maps:
+            return
+        if self._upload_thread is not None and self._upload_thread.is_alive():
+            return
+        if snapshot.map_hash == self._failed_upload and time.monotonic() < self._upload_retry_at:
+            return
+        self.upload_attempts += 1
+        self._upload_thread = threading.Thread(target=self._upload, args=(snapshot,), name="map-upload",
+                                               daemon=True)
+        self._upload_thread.start()
+
+    def _upload(self, snapshot: MapSnapshot) -> None:
+        why = ""
+        try:
+            reply = self._upload_client.upload(snapshot.grid, snapshot.map_hash, timeout_s=self.config.timeout_s)
+            if reply.status != Status.OK:
+                why = f"the cloud answered {reply.status.name}: {reply.message}"
+        except CloudTimeout:
+            why = (f"no answer within {self.config.timeout_s:g} s: the map may exceed the server's "
+                   f"--max-message-mib (libzmq then drops the connection), or the cloud is down")
+        except Exception as error:   # never let the upload thread die silently
+            why = f"{type(error).__name__}: {error}"
+        short_hash = snapshot.map_hash.hex()[:12]
+        if not why:
+            if self._failed_upload == snapshot.map_hash:
+                LOG.info("map %s uploaded to the cloud after earlier failures", short_hash)
+                self._failed_upload = None
+            return
+        if self._failed_upload != snapshot.map_hash:
+            LOG.warning("upload of map %s (%d bytes) to %s failed: %s; retrying with backoff up to every %s s, "
+                        "plans on this map carry it along meanwhile", short_hash, snapshot.grid.nbytes,
+                        self.config.endpoint, why, f"{self.config.upload_retry_max_s:g}")
+            self._failed_upload = snapshot.map_hash
+            self._upload_retry_s = self._heartbeat_period_s
+        else:
+            self._upload_retry_s = min(2.0 * self._upload_retry_s, self.config.upload_retry_max_s)
+        self._upload_retry_at = time.monotonic() + self._upload_retry_s
+
+    def wait_for_upload(self, timeout_s: Optional[float] = None) -> None:
+        """Waits for a map upload the heartbeat started, if any."""
+        thread = self._upload_thread
+        if thread is not None:
+            thread.join(timeout_s)
+
+    # -- plan -----------------------------------------------------------------------------------------
+
+    def plan(self, start: StampedPose, goal: StampedPose, tolerance_m: float) -> BridgeResult:
+        """The PlanPath answer for a request: checked and converted by the core's request contract,
+        planned in the cloud."""
+        with self._lock:
+            snapshot, rejected = self._map, self._rejected
+        if snapshot is None:
+            outcome = no_map_outcome(rejected)
+            return BridgeResult(outcome.status, outcome.message)
+        result = BridgeResult(PlanStatus.OK, map_stamp=snapshot.stamp, frame_id=snapshot.frame_id)
+        geometry = snapshot.geometry
+        # tolerance_m becomes float32, as the service carries it (a larger value is inf, so refused).
+        request = resolve_request(geometry, snapshot.frame_id, start.frame_id, start.x, start.y, goal.frame_id,
+                                  goal.x, goal.y, tolerance_m)
+        if not request.outcome.ok:
+            result.status, result.message = request.outcome.status, request.outcome.message
+            return result
+
+        config = self.config
+        options = PlanOptions(goal_tolerance_cells=request.tolerance_cells, lethal_threshold=config.lethal_threshold,
+                              unknown_is_obstacle=config.unknown_is_obstacle, algorithm=config.algorithm,
+                              any_angle=config.any_angle, cost_factor=config.cost_factor,
+                              neutral_cost=config.neutral_cost,
+                              robot_radius_cells=config.robot_radius_m / geometry.resolution,
+                              inflation_radius_cells=config.inflation_radius_m / geometry.resolution,
+                              inflation_decay=config.cost_scaling_factor * geometry.resolution)
+        client = self._borrow_client()
+        sent_before, received_before = client.bytes_sent, client.bytes_received
+        try:
+            outcome = client.plan(snapshot.grid, request.start, request.goal, options, snapshot.map_hash)
+        except CloudTimeout:
+            result.status = PlanStatus.CLOUD_TIMEOUT
+            result.message = (f"cloud planner at {self.config.endpoint} did not answer within "
+                              f"{self.config.timeout_s:g} s: plan locally")
+            result.link_round_trip_s = self.config.timeout_s
+            result.reachable = False
+            return result
+        finally:
+            result.bytes_sent = client.bytes_sent - sent_before
+            result.bytes_received = client.bytes_received - received_before
+            self._return_client(client)
+        reply = outcome.reply
+        # The link's share of the round trip: what the learner's b_t measures.
+        result.link_round_trip_s = max(0.0, outcome.round_trip_s - reply.planning_time_s)
+        if not protocol.is_planner_status(reply.status):
+            result.status = PlanStatus.CLOUD_ERROR
+            result.message = f"cloud planner refused the request ({reply.status.name}): {reply.message}"
+            return result
+        # The planner's outcome codes are the core's: the cloud's answer reaches the robot untranslated.
+        result.status = PlanStatus(int(reply.status))
+        result.message = reply.message
+        result.planning_time_s = reply.planning_time_s
+        result.expansions = reply.expansions
+        if result.status != PlanStatus.OK:
+            return result
+        result.cost_m = reply.cost_cells * geometry.resolution
+        result.reached_goal = tuple(reply.goal) == tuple(request.goal)
+        result.poses = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
+        return result
+
+    def _borrow_client(self) -> CloudClient:
+        with self._lock:
+            if self._idle_clients:
+                return self._idle_clients.pop()
+        return self._new_client(timeout_s=self.config.timeout_s, retries=self.config.retries)
+
+    def _return_client(self, client: CloudClient) -> None:
+        with self._lock:
+            self._idle_clients.append(client)

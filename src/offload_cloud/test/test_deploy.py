@@ -1,0 +1,95 @@
+"""The recipes for real cloud hosts, validated offline with the tools that can: the Kubernetes manifests
+against the API schemas (kubernetes-validate), the HAProxy configurations with `haproxy -c`, the systemd
+unit with `systemd-analyze verify`; and every command line in them is one the server and the health
+check accept."""
+import re
+import shlex
+import subprocess
+import sys
+import tomllib
+from pathlib import Path
+
+import kubernetes_validate
+import pytest
+import yaml
+
+from offload_cloud.server_cli import parse_args as server_args
+from offload_demos.fleet import haproxy_config
+
+PACKAGE = Path(__file__).resolve().parents[1]
+DEPLOY = PACKAGE / "deploy"
+K8S_VERSION = "1.30.0"
+
+
+def scripts():
+    return tomllib.loads((PACKAGE / "pyproject.toml").read_text())["project"]["scripts"]
+
+
+def manifests():
+    return [doc for doc in yaml.safe_load_all((DEPLOY / "kubernetes" / "cloud-server.yaml").read_text()) if doc]
+
+
+def test_kubernetes_manifests_are_valid_and_the_check_is_real():
+    docs = manifests()
+    assert {doc["kind"] for doc in docs} == {"Deployment", "Service"}
+    for doc in docs:
+        kubernetes_validate.validate(doc, K8S_VERSION, strict=True)
+    broken = manifests()[0]
+    broken["spec"]["replicas"] = "three"
+    with pytest.raises(kubernetes_validate.ValidationError):
+        kubernetes_validate.validate(broken, K8S_VERSION, strict=True)
+
+
+def test_kubernetes_commands_are_the_servers_and_the_health_checks():
+    deployment = manifests()[0]
+    container = deployment["spec"]["template"]["spec"]["containers"][0]
+    args = server_args(container["args"])
+    assert args.keys_dir == "/keys" and not args.insecure
+    probe = container["readinessProbe"]["exec"]["command"]
+    assert probe[0] == "offload-cloud-ping" and scripts()[probe[0]] == "offload_cloud.client:main"
+    assert "--ping" in probe and probe[probe.index("--keys-dir") + 1] == "/probe-keys"
+    mounts = {m["name"]: m["mountPath"] for m in container["volumeMounts"]}
+    assert mounts == {"server-keys": "/keys", "probe-keys": "/probe-keys"}
+    secret = next(v for v in deployment["spec"]["template"]["spec"]["volumes"] if v["name"] == "server-keys")
+    paths = {item["path"] for item in secret["secret"]["items"]}
+    assert {"server.key", "server.key_secret"} <= paths and any(p.startswith("clients/") for p in paths)
+
+
+def test_dockerfile_runs_the_servers_console_script():
+    text = (DEPLOY / "Dockerfile").read_text()
+    entrypoint = yaml.safe_load(re.search(r"^ENTRYPOINT (.+)$", text, re.M).group(1))
+    command = yaml.safe_load(re.search(r"^CMD (.+)$", text, re.M).group(1))
+    assert scripts()[entrypoint[0]] == "offload_cloud.server_cli:main"
+    assert server_args(command).keys_dir == "/keys"
+    health = yaml.safe_load(re.search(r"CMD (\[\"offload-cloud-ping\".+)$", text, re.M).group(1))
+    assert scripts()[health[0]] == "offload_cloud.client:main"
+
+
+@pytest.mark.parametrize("name", ["example", "fleet"])
+def test_haproxy_configurations_pass_haproxy_check(name, tmp_path):
+    if name == "example":
+        path = DEPLOY / "haproxy" / "haproxy.cfg"
+    else:
+        path = tmp_path / "haproxy.cfg"
+        path.write_text(haproxy_config(6000, [7001, 7002], stats_port=6001))
+    checked = subprocess.run(["haproxy", "-c", "-f", str(path)], capture_output=True, text=True)
+    assert checked.returncode == 0, checked.stdout + checked.stderr
+    broken = tmp_path / "broken.cfg"
+    broken.write_text(path.read_text().replace("balance leastconn", "balance sometimes"))
+    assert subprocess.run(["haproxy", "-c", "-f", str(broken)], capture_output=True).returncode != 0
+
+
+def test_systemd_unit_verifies_and_its_command_is_accepted(tmp_path):
+    unit = (DEPLOY / "systemd" / "offload-cloud-server.service").read_text()
+    exec_start = shlex.split(re.search(r"^ExecStart=(.+)$", unit, re.M).group(1))
+    assert Path(exec_start[0]).name == "offload-cloud-server" and "offload-cloud-server" in scripts()
+    assert server_args(exec_start[1:]).keys_dir == "/etc/offload/keys"
+    # systemd-analyze needs the command to exist: point it at this interpreter for the check.
+    local = tmp_path / "offload-cloud-server.service"
+    local.write_text(unit.replace(exec_start[0], sys.executable))
+    verified = subprocess.run(["systemd-analyze", "verify", str(local)], capture_output=True, text=True)
+    assert verified.returncode == 0, verified.stderr
+    broken = tmp_path / "broken.service"
+    broken.write_text(local.read_text().replace("Restart=on-failure", "Restart=sometimes"))
+    assert "sometimes" in subprocess.run(["systemd-analyze", "verify", str(broken)], capture_output=True,
+                                         text=True).stderr

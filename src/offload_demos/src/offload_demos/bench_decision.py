@@ -1,0 +1,103 @@
+"""Benchmark of one offloading decision (raw state in, action and both Q-values out), as the robot
+makes it per planning request. Prints p50/p99 in microseconds for torch eager, TorchScript and the
+numpy fast path, all measured in this run on the same states.
+
+    python -m offload_demos.bench_decision [--decisions 20000] [--budget-us 100]
+"""
+import argparse
+import sys
+import time
+import warnings
+from typing import Callable, Dict
+
+import numpy as np
+import torch
+
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.normalisation import StateNormalisation
+
+
+def measure_us(decide: Callable[[float, float, float], tuple], states: np.ndarray, warm_up: int = 500) -> Dict[str, float]:
+    """Wall time of each decide(d, u, b) call in microseconds: p50, p99, max."""
+    rows = [tuple(float(v) for v in row) for row in states]
+    for row in rows[:warm_up]:
+        decide(*row)
+    samples = np.empty(len(rows))
+    clock = time.perf_counter_ns
+    for i, row in enumerate(rows):
+        began = clock()
+        decide(*row)
+        samples[i] = clock() - began
+    samples /= 1e3
+    return {"p50_us": float(np.percentile(samples, 50)), "p99_us": float(np.percentile(samples, 99)),
+            "max_us": float(samples.max())}
+
+
+def example_states(count: int, seed: int) -> np.ndarray:
+    """States spread like the synthetic streams: d over four decades, u 0.5-0.7, b about 30 ms."""
+    rng = np.random.default_rng(seed)
+    return np.stack([10.0 ** rng.uniform(-4.5, -0.5, count), rng.uniform(0.5, 0.7, count),
+                     rng.uniform(0.0285, 0.0315, count)], axis=1)
+
+
+def decision_paths(agent: DQNAgent) -> Dict[str, Callable]:
+    def eager(d, u, b):
+        q = agent.q_values(np.array((d, u, b)))
+        return (CLOUD if q[CLOUD] > q[LOCAL] else LOCAL), float(q[LOCAL]), float(q[CLOUD])
+
+    paths = {"torch eager": eager}
+    try:
+        with warnings.catch_warnings():
+            # Deprecated in torch 2.x but still the usual way to ship a network to C++/robots: it is
+            # measured here so the choice of the numpy path rests on numbers.
+            warnings.simplefilter("ignore", DeprecationWarning)
+            scripted = torch.jit.script(agent.q_network.eval())
+        normalisation = agent.normalisation
+
+        def torchscript(d, u, b):
+            with torch.no_grad():
+                q = scripted(torch.from_numpy(normalisation.apply(np.array((d, u, b))))).numpy()
+            return (CLOUD if q[CLOUD] > q[LOCAL] else LOCAL), float(q[LOCAL]), float(q[CLOUD])
+
+        paths["torchscript"] = torchscript
+    except Exception as error:  # TorchScript is optional: report why it is missing and go on
+        print(f"torchscript unavailable: {error}", file=sys.stderr)
+    paths["numpy fast path"] = agent.fast_decision().decide
+    return paths
+
+
+def main(argv=None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    parser.add_argument("--decisions", type=int, default=20000)
+    parser.add_argument("--budget-us", type=float, default=100.0, help="p99 budget of the fast path")
+    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--threads", type=int, default=1, help="torch threads (1: one decision is tiny)")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    states = example_states(args.decisions, args.seed)
+    agent = DQNAgent(DQNConfig(seed=args.seed), StateNormalisation.fit(states))
+    paths = decision_paths(agent)
+    fast = agent.fast_decision()
+    check = states[:200]
+    eager_actions = [paths["torch eager"](*row)[0] for row in check]
+    fast_actions = [fast.decide(*row)[0] for row in check]
+    if eager_actions != fast_actions:
+        print("fast path disagrees with torch eager", file=sys.stderr)
+        return 1
+    print(f"one decision (state in, action and both Q-values out), {args.decisions} decisions, "
+          f"network 3 -> {' -> '.join(map(str, agent.config.hidden_sizes))} -> 2, torch threads {args.threads}")
+    results = {}
+    for name, decide in paths.items():
+        results[name] = measure_us(decide, states)
+        r = results[name]
+        print(f"  {name:16s} p50 {r['p50_us']:7.1f} us   p99 {r['p99_us']:7.1f} us   max {r['max_us']:8.1f} us")
+    fast_p99 = results["numpy fast path"]["p99_us"]
+    verdict = "within" if fast_p99 <= args.budget_us else "OVER"
+    print(f"fast path p99 {fast_p99:.1f} us: {verdict} the {args.budget_us:.0f} us budget")
+    return 0 if fast_p99 <= args.budget_us else 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

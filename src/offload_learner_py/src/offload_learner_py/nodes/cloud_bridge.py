@@ -1,0 +1,199 @@
+"""rospy node around bridge.CloudBridge: the robot's door to the cloud planner. It serves the same
+offload_msgs/PlanPath service as the local planner node, so a caller can use either."""
+import math
+import threading
+import time
+
+import rospy
+import zmq
+from geometry_msgs.msg import PoseStamped
+from nav_msgs.msg import OccupancyGrid, Path
+from nav_msgs.srv import GetPlan, GetPlanResponse
+from offload_msgs.msg import LinkLatency, PlanTiming
+from offload_msgs.srv import PlanPath, PlanPathResponse
+from rospy.numpy_msg import numpy_msg
+
+from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
+from offload_cloud.gc_pauses import freeze_startup_heap
+
+
+def stamped_pose(msg) -> StampedPose:
+    p, q = msg.pose.position, msg.pose.orientation
+    return StampedPose(msg.header.frame_id, p.x, p.y, p.z, (q.x, q.y, q.z, q.w))
+
+
+def pose_stamped(header, row) -> PoseStamped:
+    """A PoseStamped from one (x, y, z, qx, qy, qz, qw) row of the core's path poses."""
+    pose = PoseStamped(header=header)
+    p, q = pose.pose.position, pose.pose.orientation
+    p.x, p.y, p.z, q.x, q.y, q.z, q.w = row
+    return pose
+
+
+def read_parameters() -> BridgeConfig:
+    endpoint = rospy.get_param("~endpoint", "")
+    if not endpoint:
+        raise ValueError("~endpoint is required, e.g. tcp://cloud.example.org:5555")
+    keys_dir = rospy.get_param("~keys_dir", "") or None
+    insecure = bool(rospy.get_param("~insecure", False))
+    if not keys_dir and not insecure:
+        raise ValueError("~keys_dir is required (CURVE is on by default); set ~insecure true for plaintext")
+    config = BridgeConfig(endpoint=endpoint, keys_dir=keys_dir, insecure=insecure,
+                          timeout_s=float(rospy.get_param("~timeout_s", 5.0)),
+                          retries=int(rospy.get_param("~retries", 1)),
+                          heartbeat_timeout_s=float(rospy.get_param("~heartbeat_timeout_s", 1.0)),
+                          lethal_threshold=int(rospy.get_param("~lethal_threshold", 50)),
+                          unknown_is_obstacle=bool(rospy.get_param("~unknown_is_obstacle", True)),
+                          max_map_cells=int(rospy.get_param("~max_map_cells", 64_000_000)),
+                          algorithm=str(rospy.get_param("~algorithm", "dijkstra")),
+                          any_angle=bool(rospy.get_param("~any_angle", False)),
+                          cost_factor=float(rospy.get_param("~cost_factor", 0.0)),
+                          neutral_cost=float(rospy.get_param("~neutral_cost", 50.0)),
+                          robot_radius_m=float(rospy.get_param("~robot_radius", 0.0)),
+                          inflation_radius_m=float(rospy.get_param("~inflation_radius", 0.0)),
+                          cost_scaling_factor=float(rospy.get_param("~cost_scaling_factor", 10.0)))
+    if config.algorithm not in ("dijkstra", "astar"):
+        raise ValueError(f"~algorithm must be dijkstra or astar, got {config.algorithm!r}")
+    numbers = (config.cost_factor, config.robot_radius_m, config.inflation_radius_m, config.cost_scaling_factor)
+    if not all(math.isfinite(v) and v >= 0 for v in numbers) or not (math.isfinite(config.neutral_cost)
+                                                                    and config.neutral_cost > 0):
+        raise ValueError("~cost_factor, ~robot_radius, ~inflation_radius and ~cost_scaling_factor must be finite "
+                         "and >= 0, ~neutral_cost finite and > 0")
+    if not 1 <= config.lethal_threshold <= 101:
+        raise ValueError(f"~lethal_threshold must be in 1..101, got {config.lethal_threshold}")
+    if config.timeout_s <= 0 or config.retries < 0 or config.heartbeat_timeout_s <= 0:
+        raise ValueError("~timeout_s and ~heartbeat_timeout_s must be > 0 and ~retries >= 0")
+    return config
+
+
+class CloudBridgeNode:
+    def __init__(self, config: BridgeConfig, heartbeat_period_s: float, planner_name: str):
+        self.bridge = CloudBridge(config)
+        self.planner_name = planner_name
+        self.heartbeat_period_s = heartbeat_period_s
+        self.latency_pub = rospy.Publisher("~latency", LinkLatency, queue_size=10)
+        # A deep queue: a burst of fast plans must not drop timings the learner and the bags rely on.
+        self.timing_pub = rospy.Publisher("~timing", PlanTiming, queue_size=1000)
+        self.path_pub = rospy.Publisher("~path", Path, queue_size=1, latch=True)
+        # numpy_msg keeps the grid as one int8 array: no per-cell Python ints.
+        self.map_sub = rospy.Subscriber("map", numpy_msg(OccupancyGrid), self.on_map, queue_size=1,
+                                        buff_size=1 << 26)
+        self.plan_srv = rospy.Service("~plan", PlanPath, self.on_plan)
+        self.make_plan_srv = rospy.Service("~make_plan", GetPlan, self.on_make_plan)
+        self._stopped = threading.Event()
+        self._heartbeat = threading.Thread(target=self.heartbeat_loop, name="heartbeat", daemon=True)
+        self._heartbeat.start()
+        rospy.on_shutdown(self.shutdown)
+        rospy.loginfo("cloud bridge to %s (%s), timeout %g s, %d retries; waiting for a map on %s",
+                      config.endpoint, "INSECURE" if config.insecure else "CURVE", config.timeout_s,
+                      config.retries, self.map_sub.resolved_name)
+
+    def shutdown(self) -> None:
+        self._stopped.set()
+        self._heartbeat.join(5.0)
+        self.bridge.close()
+
+    def on_map(self, msg) -> None:
+        info = msg.info
+        q = info.origin.orientation
+        why = self.bridge.set_map(msg.data, info.width, info.height, info.resolution, info.origin.position.x,
+                                  info.origin.position.y, (q.x, q.y, q.z, q.w), msg.header.frame_id,
+                                  msg.header.stamp)
+        if why:
+            rospy.logerr("rejected map on %s: %s; keeping the previous map", self.map_sub.resolved_name, why)
+        else:
+            rospy.loginfo("map %d x %d at %.3f m/cell in frame '%s'", info.width, info.height, info.resolution,
+                          msg.header.frame_id)
+
+    def heartbeat_loop(self) -> None:
+        while not self._stopped.wait(self.heartbeat_period_s) and not rospy.is_shutdown():
+            reachable, round_trip_s = self.bridge.heartbeat()
+            self.publish_latency(LinkLatency.HEARTBEAT, reachable, round_trip_s)
+
+    def publish_latency(self, source: int, reachable: bool, round_trip_s: float) -> None:
+        msg = LinkLatency(source=source, reachable=reachable, round_trip_s=round_trip_s)
+        msg.header.stamp = rospy.Time.now()
+        try:
+            self.latency_pub.publish(msg)
+        except rospy.ROSException:   # publishing during shutdown
+            pass
+
+    def serve(self, req) -> PlanPathResponse:
+        started = rospy.get_time()
+        cpu_started = time.thread_time()   # this service thread's CPU: the robot's cost of offloading
+        result = self.bridge.plan(stamped_pose(req.start), stamped_pose(req.goal), req.tolerance)
+        res = PlanPathResponse(status=int(result.status), message=result.message,
+                               planning_time_s=result.planning_time_s, expansions=result.expansions,
+                               cost_m=result.cost_m, bytes_sent=result.bytes_sent,
+                               bytes_received=result.bytes_received)
+        if result.map_stamp is not None:
+            res.map_stamp = result.map_stamp
+        if res.status == PlanPathResponse.OK:
+            res.path.header.frame_id = result.frame_id
+            res.path.header.stamp = rospy.Time.now()
+            res.path.poses = [pose_stamped(res.path.header, row) for row in result.poses.tolist()]
+        res.cpu_s = time.thread_time() - cpu_started
+        if result.link_round_trip_s is not None:
+            self.publish_latency(LinkLatency.REQUEST, result.reachable, result.link_round_trip_s)
+        timing = PlanTiming(planner=self.planner_name, status=res.status, planning_time_s=res.planning_time_s,
+                            service_time_s=rospy.get_time() - started, expansions=res.expansions,
+                            path_cells=len(res.path.poses), cost_m=res.cost_m, map_stamp=res.map_stamp)
+        timing.header.stamp = rospy.Time.now()
+        self.timing_pub.publish(timing)
+        if res.status == PlanPathResponse.OK:
+            self.path_pub.publish(res.path)
+        else:
+            rospy.logwarn("plan failed (%s): %s", result.status.name, res.message)
+        return res
+
+    def on_plan(self, req) -> PlanPathResponse:
+        return self.serve(req)   # failures travel in res.status so the caller always learns why
+
+    def on_make_plan(self, req) -> GetPlanResponse:
+        res = self.serve(req)
+        if res.status != PlanPathResponse.OK:
+            # Empty on failure, as navfn answers, but in the global frame and stamped now as navfn's is.
+            snapshot = self.bridge.map
+            res.path.header.frame_id = snapshot.frame_id if snapshot is not None else ""
+            res.path.header.stamp = rospy.Time.now()
+        return GetPlanResponse(plan=res.path)
+
+
+def main():
+    """Cloud bridge node.
+
+    Parameters (private):
+      ~endpoint (str, required)          cloud server, e.g. tcp://cloud.example.org:5555
+      ~keys_dir (str, "")                this robot's keys dir (client.key_secret, server.key)
+      ~insecure (bool, false)            plaintext; only for a server run with --insecure
+      ~timeout_s (float, 5.0)            deadline of one plan request; then CLOUD_TIMEOUT
+      ~retries (int, 1)                  resends within the deadline (Lazy Pirate)
+      ~heartbeat_period_s (float, 1.0)   ping period; 0 disables the heartbeat
+      ~heartbeat_timeout_s (float, 1.0)  deadline of one ping
+      ~lethal_threshold (int, 50)        occupancy >= this is an obstacle (1..101)
+      ~unknown_is_obstacle (bool, true)
+      ~max_map_cells (int, 64000000)     larger maps are refused (0: no limit)
+      ~planner_name (str, "cloud")       `planner` field of ~timing
+    Topics: subscribes map (nav_msgs/OccupancyGrid); publishes ~latency (offload_msgs/LinkLatency),
+    ~timing (offload_msgs/PlanTiming), ~path (nav_msgs/Path, latched).
+    Services: ~plan (offload_msgs/PlanPath), ~make_plan (nav_msgs/GetPlan).
+    """
+    rospy.init_node("cloud_bridge")
+    try:
+        config = read_parameters()
+        heartbeat_period_s = float(rospy.get_param("~heartbeat_period_s", 1.0))
+        # None: the heartbeat thread waits for shutdown only.
+        node = CloudBridgeNode(config, heartbeat_period_s if heartbeat_period_s > 0 else None,
+                               rospy.get_param("~planner_name", "cloud"))
+    except (ValueError, OSError, zmq.ZMQError) as error:
+        # One line naming the cause (a key file: KeyFileError names it), then exit: never a node that
+        # runs without a working link.
+        rospy.logfatal("%s", error)
+        raise SystemExit(1) from None
+    freeze_startup_heap()
+    rospy.spin()
+    return node
+
+
+if __name__ == "__main__":
+    main()
