@@ -349,6 +349,24 @@ def _lying_reply(path, goal=(9, 9), cost=None, status=Status.OK, planning_time_s
                                                           cost))
 
 
+def test_the_reply_check_costs_the_path_not_the_map():
+    """#30: the bridge checked each cloud reply with a free-cell mask of the whole grid (16 MB and 8 ms on a
+    4 M-cell map per cloud plan). The check reads only the path's cells now: what it allocates does not grow
+    with the map."""
+    import tracemalloc
+    from offload_cloud.client import reply_problem
+    grid = np.zeros((4000, 4000), np.int8)
+    path = np.array([(x, 100) for x in range(100, 141)], np.int32)
+    reply = Reply(1, Status.OK, "", path, (140, 100), 41, 0.001, 40.0)
+    tracemalloc.start()
+    try:
+        assert reply_problem(reply, grid, (100, 100), (140, 100), protocol.PlanOptions(), 1.0) == ""
+        _, peak = tracemalloc.get_traced_memory()
+    finally:
+        tracemalloc.stop()
+    assert peak < 1 << 20, f"the check allocated {peak} bytes on a {grid.size}-cell map"
+
+
 def test_client_bounds_reply_size_and_checks_the_path_against_the_map_it_sent():
     grid = np.zeros((10, 10), np.int8)
     grid[5, 1:9] = 100
@@ -359,6 +377,9 @@ def test_client_bounds_reply_size_and_checks_the_path_against_the_map_it_sent():
         "huge path": (_lying_reply(np.zeros((300_000, 2)), cost=0.0), "timeout"),   # 2.4 MB over a 1 MiB bound
         "off the map": (_lying_reply([(0, 0), (-1, 1)], goal=(-1, 1)), "leaves the map"),
         "through a wall": (_lying_reply(diagonal), "obstacle"),
+        "cuts a corner": (_lying_reply([(0, 0), (0, 1), (0, 2), (0, 3), (0, 4), (1, 4), (2, 4), (3, 4), (4, 4),
+                                        (5, 4), (6, 4), (7, 4), (8, 4), (9, 5), (9, 6), (9, 7), (9, 8), (9, 9)]),
+                          "corner"),
         "absurd cost": (_lying_reply(honest, cost=5e306), "cost"),
         "jumps": (_lying_reply([(0, 0), (9, 9)]), "8-connected"),
         "wrong start": (_lying_reply(honest[1:]), "starts at"),
