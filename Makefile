@@ -61,6 +61,9 @@ build: venv
 	@# pipefail: a failed catkin_make fails the target; `|| true` only covers grep finding no line to show.
 	@$(ROSENV) catkin_make --source . -DPYTHON_EXECUTABLE=$(PY) -DCMAKE_BUILD_TYPE=Release -j2 2>&1 \
 		| { grep -Ev '^(make\[|-- |\[ *[0-9]+%\] (Built|Generating|Building)|Scanning|Consolidate)' || true; }
+	@# The venv sees the devel space without `source devel/setup.bash`, so the README's offline commands
+	@# (`.venv/bin/python -m offload_learner_py.offline.retrain ...`) work in a fresh shell.
+	@echo "$(ROOT)/devel/lib/python3/dist-packages" > "$$($(PY) -c 'import sysconfig; print(sysconfig.get_path("purelib"))')/offload_workspace.pth"
 
 # catkin_make run_tests exits 0 when tests fail: catkin_test_results decides.
 test: build
