@@ -27,6 +27,7 @@ from typing import Dict, List, Tuple
 ROOT = Path(__file__).resolve().parents[1]
 LEARNER = ROOT / "src" / "offload_learner_py"
 PLANNER = ROOT / "src" / "offload_planner_cpp"
+CLOUD = ROOT / "src" / "offload_cloud"
 
 # Operators excluded before any run: replacing arithmetic by bit operations, `x == y` by `x is y`, and
 # unary `~`/`+` almost always crash at once on floats and arrays (killed, but at the cost of a test
@@ -70,9 +71,8 @@ TARGETS = {
                   pytest_args=tuple(f"--deselect=test/test_dqn.py::test_greedy_action_follows_each_state_feature"
                                     f"[{feature}-{seed}]" for feature in ("cpu_availability", "input_size",
                                                                           "round_trip_s") for seed in (23, 37))),
-    "protocol": Target("protocol", PLANNER / "src" / "offload_planner_cpp", "cloud/protocol.py",
-                       ("test_cloud_protocol.py",), PLANNER / "test",
-                       test_support=("conftest.py", "planner_testdata.py"), budget_s=180),
+    "protocol": Target("protocol", CLOUD / "src" / "offload_cloud", "protocol.py",
+                       ("test_cloud_protocol.py",), CLOUD / "test", test_support=("conftest.py",), budget_s=180),
 }
 
 
@@ -145,6 +145,12 @@ def prepare_shard(target: Target, shard_dir: Path) -> None:
         f"exclude-operators = [\n{excluded}\n]\n")
 
 
+def _path(shard: Path) -> str:
+    """The shard's mutated copy first, then the devel space for the packages it imports (the planner's
+    compiled module under offload_cloud)."""
+    return os.pathsep.join([str(shard / "src")] + [str(p) for p in sorted((ROOT / "devel" / "lib").glob("python3*/dist-packages"))])
+
+
 def _run(command: List[str], cwd: Path, env: Dict[str, str]) -> None:
     result = subprocess.run(command, cwd=cwd, env=env, capture_output=True, text=True)
     if result.returncode != 0:
@@ -162,7 +168,7 @@ def run_target(target: Target, work_dir: Path, jobs: int, budget_s: float) -> di
     shards = [work_dir / target.name / f"shard{i}" for i in range(jobs)]
     for shard in shards:
         prepare_shard(target, shard)
-    env = dict(os.environ, PYTHONPATH=str(shards[0] / "src"), PYTHONDONTWRITEBYTECODE="1")
+    env = dict(os.environ, PYTHONPATH=_path(shards[0]), PYTHONDONTWRITEBYTECODE="1")
     first = shards[0]
     # Baseline: the tests must pass on the unmutated copy, or every mutant would count as killed.
     baseline = subprocess.run([sys.executable, "-m", "pytest", "-x", "-q", *target_tests(target)], cwd=first,
@@ -185,7 +191,7 @@ def run_target(target: Target, work_dir: Path, jobs: int, budget_s: float) -> di
                     db.set_result(job_id, WorkResult(worker_outcome=WorkerOutcome.SKIPPED, output="other shard"))
     processes = []
     for shard in shards:
-        shard_env = dict(env, PYTHONPATH=str(shard / "src"))
+        shard_env = dict(env, PYTHONPATH=_path(shard))
         processes.append(subprocess.Popen([_tool("cosmic-ray"), "exec", "cosmic-ray.toml", "session.sqlite"],
                                           cwd=shard, env=shard_env, stdout=subprocess.DEVNULL,
                                           stderr=subprocess.DEVNULL, start_new_session=True))

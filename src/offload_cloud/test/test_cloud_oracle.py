@@ -11,7 +11,7 @@ from scipy.sparse.csgraph import dijkstra
 from offload_cloud import protocol
 from offload_cloud.client import CloudClient
 from offload_cloud.protocol import PlanOptions, Status
-from offload_demos.grid_graph import free_cells, grid_graph
+from offload_demos.grid_graph import grid_graph, oracle_free_mask
 
 from cloud_test_helpers import start_server
 
@@ -42,7 +42,7 @@ def client():
 
 def _oracle(grid, start, goal, lethal_threshold, unknown_is_obstacle):
     """(status, cost in cells) from scipy: statuses checked in the planner's order."""
-    free = free_cells(grid, lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
+    free = oracle_free_mask(grid, lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
     if not free[start[1], start[0]]:
         return Status.START_BLOCKED, None
     if not free[goal[1], goal[0]]:
@@ -107,7 +107,7 @@ def test_stop_at_goal_travels_to_the_planner(client):
     The same request differs only in that flag."""
     grid = banded_map()
     options = PlanOptions(lethal_threshold=50, unknown_is_obstacle=True)
-    free = free_cells(grid, lethal_threshold=50, unknown_is_obstacle=True)
+    free = oracle_free_mask(grid, lethal_threshold=50, unknown_is_obstacle=True)
     graph = grid_graph(grid, lethal_threshold=50, unknown_is_obstacle=True)
     reachable = int(np.isfinite(dijkstra(graph, indices=0)).sum())
     assert reachable < int(free.sum())      # the walls leave some free cells out of reach

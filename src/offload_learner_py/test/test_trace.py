@@ -6,7 +6,7 @@ import numpy as np
 import pytest
 
 from offload_learner_py.core.state import input_size_from_cells
-from offload_learner_py.data.trace import PlanningTrace, free_cells, record_trace
+from offload_learner_py.data.trace import PlanningTrace, free_cell_coordinates, record_trace
 
 
 class NoPathError(RuntimeError):
@@ -49,14 +49,14 @@ def _grid():
 
 
 def test_free_cells_skip_obstacles_and_unknown():
-    cells = free_cells(_grid())
+    cells = free_cell_coordinates(_grid())
     assert len(cells) == 19 * 29
     assert not np.any(cells[:, 0] == 15) and not np.any(cells[:, 1] == 0)
 
 
 def test_free_cells_follow_the_planners_unknown_rule():
     """The planner's own rule through its binding: with unknown cells free, the unknown row counts too."""
-    cells = free_cells(_grid(), unknown_is_obstacle=False)
+    cells = free_cell_coordinates(_grid(), unknown_is_obstacle=False)
     assert len(cells) == 20 * 29 + 1 and np.any(cells[:, 1] == 0)   # + the wall cell the unknown row covers
 
 

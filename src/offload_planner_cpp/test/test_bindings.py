@@ -8,7 +8,7 @@ from scipy.sparse import csgraph
 
 import offload_planner_cpp
 from offload_planner_cpp import NoPathError, PlanError, PlanStatus, plan
-from offload_demos.grid_graph import free_cells as grid_graph_free, grid_graph
+from offload_demos.grid_graph import grid_graph, oracle_free_mask
 from offload_planner_cpp.maps import load_map
 
 
@@ -143,7 +143,7 @@ def test_options_reach_the_core(lethal_threshold, unknown_is_obstacle):
     grid[:, 20] = np.resize(values[values != 0], 30)
     options = dict(lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
     graph = grid_graph(grid, **options)
-    free = np.flatnonzero(grid_graph_free(grid, **options).ravel())
+    free = np.flatnonzero(oracle_free_mask(grid, **options).ravel())
     width = grid.shape[1]
     checked = 0
     for start in rng.choice(free, 4, replace=False):
@@ -171,7 +171,7 @@ def test_stop_at_goal_reaches_the_core():
 def test_free_cells_is_the_planners_rule(lethal_threshold, unknown_is_obstacle):
     grid = np.arange(-128, 128, dtype=np.int16).astype(np.int8).reshape(16, 16)
     free = offload_planner_cpp.free_cells(grid, lethal_threshold, unknown_is_obstacle)
-    expected = grid_graph_free(grid, lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
+    expected = oracle_free_mask(grid, lethal_threshold=lethal_threshold, unknown_is_obstacle=unknown_is_obstacle)
     np.testing.assert_array_equal(free, expected)
     # And the planner itself agrees: a one-step plan into each cell works exactly where it is free.
     for y, x in [(8, 0), (8, 5), (8, 10), (8, 12), (0, 0), (15, 15)]:

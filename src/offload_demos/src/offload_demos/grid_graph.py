@@ -6,8 +6,9 @@ from scipy.sparse import csr_matrix
 _SQRT2 = float(np.sqrt(2.0))
 
 
-def free_cells(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
-    """Boolean [y, x] mask of the cells the planner may enter."""
+def oracle_free_mask(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
+    """Boolean [y, x] mask of the cells the planner may enter, written apart from the planner (numpy) so
+    that tests compare the two; the product uses the planner's own, offload_planner_cpp.free_cells."""
     return np.where(grid < 0, not unknown_is_obstacle, grid < lethal_threshold)
 
 
@@ -16,7 +17,7 @@ def grid_graph(grid: np.ndarray, cost_factor: float = 0.0, neutral_cost: float =
     when both orthogonal neighbours are free. With cost_factor > 0 a move costs its length times the mean of
     neutral_cost + cost_factor * occupancy over its two cells (unknown cells: occupancy 0), the planner's
     cost-aware model."""
-    free = free_cells(grid, **options)
+    free = oracle_free_mask(grid, **options)
     weight = neutral_cost + cost_factor * np.maximum(grid.astype(np.float64), 0.0)
     height, width = free.shape
     index = np.arange(height * width).reshape(height, width)

@@ -71,8 +71,8 @@ class PlanningTrace(VersionedNpz):
 
 
 
-def free_cells(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
-    """(x, y) of every cell the planner may start or end on, by the planner's own rule (its binding)."""
+def free_cell_coordinates(grid: np.ndarray, lethal_threshold: int = 50, unknown_is_obstacle: bool = True) -> np.ndarray:
+    """N x 2 (x, y) of every cell the planner may start or end on, by the planner's own rule (its binding)."""
     from offload_planner_cpp import free_cells as planner_free_cells
 
     ys, xs = np.nonzero(planner_free_cells(grid, lethal_threshold, unknown_is_obstacle))
@@ -88,7 +88,7 @@ def record_trace(plan: Callable, grid: np.ndarray, resolution_m: float, queries:
     skipped and counted; bad input (ValueError) is a bug and propagates."""
     if queries < 1:
         raise ValueError(f"queries must be >= 1, got {queries}")
-    candidates = free_cells(grid, plan_options.get("lethal_threshold", 50), plan_options.get("unknown_is_obstacle", True))
+    candidates = free_cell_coordinates(grid, plan_options.get("lethal_threshold", 50), plan_options.get("unknown_is_obstacle", True))
     if len(candidates) < 2:
         raise ValueError("the map has fewer than two free cells")
     cell_count = int(grid.shape[0] * grid.shape[1])
