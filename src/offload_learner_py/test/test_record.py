@@ -13,6 +13,19 @@ def test_an_unnamed_bag_gets_a_new_time_stamped_name():
     assert record.bag_path("/data/run.bag", "/data/offload", 0.0) == "/data/run.bag"
 
 
+def test_a_name_without_the_suffix_is_checked_as_the_file_rosbag_writes(tmp_path):
+    """#31 Medium 7: with bag:=NAME, rosbag writes NAME.bag; the check looked at NAME and NAME.active, so an
+    earlier run's NAME.bag went from 143 to 45 messages and a crashed run's NAME.bag.active was replaced."""
+    assert record.bag_path(str(tmp_path / "run"), "/data/offload", 0.0) == str(tmp_path / "run.bag")
+    for existing in ("run.bag", "run.bag.active"):
+        (tmp_path / existing).write_bytes(b"#ROSBAG V2.0\n recorded requests")
+        done = subprocess.run([sys.executable, "-m", "offload_learner_py.nodes.record", "--bag", str(tmp_path / "run"),
+                               "--", "/offload_learner/decision"], capture_output=True, text=True)
+        assert done.returncode == 1 and existing in done.stderr, done.stderr
+        assert (tmp_path / existing).read_bytes().endswith(b"recorded requests")
+        (tmp_path / existing).unlink()
+
+
 @pytest.mark.parametrize("existing", ["run.bag", "run.bag.active"])
 def test_an_existing_or_crashed_bag_is_never_replaced(tmp_path, existing):
     (tmp_path / existing).write_bytes(b"#ROSBAG V2.0\n recorded requests")

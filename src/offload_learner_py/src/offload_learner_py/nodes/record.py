@@ -20,8 +20,12 @@ MIN_FREE_MIB = 1024   # the recorder's own minimum free space (1 GB, not an opti
 
 
 def bag_path(bag: str, prefix: str, now: float) -> str:
-    """The exact bag asked for, else PREFIX-<local time>.bag: a restart never reuses a name."""
-    return bag or f"{prefix}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}.bag"
+    """The file rosbag will write: the bag asked for, with ".bag" appended as `rosbag record -O` appends it to
+    a name without it (checking NAME while rosbag wrote NAME.bag replaced an earlier run's bag), else
+    PREFIX-<local time>.bag, so a restart never reuses a name."""
+    if not bag:
+        return f"{prefix}-{time.strftime('%Y%m%d-%H%M%S', time.localtime(now))}.bag"
+    return bag if bag.endswith(".bag") else bag + ".bag"
 
 
 def problem(path: str, min_free_mib: int) -> str:
