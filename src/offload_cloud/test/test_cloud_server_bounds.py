@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 import zmq
 
+import offload_planner_cpp
 from offload_cloud import protocol
 from offload_cloud.client import CloudClient, CloudTimeout
 from offload_cloud.protocol import Kind, PlanOptions, Reply, Status
@@ -403,6 +404,35 @@ def test_client_bounds_reply_size_and_checks_the_path_against_the_map_it_sent():
     try:
         with CloudClient(fake.endpoint, insecure=True, timeout_s=1.0, retries=0) as client:
             assert client.plan(grid, (0, 0), (9, 9)).reply.status == Status.OK   # the truth still passes
+    finally:
+        fake.close()
+
+
+def test_a_path_through_the_inflated_band_is_refused_when_the_request_inflates():
+    """#31 Medium 6: the client checked a cloud path against the raw grid, so with a robot radius a path
+    hugging an obstacle was accepted (40/40 lying replies, 26 within 3 cells of obstacles). It is checked
+    against the grid the request was planned on: the map inflated by the planner's own rule."""
+    grid = np.zeros((20, 20), np.int8)
+    grid[10, 0:15] = 100                                         # a wall with a gap at x >= 15
+    hugging = [(16, y) for y in range(0, 20)]                    # through the gap, one cell from the wall's end
+    inflating = protocol.PlanOptions(robot_radius_cells=2.0)
+    for options, expected in ((protocol.PlanOptions(), Status.OK), (inflating, Status.SERVER_ERROR)):
+        fake = FakeServer(_lying_reply(hugging, goal=(16, 19)))
+        try:
+            with CloudClient(fake.endpoint, insecure=True, timeout_s=1.0, retries=0) as client:
+                client.known_maps.add(protocol.grid_hash(grid))
+                reply = client.plan(grid, (16, 0), (16, 19), options).reply
+                assert reply.status == expected, (options, reply)
+                if expected == Status.SERVER_ERROR:
+                    assert "obstacle" in reply.message
+        finally:
+            fake.close()
+    honest = offload_planner_cpp.plan(grid, (17, 0), (17, 19), robot_radius_cells=2.0)
+    fake = FakeServer(_lying_reply(honest.path, goal=(17, 19), cost=honest.cost))
+    try:
+        with CloudClient(fake.endpoint, insecure=True, timeout_s=1.0, retries=0) as client:
+            client.known_maps.add(protocol.grid_hash(grid))
+            assert client.plan(grid, (17, 0), (17, 19), inflating).reply.status == Status.OK   # the truth passes
     finally:
         fake.close()
 

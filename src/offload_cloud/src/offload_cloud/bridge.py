@@ -15,7 +15,7 @@ import zmq
 from offload_planner_cpp import PlanStatus
 from offload_planner_cpp._core import MapGeometry, check_map, no_map_outcome, path_poses, resolve_request
 from offload_cloud import protocol
-from offload_cloud.client import CloudClient, CloudTimeout, KnownMaps
+from offload_cloud.client import CloudClient, CloudTimeout, KnownMaps, PlannedGrids
 from offload_cloud.protocol import PlanOptions, Status
 
 # A child of rospy's "rosout" logger: under the node its records reach /rosout and the node's log like
@@ -91,6 +91,7 @@ class CloudBridge:
         self.config = config
         self._context = zmq.Context()
         self._known_maps = KnownMaps()
+        self._planned_grids = PlannedGrids()   # one inflated map for every thread's client
         self._lock = threading.Lock()
         self._idle_clients = []
         self._map: Optional[MapSnapshot] = None
@@ -112,6 +113,7 @@ class CloudBridge:
     def _new_client(self, timeout_s: float, retries: int) -> CloudClient:
         return CloudClient(self.config.endpoint, keys_dir=self.config.keys_dir, insecure=self.config.insecure,
                            timeout_s=timeout_s, retries=retries, known_maps=self._known_maps,
+                           planned_grids=self._planned_grids,
                            context=self._context)
 
     def close(self) -> None:

@@ -25,7 +25,7 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from offload_planner_cpp import path_clear
+from offload_planner_cpp import inflate, path_clear
 from offload_cloud import protocol
 from offload_cloud.keys import load_client_keys
 from offload_cloud.protocol import PlanOptions, ProtocolError, Reply, Status
@@ -71,6 +71,33 @@ class KnownMaps:
             return map_hash in self._hashes
 
 
+class PlannedGrids:
+    """The grid a request was planned on: the robot's map, or for options that inflate it (a robot radius or
+    an inflation radius) that map inflated by the planner's own rule, made once per map and options. A reply
+    is checked against it: against the raw map, a path through the inflated band passed (#31). Shared by the
+    clients of one robot, like KnownMaps; it holds the last `capacity` inflated maps."""
+
+    def __init__(self, capacity: int = 2):
+        self._grids = {}
+        self._capacity = capacity
+        self._lock = threading.Lock()
+
+    def get(self, grid: np.ndarray, map_hash: bytes, options: PlanOptions) -> np.ndarray:
+        if not (options.robot_radius_cells > 0 or options.inflation_radius_cells > 0):
+            return grid
+        key = (map_hash, options.robot_radius_cells, options.inflation_radius_cells, options.inflation_decay,
+               options.lethal_threshold, options.unknown_is_obstacle)
+        with self._lock:
+            inflated = self._grids.pop(key, None)
+            if inflated is None:
+                inflated = inflate(grid, options.robot_radius_cells, options.inflation_radius_cells,
+                                   options.inflation_decay, options.lethal_threshold, options.unknown_is_obstacle)
+            self._grids[key] = inflated   # newest last
+            while len(self._grids) > self._capacity:
+                del self._grids[next(iter(self._grids))]
+            return inflated
+
+
 @dataclass(frozen=True)
 class PlanOutcome:
     reply: Reply
@@ -84,7 +111,8 @@ class CloudClient:
 
     def __init__(self, endpoint: str, *, keys_dir: Optional[str] = None, insecure: bool = False,
                  timeout_s: float = 5.0, retries: int = 1, known_maps: Optional[KnownMaps] = None,
-                 context: Optional[zmq.Context] = None, max_reply_bytes: int = DEFAULT_MAX_REPLY_BYTES):
+                 context: Optional[zmq.Context] = None, max_reply_bytes: int = DEFAULT_MAX_REPLY_BYTES,
+                 planned_grids: Optional[PlannedGrids] = None):
         if not insecure and not keys_dir:
             raise ValueError("a keys dir is required unless insecure is set")
         if not timeout_s > 0 or retries < 0:
@@ -96,6 +124,7 @@ class CloudClient:
         self.timeout_s = timeout_s
         self.retries = retries
         self.known_maps = known_maps if known_maps is not None else KnownMaps()
+        self.planned_grids = planned_grids if planned_grids is not None else PlannedGrids()
         self._keys = None if insecure else load_client_keys(keys_dir)
         self._own_context = context is None
         self._context = context if context is not None else zmq.Context()
@@ -249,7 +278,11 @@ class CloudClient:
                 continue
             upload = sent_map
             round_trip_s = time.perf_counter() - started
-            why = reply_problem(reply, grid, start, goal, options, round_trip_s)
+            try:   # only a path needs the grid it was planned on
+                planned = self.planned_grids.get(grid, map_hash, options) if reply.status == Status.OK else grid
+                why = reply_problem(reply, planned, start, goal, options, round_trip_s)
+            except ValueError as error:   # options the planner itself refuses, answered with a path
+                why = f"a path for options the planner refuses ({error})"
             if why:   # a confused or hostile server: never hand its answer on as a plan
                 reply = Reply(reply.request_id, Status.SERVER_ERROR, f"invalid reply from {self.endpoint}: {why}")
             elif protocol.is_planner_status(reply.status):   # it planned, so it holds the map
@@ -259,7 +292,8 @@ class CloudClient:
 
 def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Sequence[int], options: PlanOptions,
                   round_trip_s: float) -> str:
-    """Why a plan reply cannot be true for the map and request this client sent, or "" when it can: the
+    """Why a plan reply cannot be true for the map and request this client sent (`grid`: the grid planned on,
+    inflated when the options inflate; see PlannedGrids), or "" when it can: the
     path must run from the start to the reached goal (within the tolerance of the goal) through
     traversable cells in 8-connected steps without cutting corners (any-angle: segments that cross no
     blocked cell or corner, by the core's own rule), and its cost must be its length."""
