@@ -15,15 +15,15 @@ from offload_demos.workload import LoadSchedule, parse_levels, run_workload
 
 
 def cloud_server_main():
-    """demo_cloud_server [--demo-keys DIR] SERVER_ARGS...: offload_cloud.server, with
+    """demo_cloud_server [--demo-keys DIR] SERVER_ARGS...: offload_cloud's server command line (server_cli), with
     --keys-dir DIR/server added after generating DIR on first run."""
-    from offload_cloud import server
+    from offload_cloud import server_cli
 
     argv = rospy.myargv(sys.argv)[1:]
     if argv[:1] == ["--demo-keys"] and len(argv) >= 2:
         root = ensure_demo_keys(argv[1])
         argv = argv[2:] + ["--keys-dir", str(root / "server")]
-    sys.exit(server.main(argv))
+    sys.exit(server_cli.main(argv))
 
 
 def wan_emulator_main():
