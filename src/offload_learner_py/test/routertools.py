@@ -4,7 +4,7 @@ import threading
 
 
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.routing import RouterConfig, Statuses
+from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 
 OK, NO_PATH, TIMEOUT, ERROR, CANCELLED = 0, 7, 9, 10, 13

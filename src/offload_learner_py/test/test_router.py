@@ -12,7 +12,7 @@ from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision,
     Policy, RandomPolicy
 from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.routing import RouterConfig, Statuses
+from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 from routertools import ERROR, NO_PATH, OK, STATE, TIMEOUT, FakePlanner, Recorder, VirtualClock, finish, \
     make_router

@@ -10,7 +10,7 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal
 from offload_learner_py.core.reward import reward
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.routing import RouterConfig
+from offload_learner_py.online.router_types import RouterConfig
 from routertools import CANCELLABLE, CANCELLED, OK, STATE, CancellablePlanner, FakePlanner, Recorder, \
     VirtualClock, finish
 

@@ -10,7 +10,7 @@ from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.reward import reward
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision, DQNPolicy, Policy
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.routing import RouterConfig, Statuses
+from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 
 OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10

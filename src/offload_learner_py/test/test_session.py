@@ -11,7 +11,7 @@ from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.policies import Decision
 from offload_learner_py.core.state import State
-from offload_learner_py.online.routing import Outcome
+from offload_learner_py.online.router_types import Outcome
 from offload_learner_py.online.session import LearnerSession, SessionConfig, correct_choice, make_policy
 
 

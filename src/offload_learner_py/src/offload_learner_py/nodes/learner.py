@@ -23,7 +23,7 @@ from offload_learner_py.nodes.learner_io import PlannerProxy, RosLog, planner_pr
 from offload_learner_py.online.breaker import BreakerConfig
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.routing import RouterConfig, Statuses
+from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.online.session import LearnerSession, SessionConfig, dqn_settings
 from offload_cloud.gc_pauses import freeze_startup_heap
 

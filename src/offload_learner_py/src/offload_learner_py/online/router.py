@@ -46,7 +46,7 @@ from offload_learner_py.core.state import State
 from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
 from offload_learner_py.online.latency_model import LatencyModel
-from offload_learner_py.online.routing import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
+from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
 
 OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 

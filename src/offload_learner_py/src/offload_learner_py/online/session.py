@@ -17,7 +17,7 @@ from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import faster_actions
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, Policy, \
     RandomPolicy
-from offload_learner_py.online.routing import DEPLOYED
+from offload_learner_py.online.router_types import DEPLOYED
 
 POLICIES = ("dqn", "local", "cloud", "random", "threshold")
 LOG = logging.getLogger("offload_learner_py.online.session")
