@@ -20,7 +20,7 @@ the local call of an earlier request whose caller already has its path (`cancel(
 side, the planner node's ~cancel topic; the plan stops within a few thousand expansions with CANCELLED).
 A cancelled call's CPU is still accounted; its latency is a lower bound, which the learner uses only where
 the other side was already faster (see _learn). `delivered_s` runs from the request's arrival (any wait
-for the local planner included) to the path the caller gets.
+for the local planner included) to the path the caller gets. sides.py: the lanes and the calls.
 
 Deadline hedge: when the chosen side has not answered within a deadline (a quantile of its latency model
 for this state, clamped, or a fixed bound), the other side starts and the first good path is delivered.
@@ -47,59 +47,13 @@ from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
 from offload_learner_py.online.latency_model import LatencyModel
 from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
+from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller
 
 OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 
 
 def _features(state: State) -> Tuple[float, float, float]:
     return state.input_size, state.cpu_availability, state.round_trip_s
-
-
-PlanCall = Callable[..., Tuple[int, Any]]
-Accounting = Callable[[Any], Tuple[float, int, int]]
-
-
-class _Lane:
-    """One planner side. `serial`: one call at a time, and a call nobody waits for any more is dropped before
-    it starts (or cancelled while it runs) when a newer request needs the side."""
-
-    def __init__(self, serial: bool):
-        self.serial = serial
-        self.lock = threading.Lock()     # held through a call when serial
-        self.state = threading.Lock()
-        self.newest = -1
-        self.running = {}                # call_id -> the _Request it serves
-
-    def want(self, request_id: int) -> None:
-        with self.state:
-            self.newest = max(self.newest, request_id)
-
-    def superseded(self, request_id: int) -> bool:
-        with self.state:
-            return self.newest > request_id
-
-    def begin(self, call_id: int, req: "_Request") -> None:
-        with self.state:
-            self.running[call_id] = req
-
-    def end(self, call_id: int) -> None:
-        with self.state:
-            self.running.pop(call_id, None)
-
-    def abandoned(self, request_id: int):
-        """Calls running for earlier requests whose callers already have their path."""
-        with self.state:
-            return [call_id for call_id, req in self.running.items()
-                    if req.outcome.request_id < request_id and req.delivered.is_set()]
-
-    def calls_of(self, req: "_Request"):
-        with self.state:
-            return [call_id for call_id, running in self.running.items() if running is req]
-
-    def busy(self) -> bool:
-        """A call runs whose caller still waits for it (one that could not be cancelled)."""
-        with self.state:
-            return self.serial and any(not req.delivered.is_set() for req in self.running.values())
 
 
 class _Request:
@@ -128,7 +82,7 @@ class OffloadRouter:
     the last good map keeps serving rather than leaving a robot without a path.
 
     `account(response)` (optional) gives (robot CPU-seconds, link bytes sent, link bytes received) that
-    the serving node reported for one call.
+    the serving node reported for one call. Both go to the SideCaller (sides.py).
 
     A side that has a `cancel(call_id)` method is called as `side(request, call_id=...)`, each call with its
     own id, and answers `statuses.cancelled` once cancelled; other sides are called as `side(request)`."""
@@ -141,19 +95,16 @@ class OffloadRouter:
         self.policy, self.statuses = policy, statuses
         self.sides = {LOCAL: local, CLOUD: cloud}
         self.config = config
-        self.stale = stale
-        self.sleep = sleep
-        self.account = account
         self.on_decision = on_decision or (lambda routing: None)
         self.on_outcome = on_outcome or (lambda outcome: None)
         self.clock = clock
         self.rng = np.random.default_rng(config.seed)
         self.breaker = breaker or LinkBreaker(config.breaker)
         self.models = {LOCAL: LatencyModel(config.latency_model), CLOUD: LatencyModel(config.latency_model)}
-        self._lanes = {LOCAL: _Lane(serial=True), CLOUD: _Lane(serial=False)}
+        self._lanes = {LOCAL: Lane(serial=True), CLOUD: Lane(serial=False)}
+        self._caller = SideCaller(statuses, config, clock, sleep, stale, account)
         # Call ids start at a random point: a cancel meant for an earlier learner process never hits ours.
         self._call_ids = itertools.count(int.from_bytes(os.urandom(6), "little") + 1)
-        self._waited_out = {}   # id(side) -> the stale-map verdict it was waited out on
         self._ids = threading.Lock()
         self._deciding = threading.Lock()   # policy and probe draws share random generators across callers
         self._idle = threading.Condition()
@@ -302,7 +253,7 @@ class OffloadRouter:
                 started_after_s = self.clock() - req.began
                 lane.begin(call_id, req)
                 try:
-                    result = self._call_local(request, call_id) if side == LOCAL else self._call_cloud(request, call_id)
+                    result = self._caller.call(self.sides[side], request, stale_fails=side == CLOUD, call_id=call_id)
                 except Exception as error:   # a broken stale() or account(): a failed side, never a lost request
                     result = SideResult(self.statuses.cloud_error, None, self.clock() - req.began - started_after_s,
                                         raised=f"{type(error).__name__}: {error}", link_failed=True)
@@ -360,53 +311,6 @@ class OffloadRouter:
             req.outcome.delivered = side
         req.delivered_result = result
         req.delivered.set()
-
-    def _call(self, side: PlanCall, request, failure_status: int, stale_status: Optional[int],
-              call_id: int = 0) -> SideResult:
-        """stale_status None: after the wait, an answer from the older map is delivered with a note (and the
-        STALE_MAP status when the node gave one). A side already waited out on the same stale map is not
-        waited for again: one wait per stale map, not one per request."""
-        began = self.clock()
-        cancellable = getattr(side, "cancel", None) is not None
-        while True:
-            try:
-                status, response = side(request, call_id=call_id) if cancellable else side(request)
-            except Exception as error:   # the planner node is gone or broke: a failed side, never a lost request
-                return SideResult(failure_status, None, self.clock() - began, link_failed=True,
-                                  raised=f"planner call failed: {type(error).__name__}: {error}")
-            if self.statuses.cancelled is not None and status == self.statuses.cancelled:
-                result = SideResult(int(status), response, self.clock() - began, cancelled=True,
-                                    raised="cancelled: a newer request needed this side")
-                break
-            why = self.stale(response) if self.stale is not None and status == self.statuses.ok else None
-            if why is None:
-                result = SideResult(int(status), response, self.clock() - began,
-                                    link_failed=self.statuses.cloud_failed(int(status)))
-                break
-            waited_out = self._waited_out.get(id(side)) == why
-            if waited_out or self.clock() - began >= self.config.map_wait_s:
-                self._waited_out[id(side)] = why
-                if stale_status is None:
-                    stale = self.statuses.stale_map
-                    result = SideResult(int(status) if stale is None else stale, response, self.clock() - began,
-                                        note=f"planned on the last map the planner accepted: {why} (still not "
-                                             f"taken after {self.config.map_wait_s:g} s)")
-                else:
-                    result = SideResult(stale_status, None, self.clock() - began,
-                                        raised=f"no path on the map in force within {self.config.map_wait_s:g} s: {why}")
-                break
-            self.sleep(self.config.map_retry_s)
-        if self.account is not None and response is not None:
-            result.cpu_s, result.bytes_sent, result.bytes_received = self.account(response)
-        return result
-
-    def _call_local(self, request, call_id: int = 0) -> SideResult:
-        # A local planner that cannot be called at all is reported as a cloud-style error status so
-        # the caller still learns why; there is nobody else to plan.
-        return self._call(self.sides[LOCAL], request, self.statuses.cloud_error, None, call_id)
-
-    def _call_cloud(self, request, call_id: int = 0) -> SideResult:
-        return self._call(self.sides[CLOUD], request, self.statuses.cloud_error, self.statuses.cloud_error, call_id)
 
     # --- after the caller has its path ------------------------------------------------------------
     def _finish(self, req: _Request) -> None:
