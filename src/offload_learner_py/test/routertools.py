@@ -1,8 +1,10 @@
 """Fakes for the router's tests: planners with scripted costs on a per-thread virtual clock (no sleeps, no
-timing assertions), a recorder of what the router publishes, and the router built around them."""
+timing assertions), a recorder of what the router publishes, and the router built around them with its
+learner, wired as the node wires them."""
 import threading
 
 
+from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.core.state import State
@@ -88,11 +90,18 @@ class Recorder:
         self.outcomes.append(outcome)
 
 
+def wired_router(policy, local, cloud, statuses, config=RouterConfig(), **router):
+    """The router and its learner for `policy`, the learner's settings taken from `config` as the node does."""
+    learner = OnlineLearner(policy, statuses, weights=config.weights, cloud_timeout_s=config.cloud_timeout_s,
+                            latency_model=config.latency_model)
+    return OffloadRouter(learner, local, cloud, statuses, config, **router)
+
+
 def make_router(policy, local, cloud, clock, probe_rate=0.0, timeout_s=5.0):
     recorder = Recorder()
-    router = OffloadRouter(policy, local, cloud, STATUSES, RouterConfig(probe_rate=probe_rate, cloud_timeout_s=timeout_s,
-                                                                            probe_while_warming_up=False),
-                           on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock)
+    router = wired_router(policy, local, cloud, STATUSES, RouterConfig(probe_rate=probe_rate, cloud_timeout_s=timeout_s,
+                                                                       probe_while_warming_up=False),
+                          on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock)
     return router, recorder
 
 

@@ -11,11 +11,10 @@ from offload_learner_py.core.reward import CostWeights, reward
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision, DQNPolicy, InputSizeThreshold, \
     Policy, RandomPolicy
 from offload_learner_py.data.records import NO_PATH_DELIVERED
-from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 from routertools import ERROR, NO_PATH, OK, STATE, TIMEOUT, FakePlanner, Recorder, VirtualClock, finish, \
-    make_router
+    make_router, wired_router
 
 
 
@@ -226,12 +225,12 @@ class StaleThenFresh:
 def stale_router(policy, local, cloud, clock, probe_rate=0.0, map_wait_s=2.0, stale_map=None):
     recorder = Recorder()
     statuses = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, stale_map=stale_map)
-    router = OffloadRouter(policy, local, cloud, statuses,
-                           RouterConfig(probe_rate=probe_rate, cloud_timeout_s=5.0, map_wait_s=map_wait_s,
-                                        map_retry_s=0.02),
-                           on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock,
-                           stale=lambda response: "old map" if response["map"] == "old" else None,
-                           sleep=clock.advance)
+    router = wired_router(policy, local, cloud, statuses,
+                         RouterConfig(probe_rate=probe_rate, cloud_timeout_s=5.0, map_wait_s=map_wait_s,
+                                      map_retry_s=0.02),
+                         on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock,
+                         stale=lambda response: "old map" if response["map"] == "old" else None,
+                         sleep=clock.advance)
     return router, recorder
 
 

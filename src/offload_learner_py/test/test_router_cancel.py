@@ -9,18 +9,17 @@ import pytest
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal
 from offload_learner_py.core.reward import reward
-from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.router_types import RouterConfig
 from routertools import CANCELLABLE, CANCELLED, OK, STATE, CancellablePlanner, FakePlanner, Recorder, \
-    VirtualClock, finish
+    VirtualClock, finish, wired_router
 
 
 def router_for(policy, local, cloud, clock, **config):
     recorder = Recorder()
     config.setdefault("probe_while_warming_up", False)
-    router = OffloadRouter(policy, local, cloud, CANCELLABLE, RouterConfig(**config), on_decision=recorder.decision,
-                           on_outcome=recorder.outcome, clock=clock,
-                           account=lambda response: (response.get("cpu", 0.0), 0, 0))
+    router = wired_router(policy, local, cloud, CANCELLABLE, RouterConfig(**config), on_decision=recorder.decision,
+                         on_outcome=recorder.outcome, clock=clock,
+                         account=lambda response: (response.get("cpu", 0.0), 0, 0))
     return router, recorder
 
 

@@ -9,7 +9,6 @@ from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.reward import reward
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision, DQNPolicy, Policy
-from offload_learner_py.online.router import OffloadRouter
 from offload_learner_py.online.router_types import RouterConfig, Statuses
 from offload_learner_py.core.state import State
 
@@ -19,7 +18,7 @@ STATE = State(1.2, 0.6, 0.05)
 
 
 from routertools import ERROR, OK, STATE, STATUSES, TIMEOUT, FakePlanner, Recorder, VirtualClock, finish, \
-    make_router
+    make_router, wired_router
 
 
 class LearningRecorder(Policy):
@@ -44,8 +43,8 @@ class LearningRecorder(Policy):
 
 def configured_router(policy, local, cloud, clock, **config):
     recorder = Recorder()
-    router = OffloadRouter(policy, local, cloud, STATUSES, RouterConfig(**config), on_decision=recorder.decision,
-                           on_outcome=recorder.outcome, clock=clock)
+    router = wired_router(policy, local, cloud, STATUSES, RouterConfig(**config), on_decision=recorder.decision,
+                         on_outcome=recorder.outcome, clock=clock)
     return router, recorder
 
 
@@ -220,8 +219,8 @@ def test_cost_accounting_sums_every_side_called():
     clock = VirtualClock()
     local, cloud = FakePlanner(clock, 0.2), FakePlanner(clock, 0.05)
     costs = {id(local): (0.18, 0, 0), id(cloud): (0.004, 1200, 800)}
-    router = OffloadRouter(AlwaysLocal("local"), local, cloud, STATUSES, RouterConfig(mode="learning"),
-                           clock=clock, account=lambda response: costs[id(response["side"])])
+    router = wired_router(AlwaysLocal("local"), local, cloud, STATUSES, RouterConfig(mode="learning"),
+                         clock=clock, account=lambda response: costs[id(response["side"])])
     outcomes = []
     router.on_outcome = outcomes.append
     router.route("req", STATE)

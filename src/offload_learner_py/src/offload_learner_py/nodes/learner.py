@@ -1,8 +1,8 @@
 """offload_learner: the offloading router node. It serves the same PlanPath and GetPlan services as the
-two planners it routes to (the local planner node and the cloud bridge), decides per request with the
-ROS-free router and session (offload_learner_py.online), and publishes every decision, outcome and training
-statistic so a bag rebuilds the transition table. Its topics, services and parameters are in the package
-README; their defaults in launch/config/learner.yaml."""
+two planners it routes to (the local planner node and the cloud bridge), and wires the ROS-free online loop
+(offload_learner_py.online: the router acts, the learner learns) to ROS: it builds s_t from the messages and
+publishes every decision, outcome and training statistic, so a bag rebuilds the transition table. Its
+topics, services and parameters are in the package README; their defaults in launch/config/learner.yaml."""
 import time
 
 import rospy
@@ -18,13 +18,15 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.core.state import State, input_size
-from offload_learner_py.nodes.learner_io import PlannerProxy, RosLog, planner_proxy, RvizGoals, StaleMapCheck, account, \
-    config_msg, decision_msg, exit_fatal, outcome_msg, rejection, stamped, stats_msg, wait_for_recorder
+from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
+    StaleMapCheck, account, config_msg, decision_msg, exit_fatal, outcome_msg, path_of, rejection, stamped, stats_msg, \
+    wait_for_recorder
 from offload_learner_py.online.breaker import BreakerConfig
 from offload_learner_py.online.cpu import make_cpu_sampler
+from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.router_types import RouterConfig, Statuses
-from offload_learner_py.online.session import LearnerSession, SessionConfig, dqn_settings
+from offload_learner_py.online.router_types import RouterConfig
+from offload_learner_py.online.session import SessionConfig, dqn_settings
 from offload_cloud.gc_pauses import freeze_startup_heap
 
 
@@ -36,23 +38,25 @@ class LearnerNode:
         # learner's CPU per request (its thread's time) whole.
         torch.set_num_threads(int(p("torch_threads", 1)))
         dqn = dqn_settings(str(p("mode", "deployed")), p("dqn", {}), p("deployed_dqn", {}))
-        self.session = LearnerSession(SessionConfig(
+        session = SessionConfig(
             policy=str(p("policy", "dqn")), checkpoint=str(p("checkpoint", "")), model=str(p("model", "")),
             checkpoint_every=int(p("checkpoint_every", 50)), learn=bool(p("learn", True)),
             # Learning mode runs both sides anyway and deployed mode explores with its probes:
             # epsilon-greedy exploration would only cost the robot time, so it is off unless asked for.
             explore=bool(p("explore", False)), seed=seed, dqn=dqn,
             threshold_input_size=float(p("threshold_input_size", 1.1)), stats_window=int(p("stats_window", 50)),
-            progress_every=int(p("progress_every", 25))), RosLog)
+            progress_every=int(p("progress_every", 25)))
         breaker = BreakerConfig(failures_to_open=int(p("breaker_failures", 3)),
                                 max_round_trip_s=float(p("breaker_max_round_trip_s", 1.0)),
                                 retry_after_s=float(p("breaker_retry_s", 5.0)))
-        self.router_config = RouterConfig(
+        config = self.router_config = RouterConfig(
             mode=str(p("mode", "deployed")), probe_rate=float(p("probe_rate", 0.05)),
             cloud_timeout_s=float(p("cloud_timeout_s", 5.0)), weights=CostWeights(alpha, 1.0 - alpha), seed=seed,
             map_wait_s=float(p("map_wait_s", 2.0)), hedge=bool(p("hedge", False)),
             hedge_deadline_s=float(p("hedge_deadline_s", 0.0)), hedge_quantile=float(p("hedge_quantile", 0.95)),
             hedge_min_s=float(p("hedge_min_s", 0.05)), hedge_max_s=float(p("hedge_max_s", 1.0)), breaker=breaker)
+        self.learner = OnlineLearner.resume(session, STATUSES, RosLog, weights=config.weights,
+                                            cloud_timeout_s=config.cloud_timeout_s, latency_model=config.latency_model)
         self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
         # With a cgroup budget (nanosecond counters) u_t covers the time since the last request ended,
         # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
@@ -78,14 +82,11 @@ class LearnerNode:
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
         self.config_pub = rospy.Publisher("~config", LearnerConfig, queue_size=1, latch=True)
         self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
-        self.config_pub.publish(config_msg(self.router_config, self.session, seed, alpha))
+        self.config_pub.publish(config_msg(config, self.learner, seed, alpha))
         recorder = str(p("recorder_node", "offload_record"))
         wait_for_recorder((self.decision_pub, self.outcome_pub), float(p("wait_for_recorder_s", 0.0)),
                           rospy.names.resolve_name(recorder) if recorder else "")
-        statuses = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
-                            cloud_error=PlanPathResponse.CLOUD_ERROR, stale_map=PlanPathResponse.STALE_MAP,
-                            cancelled=PlanPathResponse.CANCELLED)
-        self.router = OffloadRouter(self.session.policy, *self.sides, statuses, self.router_config,
+        self.router = OffloadRouter(self.learner, *self.sides, STATUSES, config,
                                     on_decision=self.publish_decision, on_outcome=self.on_outcome,
                                     stale=StaleMapCheck(lambda: self.map_info), account=account)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
@@ -107,9 +108,8 @@ class LearnerNode:
         # the epoch at start, then one per request.
         self.router.next_request_id = time.time_ns() // 1000
         rospy.on_shutdown(self.shutdown)
-        config = self.router_config
         rospy.loginfo("offload learner ready: %s mode, policy %s, learn %s, probe rate %.2f, hedge %s, routing "
-                      "between %s and %s", config.mode, self.session.config.policy, self.session.learns,
+                      "between %s and %s", config.mode, session.policy, self.learner.learns,
                       1.0 if config.probes_every_request else config.probe_rate, config.hedge,
                       *(side.service for side in self.sides))
 
@@ -156,7 +156,7 @@ class LearnerNode:
         return GetPlanResponse(plan=response.path if response.status == PlanPathResponse.OK else Path())
 
     def publish_decision(self, routing):
-        self.decision_pub.publish(decision_msg(routing, self.session.config.policy, self.session.policy.steps))
+        self.decision_pub.publish(decision_msg(routing, self.learner.config.policy, self.learner.policy.steps))
 
     def on_outcome(self, outcome):
         if self.cpu_window_from_outcome:
@@ -169,19 +169,13 @@ class LearnerNode:
         self.outcome_pub.publish(outcome_msg(outcome))
         # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one.
         for action, side in ((LOCAL, outcome.local), (CLOUD, outcome.cloud)):
-            planned = side is not None and side.status == PlanPathResponse.OK and side.response is not None
-            empty = stamped(Path())
-            empty.header.frame_id = "map"
-            self.path_pubs[action].publish(side.response.path if planned else empty)
-        progress = self.session.record(outcome)
-        self.stats_pub.publish(stats_msg(self.session))
-        if progress:
-            rospy.loginfo("%s", progress)
+            self.path_pubs[action].publish(path_of(side))
+        self.stats_pub.publish(stats_msg(self.learner))   # the learner counted it and saved when due
 
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
-        self.session.close()
+        self.learner.close()
         for side in self.sides:
             side.close()
 

@@ -1,6 +1,6 @@
-"""The offload_learner node's ROS side that is not the node itself: the planner proxies, the messages it
-publishes built from the router's and the session's records, the wait for the recorder, and RViz goals
-(a 2D Nav Goal planned from the robot's pose)."""
+"""The offload_learner node's ROS side that is not the node itself: the planner proxies and the PlanPath
+statuses the router tells apart, the messages it publishes built from the router's and the learner's records,
+the wait for the recorder, and RViz goals (a 2D Nav Goal planned from the robot's pose)."""
 import json
 import math
 import threading
@@ -10,14 +10,20 @@ from dataclasses import asdict
 import rospy
 from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import UInt64
+from nav_msgs.msg import Path
 from offload_msgs.msg import LearnerConfig, OffloadDecision, OffloadOutcome, TrainingStats
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py.online.request_check import check_request
+from offload_learner_py.online.router_types import Statuses
+
+STATUSES = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
+                    cloud_error=PlanPathResponse.CLOUD_ERROR, stale_map=PlanPathResponse.STALE_MAP,
+                    cancelled=PlanPathResponse.CANCELLED)
 
 
 class RosLog:
-    """The session's logger, on rosout."""
+    """The learner's logger, on rosout."""
     debug, info, warning, error = (staticmethod(rospy.logdebug), staticmethod(rospy.loginfo),
                                    staticmethod(rospy.logwarn), staticmethod(rospy.logerr))
 
@@ -180,10 +186,10 @@ def outcome_msg(outcome) -> OffloadOutcome:
     return msg
 
 
-def config_msg(router_config, session, seed: int, alpha: float) -> LearnerConfig:
-    config, dqn = router_config, getattr(session.agent, "config", None)
+def config_msg(router_config, learner, seed: int, alpha: float) -> LearnerConfig:
+    config, dqn = router_config, getattr(learner.agent, "config", None)
     return stamped(LearnerConfig(
-        policy=session.config.policy, mode=config.mode, learn=session.learns, explore=session.config.explore,
+        policy=learner.config.policy, mode=config.mode, learn=learner.learns, explore=learner.config.explore,
         alpha=alpha, beta=1.0 - alpha, gamma=dqn.gamma if dqn else float("nan"),
         epsilon=dqn.epsilon if dqn else float("nan"), learning_starts=dqn.learning_starts if dqn else 0,
         probe_rate=1.0 if config.probes_every_request else config.probe_rate, cloud_timeout_s=config.cloud_timeout_s,
@@ -194,13 +200,23 @@ def config_msg(router_config, session, seed: int, alpha: float) -> LearnerConfig
         dqn_config_json=json.dumps(asdict(dqn), default=list) if dqn else ""))
 
 
-def stats_msg(session) -> TrainingStats:
-    stats = session.stats()
+def stats_msg(learner) -> TrainingStats:
+    stats = learner.stats()
     return stamped(TrainingStats(
-        policy=session.config.policy, learning=bool(session.policy.learns), steps=stats["steps"],
+        policy=learner.config.policy, learning=bool(learner.policy.learns), steps=stats["steps"],
         gradient_steps=stats["gradient_steps"], replay_size=stats["replay_size"], epsilon=stats["epsilon"],
         recent_window=stats["recent_window"], recent_loss=stats["recent_loss"],
         recent_accuracy=stats["recent_accuracy"], checkpoint_failures=stats["checkpoint_failures"]))
+
+
+def path_of(side) -> Path:
+    """A side's latched path for one request: its path (a probe's losing side too), or an empty one in the map
+    frame (the side failed or did not run): never a stale one."""
+    if side is not None and side.status == PlanPathResponse.OK and side.response is not None:
+        return side.response.path
+    empty = stamped(Path())
+    empty.header.frame_id = "map"
+    return empty
 
 
 class RvizGoals:

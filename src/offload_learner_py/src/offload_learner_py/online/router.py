@@ -1,33 +1,33 @@
 """The online decision loop of the offloading learner, without ROS: per planning request, decide local
-or cloud from s_t, call the chosen side (both on a probe step), hand the caller the first good path,
-then measure, reward (eq. 10) and learn (Algorithm 1) off the caller's path.
+or cloud from s_t, call the chosen side (both on a probe step), hand the caller the first good path, and
+once no side is running hand the request's Outcome to the learner (learning.py), which measures, imputes,
+rewards (eq. 10) and learns (Algorithm 1) off the caller's path.
 
 The ROS node injects the two planners as callables `plan(request) -> (status, response)` and the
 PlanPath status codes, so this module never imports a message type; tests drive it with fakes.
 
 Two modes. `learning`: every request is a probe, both sides run at once and the caller gets the first
-good path; both latencies are measured over the same moment of CPU load and link state, so both actions'
-eq. 10 rewards are known and both are learned (full information), and the taken action is the greedy one
-(exploring would change nothing the caller gets). `deployed`: the chosen side alone, so the robot saves its
-CPU or the link; a `probe_rate` share of requests (drawn independently of the state, so they are an
-unbiased sample for off-policy evaluation) are probes. A deployed request measures one side; the other is
-imputed by that side's latency model (latency_model.py) so eq. 10 still teaches the DQN.
+good path; both latencies are measured over the same moment of CPU load and link state, and the taken
+action is the greedy one (exploring would change nothing the caller gets). `deployed`: the chosen side
+alone, so the robot saves its CPU or the link; a `probe_rate` share of requests (drawn independently of the
+state, so they are an unbiased sample for off-policy evaluation) are probes, and every request while the
+learner `needs_both_sides()`. A deployed request measures one side; the learner imputes the other.
 
 The cloud side serves calls concurrently (the bridge borrows a socket per call and a call costs the robot
 little CPU), so a cloud call still running in the background never holds up the next request. The local
 planner shares the robot's CPU, so its calls run one at a time, and a newer request that needs it cancels
 the local call of an earlier request whose caller already has its path (`cancel(call_id)` on the local
 side, the planner node's ~cancel topic; the plan stops within a few thousand expansions with CANCELLED).
-A cancelled call's CPU is still accounted; its latency is a lower bound, which the learner uses only where
-the other side was already faster (see _learn). `delivered_s` runs from the request's arrival (any wait
-for the local planner included) to the path the caller gets. sides.py: the lanes and the calls.
+A cancelled call's CPU is still accounted; its latency is a lower bound (Outcome.local_lower_bound_s), which
+the learner uses only where the other side was already faster. `delivered_s` runs from the request's arrival
+(any wait for the local planner included) to the path the caller gets. sides.py: the lanes and the calls.
 
-Deadline hedge: when the chosen side has not answered within a deadline (a quantile of its latency model
-for this state, clamped, or a fixed bound), the other side starts and the first good path is delivered.
-With the hedge on, a cloud choice whose measured round trip alone exceeds the local planner's hedge quantile
-for the state is planned locally (routing `slow`): the cloud could not win it. Circuit breaker (breaker.py):
-after repeated cloud failures or a heartbeat that says the link is down or too slow, requests are planned
-locally without touching the link until the link is healthy again.
+Deadline hedge: when the chosen side has not answered within a deadline (a quantile of the learner's latency
+model of that side for this state, clamped, or a fixed bound), the other side starts and the first good path
+is delivered. With the hedge on, a cloud choice whose measured round trip alone exceeds the local planner's
+hedge quantile for the state is planned locally (routing `slow`): the cloud could not win it. Circuit breaker
+(breaker.py): after repeated cloud failures or a heartbeat that says the link is down or too slow, requests
+are planned locally without touching the link until the link is healthy again.
 """
 import itertools
 import math
@@ -35,25 +35,20 @@ import os
 import threading
 import time
 from contextlib import nullcontext
-from typing import Any, Callable, Optional, Tuple
+from typing import Any, Callable, Optional
 
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.core.policies import Decision, Policy
-from offload_learner_py.core.reward import cloud_latency_s, reward
+from offload_learner_py.core.policies import Decision
 from offload_learner_py.core.state import State
 from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
-from offload_learner_py.online.latency_model import LatencyModel
+from offload_learner_py.online.learning import OnlineLearner, latency_features as _features
 from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
 from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller
 
 OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
-
-
-def _features(state: State) -> Tuple[float, float, float]:
-    return state.input_size, state.cpu_availability, state.round_trip_s
 
 
 class _Request:
@@ -71,28 +66,28 @@ class _Request:
 
 class OffloadRouter:
     """Routes requests between `local` and `cloud` planners. `route()` returns the response the caller
-    gets; `on_decision(routing)` is called before any side is called, `on_outcome(outcome)` once per request
-    when everything about it is known (after learning), from a side thread.
+    gets; `on_decision(routing)` is called before any side is called. The `learner` (learning.py) decides
+    through its policy, lends the hedge its latency models, and gets every request's Outcome (`learn`) once
+    no side of it is running, from a side thread; `on_outcome(outcome)` is called after that.
 
     `stale(response)` (optional) says why a good answer was planned on a map older than the one in
     force, or None. The side is asked again until it answers from the current map or `config.map_wait_s`
     has passed. Then the cloud counts as failed (CLOUD_ERROR, so the robot plans locally), while the
     local planner's answer is delivered with a note: it planned on the last map it accepted, so the
     announced map never reached it in a usable form (a malformed grid it refused, a lost message), and
-    the last good map keeps serving rather than leaving a robot without a path.
-
-    `account(response)` (optional) gives (robot CPU-seconds, link bytes sent, link bytes received) that
-    the serving node reported for one call. Both go to the SideCaller (sides.py).
+    the last good map keeps serving rather than leaving a robot without a path. `account(response)`
+    (optional) gives (robot CPU-seconds, link bytes sent, link bytes received) the serving node reported.
 
     A side that has a `cancel(call_id)` method is called as `side(request, call_id=...)`, each call with its
     own id, and answers `statuses.cancelled` once cancelled; other sides are called as `side(request)`."""
 
-    def __init__(self, policy: Policy, local: PlanCall, cloud: PlanCall, statuses: Statuses,
+    def __init__(self, learner: OnlineLearner, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
                  on_outcome: Callable = None, clock: Callable[[], float] = time.perf_counter,
                  stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep,
                  account: Accounting = None, breaker: LinkBreaker = None):
-        self.policy, self.statuses = policy, statuses
+        self.learner, self.policy, self.models = learner, learner.policy, learner.models
+        self.statuses = statuses
         self.sides = {LOCAL: local, CLOUD: cloud}
         self.config = config
         self.on_decision = on_decision or (lambda routing: None)
@@ -100,7 +95,6 @@ class OffloadRouter:
         self.clock = clock
         self.rng = np.random.default_rng(config.seed)
         self.breaker = breaker or LinkBreaker(config.breaker)
-        self.models = {LOCAL: LatencyModel(config.latency_model), CLOUD: LatencyModel(config.latency_model)}
         self._lanes = {LOCAL: Lane(serial=True), CLOUD: Lane(serial=False)}
         self._caller = SideCaller(statuses, config, clock, sleep, stale, account)
         # Call ids start at a random point: a cancel meant for an earlier learner process never hits ours.
@@ -149,8 +143,8 @@ class OffloadRouter:
     def _route_decision(self, request_id: int, state: State, decision: Decision) -> Routing:
         config = self.config
         probe = config.probes_every_request or bool(self.rng.random() < config.probe_rate)
-        if config.mode == DEPLOYED and config.probe_while_warming_up and not probe and self.policy.learns:
-            probe = self.policy.warming_up or not (self.models[LOCAL].ready and self.models[CLOUD].ready)
+        if config.mode == DEPLOYED and config.probe_while_warming_up and not probe:
+            probe = self.learner.needs_both_sides()
         admitted = self.breaker.admit()
         action = decision.action
         if admitted == OPEN:
@@ -314,6 +308,7 @@ class OffloadRouter:
 
     # --- after the caller has its path ------------------------------------------------------------
     def _finish(self, req: _Request) -> None:
+        """No side is running: the request's costs and its sides' results into the Outcome, then the learner."""
         outcome = req.outcome
         try:
             for side, result in req.results.items():
@@ -326,16 +321,11 @@ class OffloadRouter:
                 if result.cancelled:
                     if side == LOCAL and result.response is not None:
                         outcome.local_lower_bound_s = result.seconds
-                    continue
-                if side == LOCAL:
-                    outcome.local, outcome.local_s = result, result.seconds
+                elif side == LOCAL:
+                    outcome.local = result
                 else:
                     outcome.cloud = result
-                    self._score_cloud(outcome)
-            # The learner's own CPU on the robot: training runs in this thread (one torch thread).
-            began_cpu = time.thread_time()
-            self._learn(outcome)
-            outcome.learner_cpu_s = time.thread_time() - began_cpu
+            self.learner.learn(outcome)
             self.on_outcome(outcome)
         finally:
             self._done()
@@ -344,58 +334,3 @@ class OffloadRouter:
         with self._idle:
             self._in_flight -= 1
             self._idle.notify_all()
-
-    def _score_cloud(self, outcome: Outcome) -> None:
-        cloud = outcome.cloud
-        failed = self.statuses.cloud_failed(cloud.status)
-        outcome.cloud_timeout = cloud.status == self.statuses.cloud_timeout
-        # A cloud that failed or answered after the deadline costs the full timeout (the paper's rule).
-        outcome.cloud_s = cloud_latency_s(None if failed else cloud.seconds, self.config.cloud_timeout_s)
-
-    def _learn(self, outcome: Outcome) -> None:
-        """Reward and learn where the request itself was plannable: from both measured latencies (a probe,
-        a hedge that ran both, a cloud failure that cost the timeout), else from the measured one and the
-        other side's imputed latency (deployed)."""
-        if outcome.state is None:
-            return
-        state = _features(outcome.state)
-        # A local answer that waited for a map the planner never took measures the wait, not planning.
-        local_ok = outcome.local is not None and outcome.local.status == self.statuses.ok and outcome.local.note is None
-        cloud_ok = outcome.cloud is not None and outcome.cloud.status == self.statuses.ok
-        if local_ok:
-            self.models[LOCAL].observe(state, outcome.local_s)
-        if cloud_ok:
-            self.models[CLOUD].observe(state, outcome.cloud_s)
-        local_s = outcome.local_s if local_ok else None
-        # A cloud that failed (or never answered from the map in force) cost the timeout: that is measured too.
-        cloud_s = outcome.cloud_s if outcome.cloud is not None and (cloud_ok or self.statuses.cloud_failed(outcome.cloud.status)) else None
-        if local_s is None and cloud_s is None:
-            return     # nothing measured about planning (a refused request, a stale map, a dead local planner)
-        if local_s is None and outcome.local is not None:
-            return     # the local planner answered but not with a plannable path: nothing to impute against
-        bound = outcome.local_lower_bound_s
-        if local_s is None and bound is not None and cloud_ok and bound >= cloud_s:
-            # Cancelled after running longer than the cloud took: l_local is at least `bound`, so the cloud was
-            # the better action whatever the rest would have been. Learning from the bound (or the model's
-            # estimate when larger) keeps the slowest local plans, the ones cancelled most, in the picture.
-            estimate = self.models[LOCAL].impute_s(state)
-            if estimate is None or estimate < bound:
-                self.models[LOCAL].observe(state, bound)
-            local_s, outcome.imputed = bound if estimate is None else max(bound, estimate), LOCAL
-        if local_s is None:
-            local_s, outcome.imputed = self.models[LOCAL].impute_s(state), LOCAL
-        elif cloud_s is None:
-            cloud_s, outcome.imputed = self.models[CLOUD].impute_s(state), CLOUD
-        if local_s is None or cloud_s is None:
-            return     # the model of the side not run has too few samples yet
-        local_s = max(local_s, 1e-9)
-        cloud_s = max(cloud_s, 1e-9)
-        weights = self.config.weights
-        outcome.reward = reward(outcome.decision.action, local_s, cloud_s, weights)
-        if self.policy.learns:
-            # Both actions' rewards are known: two transitions (full information, or one side imputed).
-            for action in (LOCAL, CLOUD):
-                loss = self.policy.learn(outcome.state, action, reward(action, local_s, cloud_s, weights))
-                outcome.loss = loss if loss is not None else outcome.loss
-            outcome.learned = True
-            outcome.transitions = 2

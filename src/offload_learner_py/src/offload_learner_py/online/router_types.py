@@ -1,5 +1,6 @@
 """The router's vocabulary and settings: its two modes, the status codes it must tell apart, what one planner
-call and one request came to, and RouterConfig. No logic beyond checking the settings."""
+call and one request came to (the Outcome the router hands the learner, learning.py), and RouterConfig. No
+logic beyond checking the settings."""
 import math
 from dataclasses import dataclass, field
 from typing import Any, Optional
@@ -62,6 +63,8 @@ class Routing:
 
 @dataclass
 class Outcome:
+    """One routed request. The router fills in the decision, the sides' results and the costs; the learner
+    (learning.py) the measured latencies, the reward and what it learned."""
     request_id: int
     state: Optional[State]
     decision: Decision
@@ -101,7 +104,8 @@ class RouterConfig:
     one-sided request would teach nothing, there being nothing to impute with, and the hedge would have no
     deadline); then, as a fixed policy always does, it probes at probe_rate only."""
     cloud_timeout_s: float = 5.0
-    """l_cloud of a request the cloud did not answer (the paper's 5 s)."""
+    """l_cloud of a request the cloud did not answer (the paper's 5 s). This and `weights` (eq. 10's alpha and
+    beta) are the learner's settings (learning.py); the node passes them on with `latency_model`."""
     weights: CostWeights = field(default_factory=CostWeights)
     seed: int = 1
     """seed of the probe draws."""

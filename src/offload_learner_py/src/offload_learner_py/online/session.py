@@ -1,20 +1,14 @@
-"""The learner's session without ROS: which policy serves (and the checkpoint it resumes from), when the
-model is saved, and the recent figures a node reports (loss, accuracy against the oracle, delivered
-latency). The node reads its parameters into a SessionConfig, hands every outcome to `record`, and
-publishes what `stats` returns; tests drive it with the router's outcomes and no master."""
+"""The learner's session settings without ROS: which policy serves and the checkpoint it resumes from (its own,
+else ~model), the DQN settings of the mode, and the checkpoint cadence and statistics window the online learner
+(learning.py) keeps. The node reads its parameters into a SessionConfig; `make_policy` builds the policy."""
 import logging
 import os
-import threading
-from collections import deque
 from dataclasses import dataclass, field, replace
 from typing import Optional, Tuple
 
-import numpy as np
-
-from offload_learner_py.core.checkpoint import load_checkpoint, remove_orphaned_temps, save_checkpoint
+from offload_learner_py.core.checkpoint import load_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
-from offload_learner_py.core.evaluation import faster_actions
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, Policy, \
     RandomPolicy
 from offload_learner_py.online.router_types import DEPLOYED
@@ -86,86 +80,3 @@ def make_policy(config: SessionConfig, log: logging.Logger = LOG) -> Tuple[Polic
         log.warning("no checkpoint at %r and no ~model: the DQN starts untrained", config.checkpoint)
     return DQNPolicy(dqn, agent=agent, learn=config.learn, seed=config.seed + agent.steps,
                      explore=config.explore), agent
-
-
-def correct_choice(action: int, local_s: float, cloud_s: float) -> bool:
-    """Whether the action was the faster side (a tie is never a mistake)."""
-    return bool(faster_actions(local_s, cloud_s, action) == action)
-
-
-class LearnerSession:
-    def __init__(self, config: SessionConfig, log: logging.Logger = LOG):
-        self.config, self.log = config, log
-        if config.checkpoint:
-            for name in remove_orphaned_temps(config.checkpoint):
-                log.warning("removed %s, left by a checkpoint save that was killed mid-write", name)
-        self.policy, self.agent = make_policy(config, log)
-        self.checkpoint_failures = 0
-        self.count = 0                                    # outcomes of decisions recorded
-        self._lock = threading.Lock()
-        self._recent = deque(maxlen=config.stats_window)  # (loss or nan, correct or nan)
-        self._delivered_ms = deque(maxlen=config.stats_window)
-        self._learned_since_checkpoint = 0
-
-    @property
-    def learns(self) -> bool:
-        return bool(self.config.learn and self.policy.learns)
-
-    def record(self, outcome) -> Optional[str]:
-        """Count one decision's outcome, save the model when due; the progress line when one is due."""
-        correct = float("nan")
-        if outcome.reward is not None and outcome.imputed is None:
-            correct = float(correct_choice(outcome.decision.action, outcome.local_s, outcome.cloud_s))
-        with self._lock:
-            self._recent.append((outcome.loss if outcome.loss is not None else float("nan"), correct))
-            self._delivered_ms.append(1000.0 * outcome.delivered_s)
-            self.count += 1
-            self._learned_since_checkpoint += bool(outcome.learned)
-            due = self.config.checkpoint_every > 0 and self._learned_since_checkpoint >= self.config.checkpoint_every
-        if due:
-            self.save()
-        if self.config.progress_every <= 0 or self.count % self.config.progress_every:
-            return None
-        stats = self.stats()
-        with self._lock:
-            delivered = float(np.mean(self._delivered_ms))
-        return (f"request {self.count}: last {stats['recent_window']} mean {delivered:.1f} ms to path, accuracy "
-                f"{100 * stats['recent_accuracy']:.0f}% vs oracle, model steps {self.policy.steps}")
-
-    def stats(self) -> dict:
-        """The policy's counters with the recent window's mean loss and accuracy, and checkpoint failures."""
-        with self._lock:
-            recent = np.array(self._recent, dtype=np.float64).reshape(-1, 2)
-
-        def mean(column: int) -> float:
-            finite = recent[:, column][np.isfinite(recent[:, column])]
-            return float(finite.mean()) if len(finite) else float("nan")
-        return {**self.policy.stats(), "recent_window": len(recent), "recent_loss": mean(0),
-                "recent_accuracy": mean(1), "checkpoint_failures": self.checkpoint_failures}
-
-    def save(self) -> bool:
-        """Write the checkpoint; a failure (a full disk, a diverged network) is logged at error level every
-        time, counted in stats(), and the next learned step tries again."""
-        if not self.config.checkpoint or self.agent is None or not self.policy.learns:
-            return False
-        try:
-            with self.policy.lock:
-                save_checkpoint(self.agent, self.config.checkpoint)
-        except (OSError, ValueError) as error:
-            self.checkpoint_failures += 1
-            self.log.error("checkpoint %s not written (%d failures so far): %s", self.config.checkpoint,
-                           self.checkpoint_failures, error)
-            return False
-        with self._lock:
-            self._learned_since_checkpoint = 0
-        self.log.debug("checkpoint %s at %d steps", self.config.checkpoint, self.agent.steps)
-        return True
-
-    def close(self) -> bool:
-        """Store the last pending transition and save; whether a checkpoint was written."""
-        self.policy.flush()
-        if self.save():
-            self.log.info("checkpoint %s: %d steps", self.config.checkpoint, self.agent.steps)
-            return True
-        return False
-
