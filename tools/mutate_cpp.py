@@ -1,14 +1,15 @@
 #!/usr/bin/env python3
 """Hand-written mutation testing of the C++ planner core and its request contract (dijkstra.cpp,
-plan_request.cpp, map_geometry.h, the ROS wrapper planner_ros.cpp and the pybind11 bindings).
-`make mutate` runs it after the Python modules.
+planner_options.cpp, plan_request.cpp, map_geometry.h, the ROS wrapper planner_ros.cpp and the pybind11
+bindings). `make mutate` runs it after the Python modules.
 
 For each mutant of tools/cpp_mutants.yaml, one at a time: write the mutated source (its `file`, relative
 to src/offload_planner_cpp/, default src/dijkstra.cpp), rebuild the gtests and the pybind11 module
-(catkin_make targets test_dijkstra, test_planner_ros and _core), run both gtests and the binding and
-contract tests (test_bindings.py, test_request_contract.py), and record whether a test failed (killed), the build failed
-(does not compile) or everything passed (survived). The original source is written back after every
-mutant, and on any exit (failure, Ctrl-C, SIGTERM); the devel space is then rebuilt from it.
+(catkin_make targets test_dijkstra, test_planner_ros, test_planner_options and _core), run the gtests and
+the binding and contract tests (test_bindings.py, test_request_contract.py), and record whether a test
+failed (killed), the build failed (does not compile) or everything passed (survived). The original source
+is written back after every mutant, and on any exit (failure, Ctrl-C, SIGTERM); the devel space is then
+rebuilt from it.
 
 Needs the ROS environment (`source devel/setup.bash`) and a built workspace (`make build`).
 """
@@ -26,7 +27,8 @@ ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "src" / "offload_planner_cpp"
 DEFAULT_FILE = "src/dijkstra.cpp"
 MUTANTS = Path(__file__).resolve().parent / "cpp_mutants.yaml"
-GTESTS = [ROOT / "devel" / "lib" / "offload_planner_cpp" / name for name in ("test_dijkstra", "test_planner_ros")]
+GTESTS = [ROOT / "devel" / "lib" / "offload_planner_cpp" / name
+          for name in ("test_dijkstra", "test_planner_ros", "test_planner_options")]
 BINDING_TESTS = [PACKAGE / "test" / name for name in ("test_bindings.py", "test_request_contract.py")]
 TEST_TIMEOUT_S = 300  # a mutant that loops forever is killed by this, not waited for
 
@@ -75,7 +77,8 @@ def apply(source: str, mutant: dict) -> str:
 
 
 def build() -> subprocess.CompletedProcess:
-    return subprocess.run(["catkin_make", "--source", str(ROOT), "-j2", "test_dijkstra", "test_planner_ros", "_core"],
+    return subprocess.run(["catkin_make", "--source", str(ROOT), "-j2", "test_dijkstra", "test_planner_ros",
+                           "test_planner_options", "_core"],
                           cwd=ROOT, capture_output=True, text=True)
 
 
@@ -138,7 +141,8 @@ def main(argv=None) -> int:
         if killed:
             sys.exit(f"mutate_cpp: the tests fail on the unmutated source ({where}); no mutant can be judged")
         print(f"C++ mutants of {', '.join(sorted(sources))} ({len(mutants)} from {args.list.name}); tests: "
-              f"test_dijkstra, test_planner_ros (gtest), test_bindings.py, test_request_contract.py", flush=True)
+              f"test_dijkstra, test_planner_ros, test_planner_options (gtest), test_bindings.py, "
+              f"test_request_contract.py", flush=True)
         for mutant in mutants:
             began = time.monotonic()
             source = sources[mutant.get("file", DEFAULT_FILE)]

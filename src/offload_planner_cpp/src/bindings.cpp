@@ -1,7 +1,8 @@
 // pybind11 module of the planner core: offload_planner_cpp._core. The Python package wraps plan_raw()
 // into plan(), which raises; this layer never copies the grid and releases the GIL while planning. It
 // also exposes the request contract (plan_request.h) so the cloud bridge answers exactly as the ROS
-// node, and the status codes, so Python never types them again.
+// node, and the status codes, so Python never types them again. Options are checked by the core
+// (planner_options.h), nothing here validates one itself.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -12,6 +13,7 @@
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/inflation.h"
 #include "offload_planner_cpp/plan_request.h"
+#include "offload_planner_cpp/planner_options.h"
 
 namespace py = pybind11;
 using offload_planner::Cell;
@@ -63,10 +65,10 @@ Cell cellOf(const py::handle& obj, const char* name) {
   throw py::value_error(std::string(name) + " must be an (x, y) pair of integer cells");
 }
 
-offload_planner::Algorithm algorithmOf(const std::string& name) {
-  if (name == "dijkstra") return offload_planner::Algorithm::kDijkstra;
-  if (name == "astar") return offload_planner::Algorithm::kAStar;
-  throw py::value_error("algorithm must be \"dijkstra\" or \"astar\", got \"" + name + "\"");
+// Raises ValueError with the core's reason when `options` are not acceptable.
+void check(const PlannerOptions& options) {
+  const std::string problem = offload_planner::optionsProblem(options);
+  if (!problem.empty()) throw py::value_error(problem);
 }
 
 py::dict planRaw(const py::array& grid, const py::object& start, const py::object& goal, int lethal_threshold,
@@ -79,7 +81,8 @@ py::dict planRaw(const py::array& grid, const py::object& start, const py::objec
   options.unknown_is_obstacle = unknown_is_obstacle;
   options.goal_tolerance_cells = goal_tolerance;
   options.stop_at_goal = stop_at_goal;
-  options.algorithm = algorithmOf(algorithm);
+  const std::string unknown = offload_planner::algorithmOf(algorithm, &options.algorithm);
+  if (!unknown.empty()) throw py::value_error(unknown);   // a name that is no algorithm; values: INVALID_REQUEST
   options.any_angle = any_angle;
   options.cost_factor = cost_factor;
   options.neutral_cost = neutral_cost;
@@ -150,6 +153,8 @@ PYBIND11_MODULE(_core, m) {
   (void)py::array_t<std::int32_t>(0);
   (void)py::array_t<double>(0);
   (void)py::array_t<bool>(0);
+
+  const PlannerOptions d;   // every keyword's default is the core's (planner_options.h)
 
   // Names come from the core (statusName), values from the enum: nothing is typed twice.
   py::enum_<PlanStatus> status(m, "PlanStatus", "Status of a planning request; the offload_msgs/PlanPath codes.");
@@ -237,27 +242,28 @@ PYBIND11_MODULE(_core, m) {
       "free_cells",
       [](const py::array& grid, int lethal_threshold, bool unknown_is_obstacle) {
         const GridView view = viewOf(grid);
-        if (lethal_threshold < 1 || lethal_threshold > 101) {
-          throw py::value_error("lethal_threshold must be in 1..101, got " + std::to_string(lethal_threshold));
-        }
         PlannerOptions options;
         options.lethal_threshold = lethal_threshold;
         options.unknown_is_obstacle = unknown_is_obstacle;
+        check(options);
         py::array_t<bool> free({static_cast<py::ssize_t>(view.height), static_cast<py::ssize_t>(view.width)});
         bool* out = free.mutable_data();
         for (std::size_t k = 0; k < view.size; ++k) out[k] = offload_planner::isPassable(view.data[k], options);
         return free;
       },
-      py::arg("grid"), py::arg("lethal_threshold") = 50, py::arg("unknown_is_obstacle") = true,
+      py::arg("grid"), py::arg("lethal_threshold") = d.lethal_threshold,
+      py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
       "Boolean [y, x] mask of the cells the planner may enter, by its own rule.");
   m.def("path_poses", &pathPoses, py::arg("geometry"), py::arg("path"), py::arg("start_pose"), py::arg("goal_pose"),
         py::arg("reached_requested_goal"),
         "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them.");
-  m.def("plan_raw", &planRaw, py::arg("grid"), py::arg("start"), py::arg("goal"), py::arg("lethal_threshold") = 50,
-        py::arg("unknown_is_obstacle") = true, py::arg("goal_tolerance") = 0.0, py::arg("stop_at_goal") = true,
-        py::kw_only(), py::arg("algorithm") = "dijkstra", py::arg("any_angle") = false, py::arg("cost_factor") = 0.0,
-        py::arg("neutral_cost") = 50.0, py::arg("inflation_radius_cells") = 0.0, py::arg("robot_radius_cells") = 0.0,
-        py::arg("inflation_decay") = 0.5,
+  m.def("plan_raw", &planRaw, py::arg("grid"), py::arg("start"), py::arg("goal"),
+        py::arg("lethal_threshold") = d.lethal_threshold, py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
+        py::arg("goal_tolerance") = d.goal_tolerance_cells, py::arg("stop_at_goal") = d.stop_at_goal, py::kw_only(),
+        py::arg("algorithm") = std::string(offload_planner::algorithmName(d.algorithm)),
+        py::arg("any_angle") = d.any_angle, py::arg("cost_factor") = d.cost_factor,
+        py::arg("neutral_cost") = d.neutral_cost, py::arg("inflation_radius_cells") = d.inflation_radius_cells,
+        py::arg("robot_radius_cells") = d.robot_radius_cells, py::arg("inflation_decay") = d.inflation_decay,
         "Plan without raising on planning failures: returns a dict with status (PlanStatus), message, path, "
         "cost (length in cells), weighted_cost (in the cost model planned with), goal, expansions, seconds and "
         "grid_address (the buffer planned on). Malformed arguments raise ValueError.");
@@ -281,7 +287,8 @@ PYBIND11_MODULE(_core, m) {
         }
         return py::ssize_t(-1);
       },
-      py::arg("grid"), py::arg("path"), py::arg("lethal_threshold") = 50, py::arg("unknown_is_obstacle") = true,
+      py::arg("grid"), py::arg("path"), py::arg("lethal_threshold") = d.lethal_threshold,
+      py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
       "Index of the first segment of `path` (N x 2 cells) that leaves the grid, crosses a blocked cell or cuts a "
       "blocked corner (the planner's line-of-sight rule); -1 when every segment is clear.");
   m.def(
@@ -289,17 +296,13 @@ PYBIND11_MODULE(_core, m) {
       [](const py::array& grid, double robot_radius_cells, double inflation_radius_cells, double inflation_decay,
          int lethal_threshold, bool unknown_is_obstacle) {
         const GridView view = viewOf(grid);
-        if (lethal_threshold < 1 || lethal_threshold > 101) {
-          throw py::value_error("lethal_threshold must be in 1..101, got " + std::to_string(lethal_threshold));
-        }
         PlannerOptions options;
         options.lethal_threshold = lethal_threshold;
         options.unknown_is_obstacle = unknown_is_obstacle;
         options.robot_radius_cells = robot_radius_cells;
         options.inflation_radius_cells = inflation_radius_cells;
         options.inflation_decay = inflation_decay;
-        const std::string problem = offload_planner::inflationProblem(options);
-        if (!problem.empty()) throw py::value_error(problem);
+        check(options);
         std::vector<std::int8_t> out;
         {
           py::gil_scoped_release release;
@@ -310,6 +313,7 @@ PYBIND11_MODULE(_core, m) {
         return inflated;
       },
       py::arg("grid"), py::arg("robot_radius_cells"), py::arg("inflation_radius_cells"),
-      py::arg("inflation_decay") = 0.5, py::arg("lethal_threshold") = 50, py::arg("unknown_is_obstacle") = true,
+      py::arg("inflation_decay") = d.inflation_decay, py::arg("lethal_threshold") = d.lethal_threshold,
+      py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
       "The grid the planner plans on with these inflation options (a copy; see inflation.h).");
 }

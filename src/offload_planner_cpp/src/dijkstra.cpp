@@ -639,22 +639,8 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
         << " cells and a frame of one cell around them are more than 2^31 - 1, the planner's index range";
     return finish(PlanStatus::kInvalidMap, msg.str());
   }
-  if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
-    return finish(PlanStatus::kInvalidRequest,
-                  "lethal_threshold must be in 1..101, got " + std::to_string(options.lethal_threshold));
-  }
-  if (!(options.goal_tolerance_cells >= 0.0) || !std::isfinite(options.goal_tolerance_cells)) {
-    return finish(PlanStatus::kInvalidRequest, "goal tolerance must be a finite number >= 0");
-  }
-  auto finiteAtLeast = [](double v, double low) { return std::isfinite(v) && v >= low; };
-  if (!finiteAtLeast(options.cost_factor, 0.0) || !(std::isfinite(options.neutral_cost) && options.neutral_cost > 0.0)) {
-    return finish(PlanStatus::kInvalidRequest, "cost_factor must be finite and >= 0, neutral_cost finite and > 0");
-  }
-  const std::string inflation_problem = inflationProblem(options);
-  if (!inflation_problem.empty()) return finish(PlanStatus::kInvalidRequest, inflation_problem);
-  if (options.algorithm != Algorithm::kDijkstra && options.algorithm != Algorithm::kAStar) {
-    return finish(PlanStatus::kInvalidRequest, "algorithm must be dijkstra or astar");
-  }
+  const std::string options_problem = optionsProblem(options);
+  if (!options_problem.empty()) return finish(PlanStatus::kInvalidRequest, options_problem);
 
   if (options.robot_radius_cells > 0.0 || options.inflation_radius_cells > 0.0) {
     inflate(data, width, height, options, &inflated_);

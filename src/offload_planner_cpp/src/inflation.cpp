@@ -47,15 +47,6 @@ void transform1d(const double* f, double* d, int n, std::vector<int>* v, std::ve
 
 }  // namespace
 
-std::string inflationProblem(const PlannerOptions& options) {
-  auto within = [](double v, double high) { return std::isfinite(v) && v >= 0.0 && v <= high; };
-  if (within(options.robot_radius_cells, 1e4) && within(options.inflation_radius_cells, 1e4) &&
-      std::isfinite(options.inflation_decay) && options.inflation_decay >= 0.0) {
-    return "";
-  }
-  return "robot_radius_cells and inflation_radius_cells must be in 0..10000, inflation_decay finite and >= 0";
-}
-
 void obstacleDistanceSquared(const std::int8_t* grid, int width, int height, const PlannerOptions& options,
                              std::vector<double>* out) {
   const std::size_t cells = static_cast<std::size_t>(width) * static_cast<std::size_t>(height);

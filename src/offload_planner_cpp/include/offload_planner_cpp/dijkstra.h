@@ -10,7 +10,8 @@
 // length times the mean of w(a) and w(b), w = neutral_cost + cost_factor * occupancy, global_planner's
 // model), inflation of a raw map by a robot and an inflation radius (inflation.h), A* with the octile
 // heuristic (consistent, so its costs are Dijkstra's), and any-angle paths (the optimal cell path pulled
-// tight along lines of sight that cross no blocked cell or corner and never raise the path's cost).
+// tight along lines of sight that cross no blocked cell or corner and never raise the path's cost). The
+// options, their defaults and bounds are planner_options.h's.
 #pragma once
 
 #include <atomic>
@@ -23,6 +24,7 @@
 #include <vector>
 
 #include "offload_planner_cpp/plan_status.h"
+#include "offload_planner_cpp/planner_options.h"
 
 namespace offload_planner {
 
@@ -30,37 +32,6 @@ struct Cell {
   int x = 0;
   int y = 0;
   bool operator==(const Cell& other) const { return x == other.x && y == other.y; }
-};
-
-enum class Algorithm : std::uint8_t { kDijkstra = 0, kAStar = 1 };
-
-struct PlannerOptions {
-  // A cell whose occupancy is >= this value is an obstacle (0..100 scale).
-  int lethal_threshold = 50;
-  // Unknown cells (-1) are obstacles unless this is false.
-  bool unknown_is_obstacle = true;
-  // In cells. When the goal is blocked or unreachable, plan to the reachable free cell nearest to the
-  // goal within this radius instead.
-  double goal_tolerance_cells = 0.0;
-  // Stop as soon as the goal is settled; false explores the whole reachable component (benchmarks).
-  bool stop_at_goal = true;
-  // Set to true by another thread, it stops the plan within a few thousand expansions with kCancelled:
-  // a caller that already has its path (from the other side) frees the CPU for the next request.
-  const std::atomic<bool>* cancel = nullptr;
-  // kAStar settles only the cells the octile heuristic cannot rule out; same costs as kDijkstra.
-  Algorithm algorithm = Algorithm::kDijkstra;
-  // Return the corners of a path whose segments may run at any angle (see above).
-  bool any_angle = false;
-  // 0: every passable cell costs alike (the default; exact on MovingAI). Else cost-aware with
-  // w = neutral_cost + cost_factor * occupancy (unknown passable cells count as occupancy 0).
-  double cost_factor = 0.0;
-  double neutral_cost = 50.0;
-  // In cells, measured between cell centres. Cells within robot_radius_cells of an obstacle become
-  // obstacles; cells within inflation_radius_cells get occupancy 99 * exp(-inflation_decay * (d - robot
-  // radius)) if that is higher than their own (costmap_2d's inflation layer on the 0..100 scale).
-  double robot_radius_cells = 0.0;
-  double inflation_radius_cells = 0.0;
-  double inflation_decay = 0.5;   // per cell: costmap_2d's default 10 per metre at 5 cm cells
 };
 
 // The planner's one rule of which cells it may enter.

@@ -3,16 +3,11 @@
 #pragma once
 
 #include <cstdint>
-#include <string>
 #include <vector>
 
 #include "offload_planner_cpp/dijkstra.h"
 
 namespace offload_planner {
-
-// Why the options' inflation settings are unusable (radii outside 0..10000 cells, a decay that is not finite
-// and >= 0), or "" when they are fine. The planner refuses such a request with INVALID_REQUEST.
-std::string inflationProblem(const PlannerOptions& options);
 
 // Squared Euclidean distance, in cells between cell centres, from every cell to the nearest cell that is
 // not passable under `options` (0 for such a cell; +inf when the grid has none). Exact: Felzenszwalb and

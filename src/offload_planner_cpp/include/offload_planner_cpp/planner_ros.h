@@ -22,24 +22,17 @@
 
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/plan_request.h"
+#include "offload_planner_cpp/planner_options.h"
 
 namespace offload_planner {
 
 // The contract's view of a map message.
 MapInfo mapInfoOf(const nav_msgs::OccupancyGrid& map);
 
-// Inflation of the map in metres, as costmap_2d's parameters: converted to cells with each map's resolution.
-struct InflationParams {
-  double robot_radius_m = 0.0;
-  double inflation_radius_m = 0.0;
-  double cost_scaling_factor = 10.0;   // per metre
-  bool enabled() const { return robot_radius_m > 0.0 || inflation_radius_m > 0.0; }
-};
-
 class PlanRequestHandler {
  public:
-  // `max_map_cells` 0: no bound beyond the core's side limit. With `inflation`, each map is inflated once,
-  // when it arrives, and every request plans on the inflated grid.
+  // `max_map_cells` 0: no bound beyond the core's side limit. With `inflation` (metres, planner_options.h),
+  // each map is inflated once, when it arrives, and every request plans on the inflated grid.
   explicit PlanRequestHandler(const PlannerOptions& options = PlannerOptions(), std::uint64_t max_map_cells = 0,
                               const InflationParams& inflation = InflationParams())
       : options_(options), max_map_cells_(max_map_cells), inflation_(inflation) {}
