@@ -16,7 +16,7 @@ CORE_SOURCES = [PLANNER / "include" / "offload_planner_cpp" / name
                 for name in ("dijkstra.h", "inflation.h", "map_geometry.h", "plan_status.h", "plan_request.h",
                              "planner_options.h")] + \
                [PLANNER / "src" / name for name in ("dijkstra.cpp", "inflation.cpp", "plan_request.cpp",
-                                                    "planner_options.cpp", "bindings.cpp")]
+                                                    "planner_options.cpp", "bindings.cpp", "bindings_options.cpp")]
 ROS_INCLUDE = re.compile(r'#\s*include\s*[<"](ros/|nav_msgs/|geometry_msgs/|std_msgs/|offload_msgs/|tf2)')
 
 

@@ -1,8 +1,8 @@
 // pybind11 module of the planner core: offload_planner_cpp._core. The Python package wraps plan_raw()
 // into plan(), which raises; this layer never copies the grid and releases the GIL while planning. It
 // also exposes the request contract (plan_request.h) so the cloud bridge answers exactly as the ROS
-// node, and the status codes, so Python never types them again. Options are checked by the core
-// (planner_options.h), nothing here validates one itself.
+// node, the status codes, so Python never types them again, and the planner options table
+// (planner_options.h): nothing here validates an option or converts metres itself.
 #include <pybind11/numpy.h>
 #include <pybind11/pybind11.h>
 #include <pybind11/stl.h>
@@ -26,6 +26,9 @@ using offload_planner::PlannerOptions;
 using offload_planner::PlanResult;
 using offload_planner::PlanStatus;
 using offload_planner::Pose;
+
+// planner_options.h's table, its checks and conversions: bindings_options.cpp.
+void defineOptions(py::module_& m);
 
 namespace {
 
@@ -155,6 +158,7 @@ PYBIND11_MODULE(_core, m) {
   (void)py::array_t<bool>(0);
 
   const PlannerOptions d;   // every keyword's default is the core's (planner_options.h)
+  defineOptions(m);
 
   // Names come from the core (statusName), values from the enum: nothing is typed twice.
   py::enum_<PlanStatus> status(m, "PlanStatus", "Status of a planning request; the offload_msgs/PlanPath codes.");

@@ -3,6 +3,8 @@ cloud protocol carries every option and the server plans with it, cost-aware pla
 scipy on the same weighted graph (inflated Husky playpen), and any-angle paths are shorter than the
 8-connected optimum without crossing an obstacle."""
 import dataclasses
+import inspect
+import re
 
 import numpy as np
 import pytest
@@ -212,3 +214,135 @@ def test_the_server_inflates_a_map_once_for_all_requests_that_ask_the_same():
             assert len(server.cache) == cached + 1
     finally:
         server.stop()
+
+
+# --- the one options table of the core (planner_options.h), through the binding ---
+
+INF = float("inf")
+# Written out by hand: a name missing, a default or a bound changed in the core fails here.
+# name: (type, scope, node parameter, default, min, max, min_open, unit, in_cells, resolution_power)
+EXPECTED_TABLE = {
+    "lethal_threshold": ("int", "cells", True, 50, 1, 101, False, "occupancy", None, 0),
+    "unknown_is_obstacle": ("bool", "cells", True, True, 0, 1, False, "", None, 0),
+    "goal_tolerance_cells": ("float", "cells", False, 0.0, 0, INF, False, "cells", None, 0),
+    "stop_at_goal": ("bool", "cells", False, True, 0, 1, False, "", None, 0),
+    "cost_factor": ("float", "cells", True, 0.0, 0, INF, False, "", None, 0),
+    "neutral_cost": ("float", "cells", True, 50.0, 0, INF, True, "", None, 0),
+    "robot_radius_cells": ("float", "cells", False, 0.0, 0, 10000, False, "cells", None, 0),
+    "inflation_radius_cells": ("float", "cells", False, 0.0, 0, 10000, False, "cells", None, 0),
+    "inflation_decay": ("float", "cells", False, 0.5, 0, INF, False, "1/cell", None, 0),
+    "algorithm": ("algorithm", "cells", True, "dijkstra", 0, 1, False, "", None, 0),
+    "any_angle": ("bool", "cells", True, False, 0, 1, False, "", None, 0),
+    "robot_radius": ("float", "metres", True, 0.0, 0, INF, False, "m", "robot_radius_cells", -1),
+    "inflation_radius": ("float", "metres", True, 0.0, 0, INF, False, "m", "inflation_radius_cells", -1),
+    "cost_scaling_factor": ("float", "metres", True, 10.0, 0, INF, False, "1/m", "inflation_decay", 1),
+}
+FIELDS = ("type", "scope", "node_parameter", "default", "min", "max", "min_open", "unit", "in_cells",
+          "resolution_power")
+
+
+def test_the_options_table_holds_every_option_with_its_default_and_bounds():
+    table = offload_planner_cpp.options_table()
+    assert [row["name"] for row in table] == list(EXPECTED_TABLE)
+    for row in table:
+        assert tuple(row[field] for field in FIELDS) == EXPECTED_TABLE[row["name"]], row["name"]
+        assert type(row["default"]) is type(EXPECTED_TABLE[row["name"]][3]), row["name"]
+        assert row["meaning"] and row["rule"], row["name"]
+    assert offload_planner_cpp.ALGORITHM_NAMES == ("dijkstra", "astar")
+    assert table[[row["name"] for row in table].index("algorithm")]["choices"] == ("dijkstra", "astar")
+    assert offload_planner_cpp.OPTION_DEFAULTS == {name: spec[3] for name, spec in EXPECTED_TABLE.items()}
+
+
+def keyword_defaults(function) -> dict:
+    """Keyword defaults of a pybind11 function, read from the signature line of its docstring."""
+    signature = function.__doc__.splitlines()[0]
+    return {name: eval(value) for name, value in re.findall(r"(\w+): \w+ = ([^,)]+)", signature)}
+
+
+def test_every_keyword_default_is_the_tables():
+    defaults = offload_planner_cpp.OPTION_DEFAULTS
+    cell_options = {name for name, spec in EXPECTED_TABLE.items() if spec[1] == "cells"}
+    keyword = {"goal_tolerance_cells": "goal_tolerance"}   # plan()'s and plan_raw()'s name for it
+    for function in (plan_raw, plan):
+        if function is plan:
+            found = {name: p.default for name, p in inspect.signature(plan).parameters.items()
+                     if p.default is not inspect.Parameter.empty}
+        else:
+            found = keyword_defaults(plan_raw)
+        assert found == {keyword.get(name, name): defaults[name] for name in cell_options}, function.__name__
+    assert keyword_defaults(offload_planner_cpp.free_cells) == {
+        name: defaults[name] for name in ("lethal_threshold", "unknown_is_obstacle")}
+    assert keyword_defaults(inflate) == {
+        name: defaults[name] for name in ("inflation_decay", "lethal_threshold", "unknown_is_obstacle")}
+
+
+def beyond(spec, side):
+    """A value just outside (or at, for an open bound) a numeric row's bound."""
+    kind, _, _, _, low, high, open_low = spec[:7]
+    if side == "low":
+        return low if open_low else (low - 1 if kind == "int" else low - 1e-9)
+    return high + 1 if kind == "int" else high * (1 + 1e-12)
+
+
+@pytest.mark.parametrize("name", [name for name, spec in EXPECTED_TABLE.items() if spec[0] in ("int", "float")])
+def test_validate_options_refuses_just_beyond_each_bound_in_the_cores_words(name):
+    spec = EXPECTED_TABLE[name]
+    kind, low, high, open_low = spec[0], spec[4], spec[5], spec[6]
+    validate = offload_planner_cpp.validate_options
+    if not open_low:
+        assert validate(**{name: low})[name] == low
+    if high != INF:
+        assert validate(**{name: high})[name] == high
+    rule = {"int": f"an integer in {low}..{high}"}.get(kind, f"a finite number {'>' if open_low else '>='} {low}"
+                                                       if high == INF else f"a finite number in {low}..{high}")
+    bad = [beyond(spec, "low"), float("nan"), -INF] + ([beyond(spec, "high")] if high != INF else [INF])
+    if kind == "int":
+        bad.append(low + 0.5)
+    for value in bad:
+        with pytest.raises(ValueError) as error:
+            validate(**{name: value})
+        assert str(error.value) == f"{name} must be {rule}, got {value!r}", value
+    if spec[1] == "cells":   # the planner refuses the same values with the same message
+        keyword = "goal_tolerance" if name == "goal_tolerance_cells" else name
+        raw = plan_raw(np.zeros((4, 4), np.int8), (0, 0), (3, 3), **{keyword: bad[0]})
+        assert raw["status"] == PlanStatus.INVALID_REQUEST
+        with pytest.raises(ValueError) as error:
+            validate(**{name: bad[0]})
+        assert raw["message"] == str(error.value)
+
+
+def test_validate_options_checks_names_types_and_algorithms():
+    validate = offload_planner_cpp.validate_options
+    assert validate() == offload_planner_cpp.OPTION_DEFAULTS
+    values = validate(lethal_threshold=101, algorithm="astar", any_angle=True, robot_radius=1000.0)
+    assert values["lethal_threshold"] == 101 and values["algorithm"] == "astar" and values["any_angle"] is True
+    assert values["robot_radius"] == 1000.0, "metres have no upper bound: the cells are per map"
+    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, got "bfs"$'):
+        validate(algorithm="bfs")
+    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, got "bfs"$'):
+        plan_raw(np.zeros((4, 4), np.int8), (0, 0), (3, 3), algorithm="bfs")
+    for name, value in (("algorithm", 1), ("any_angle", "yes"), ("neutral_cost", "5"), ("lethal_threshold", True)):
+        with pytest.raises(ValueError, match=f"^{name} must be .*, got {re.escape(repr(value))}$"):
+            validate(**{name: value})
+    with pytest.raises(TypeError, match="unknown planner option 'bogus'"):
+        validate(bogus=1)
+    for function in (offload_planner_cpp.free_cells, inflate):
+        with pytest.raises(ValueError, match=r"^lethal_threshold must be an integer in 1\.\.101, got 0$"):
+            function(np.zeros((4, 4), np.int8), *((1.0, 2.0) if function is inflate else ()), lethal_threshold=0)
+    with pytest.raises(ValueError, match=r"^robot_radius_cells must be a finite number in 0\.\.10000, got nan$"):
+        inflate(np.zeros((4, 4), np.int8), float("nan"), 2.0)
+
+
+def test_options_in_cells_divides_radii_and_multiplies_the_decay_by_the_resolution():
+    in_cells = offload_planner_cpp.options_in_cells
+    assert in_cells(0.05, robot_radius=0.22, inflation_radius=0.55, cost_scaling_factor=3.0) == {
+        "robot_radius_cells": 0.22 / 0.05, "inflation_radius_cells": 0.55 / 0.05, "inflation_decay": 3.0 * 0.05}
+    assert in_cells(0.05) == {"robot_radius_cells": 0.0, "inflation_radius_cells": 0.0, "inflation_decay": 10.0 * 0.05}
+    assert in_cells(0.05)["inflation_decay"] == pytest.approx(offload_planner_cpp.OPTION_DEFAULTS["inflation_decay"])
+    for resolution in (0.0, -1.0, float("nan")):
+        with pytest.raises(ValueError, match="^resolution must be a finite number > 0, got "):
+            in_cells(resolution)
+    with pytest.raises(TypeError, match="not a parameter in metres"):
+        in_cells(0.05, robot_radius_cells=1.0)
+    with pytest.raises(TypeError, match="unknown planner option"):
+        in_cells(0.05, robot_radius_m=1.0)

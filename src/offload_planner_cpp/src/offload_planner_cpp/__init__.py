@@ -11,9 +11,15 @@ from typing import Tuple
 
 import numpy as np
 
-from offload_planner_cpp._core import PlanStatus, free_cells, inflate, path_clear, plan_raw
+from offload_planner_cpp._core import (ALGORITHM_NAMES, PlanStatus, free_cells, inflate, options_in_cells,
+                                      options_table, path_clear, plan_raw, validate_options)
 
-__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "free_cells", "inflate", "path_clear", "plan_raw"]
+__all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "free_cells", "inflate", "path_clear",
+           "plan_raw", "ALGORITHM_NAMES", "options_table", "validate_options", "options_in_cells", "OPTION_DEFAULTS"]
+
+# The core's defaults by option name (planner_options.h), for keyword defaults that must not be typed twice.
+OPTION_DEFAULTS = {row["name"]: row["default"] for row in options_table()}
+_D = OPTION_DEFAULTS
 
 
 class PlanError(ValueError):
@@ -44,9 +50,11 @@ class PlanResult:
     grid_address: int         # address of the buffer planned on: the caller's own array, never a copy
 
 
-def plan(grid, start, goal, *, lethal_threshold=50, unknown_is_obstacle=True, goal_tolerance=0.0,
-         stop_at_goal=True, algorithm="dijkstra", any_angle=False, cost_factor=0.0, neutral_cost=50.0,
-         inflation_radius_cells=0.0, robot_radius_cells=0.0, inflation_decay=0.5) -> PlanResult:
+def plan(grid, start, goal, *, lethal_threshold=_D["lethal_threshold"], unknown_is_obstacle=_D["unknown_is_obstacle"],
+         goal_tolerance=_D["goal_tolerance_cells"], stop_at_goal=_D["stop_at_goal"], algorithm=_D["algorithm"],
+         any_angle=_D["any_angle"], cost_factor=_D["cost_factor"], neutral_cost=_D["neutral_cost"],
+         inflation_radius_cells=_D["inflation_radius_cells"], robot_radius_cells=_D["robot_radius_cells"],
+         inflation_decay=_D["inflation_decay"]) -> PlanResult:
     """Shortest 8-connected path on `grid` (2-D int8 array [y, x], read in place) from `start` to `goal`,
     both (x, y) cells. `goal_tolerance` is in cells. Raises PlanError (a ValueError) on bad input and
     NoPathError when the goal is unreachable.
@@ -54,7 +62,8 @@ def plan(grid, start, goal, *, lethal_threshold=50, unknown_is_obstacle=True, go
     `algorithm` "astar": the same costs, fewer cells settled. `cost_factor` > 0: a move costs its length times
     the mean of neutral_cost + cost_factor * occupancy over its two cells (global_planner's model).
     `robot_radius_cells` / `inflation_radius_cells`: inflate a raw map first (see `inflate`). `any_angle`:
-    the corners of the optimal path pulled tight along lines of sight, never costlier."""
+    the corners of the optimal path pulled tight along lines of sight, never costlier. Defaults, bounds and
+    meanings: options_table()."""
     raw = plan_raw(grid, start, goal, lethal_threshold=lethal_threshold,
                    unknown_is_obstacle=unknown_is_obstacle, goal_tolerance=goal_tolerance,
                    stop_at_goal=stop_at_goal, algorithm=algorithm, any_angle=any_angle, cost_factor=cost_factor,
