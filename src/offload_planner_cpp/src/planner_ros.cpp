@@ -73,9 +73,7 @@ bool PlanRequestHandler::setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, st
   std::shared_ptr<std::vector<std::int8_t>> inflated;
   if (checked.ok() && inflation_.enabled()) {   // outside the lock: requests keep planning on the last map
     PlannerOptions options = options_;
-    options.robot_radius_cells = inflation_.robot_radius_m / geometry.resolution;
-    options.inflation_radius_cells = inflation_.inflation_radius_m / geometry.resolution;
-    options.inflation_decay = inflation_.cost_scaling_factor * geometry.resolution;
+    optionsInCells(geometry.resolution, inflation_, &options);   // checkMap: the resolution is finite and > 0
     inflated = std::make_shared<std::vector<std::int8_t>>();
     inflate(map->data.data(), static_cast<int>(geometry.width), static_cast<int>(geometry.height), options,
             inflated.get());
@@ -181,40 +179,56 @@ std::size_t CancelRegistry::running() const {
   return running_.size();
 }
 
+std::string readPlannerParameters(const ros::NodeHandle& pnh, PlannerParameters* parameters) {
+  for (const OptionSpec& spec : optionsTable()) {
+    if (!spec.node_parameter) continue;
+    double value = spec.get(*parameters);
+    switch (spec.type) {
+      case OptionType::kBool: {
+        bool flag = value != 0.0;
+        pnh.param(spec.name, flag, flag);
+        value = flag ? 1.0 : 0.0;
+        break;
+      }
+      case OptionType::kInt: {
+        int number = static_cast<int>(value);
+        pnh.param(spec.name, number, number);
+        value = number;
+        break;
+      }
+      case OptionType::kReal:
+        pnh.param(spec.name, value, value);
+        break;
+      case OptionType::kAlgorithm: {
+        std::string name = algorithmName(parameters->options.algorithm);
+        pnh.param(spec.name, name, name);
+        Algorithm algorithm;
+        const std::string unknown = algorithmOf(name, &algorithm);
+        if (!unknown.empty()) return unknown;
+        value = static_cast<double>(static_cast<int>(algorithm));
+        break;
+      }
+    }
+    const std::string problem = optionProblem(spec, value);
+    if (!problem.empty()) return problem;
+    spec.set(*parameters, value);
+  }
+  return "";
+}
+
 PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
-  PlannerOptions options;
+  PlannerParameters parameters;
+  const std::string problem = readPlannerParameters(pnh, &parameters);
+  if (!problem.empty()) {
+    ROS_FATAL("~%s", problem.c_str());
+    throw std::invalid_argument("bad planner parameter: " + problem);
+  }
+  const PlannerOptions& options = parameters.options;
+  const InflationParams& inflation = parameters.inflation;
   int max_map_cells = 0;
-  pnh.param("lethal_threshold", options.lethal_threshold, options.lethal_threshold);
-  pnh.param("unknown_is_obstacle", options.unknown_is_obstacle, options.unknown_is_obstacle);
   pnh.param<std::string>("planner_name", planner_name_, "local");
   pnh.param("planning_threads", planning_threads_, planning_threads_);
   pnh.param("max_map_cells", max_map_cells, 64000000);
-  std::string algorithm;
-  pnh.param<std::string>("algorithm", algorithm, "dijkstra");
-  pnh.param("any_angle", options.any_angle, options.any_angle);
-  pnh.param("cost_factor", options.cost_factor, options.cost_factor);
-  pnh.param("neutral_cost", options.neutral_cost, options.neutral_cost);
-  InflationParams inflation;
-  pnh.param("robot_radius", inflation.robot_radius_m, inflation.robot_radius_m);
-  pnh.param("inflation_radius", inflation.inflation_radius_m, inflation.inflation_radius_m);
-  pnh.param("cost_scaling_factor", inflation.cost_scaling_factor, inflation.cost_scaling_factor);
-  if (algorithm != "dijkstra" && algorithm != "astar") {
-    ROS_FATAL("~algorithm must be dijkstra or astar, got '%s'", algorithm.c_str());
-    throw std::invalid_argument("bad ~algorithm");
-  }
-  options.algorithm = algorithm == "astar" ? Algorithm::kAStar : Algorithm::kDijkstra;
-  auto finiteAtLeast = [](double v, double low) { return std::isfinite(v) && v >= low; };
-  if (!finiteAtLeast(options.cost_factor, 0.0) || !(std::isfinite(options.neutral_cost) && options.neutral_cost > 0) ||
-      !finiteAtLeast(inflation.robot_radius_m, 0.0) || !finiteAtLeast(inflation.inflation_radius_m, 0.0) ||
-      !finiteAtLeast(inflation.cost_scaling_factor, 0.0)) {
-    ROS_FATAL("~cost_factor, ~robot_radius, ~inflation_radius and ~cost_scaling_factor must be finite and >= 0, "
-              "~neutral_cost finite and > 0");
-    throw std::invalid_argument("bad cost or inflation parameter");
-  }
-  if (options.lethal_threshold < 1 || options.lethal_threshold > 101) {
-    ROS_FATAL("~lethal_threshold must be in 1..101, got %d", options.lethal_threshold);
-    throw std::invalid_argument("bad ~lethal_threshold");
-  }
   if (planning_threads_ < 1 || max_map_cells < 0) {
     ROS_FATAL("~planning_threads must be >= 1 and ~max_map_cells >= 0 (0: no limit), got %d and %d",
               planning_threads_, max_map_cells);
@@ -235,7 +249,7 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   make_plan_srv_ = pnh.advertiseService("make_plan", &PlannerNode::onMakePlan, this);
   ROS_INFO("planner ready: %s%s, %s, lethal_threshold %d, unknown cells %s, inflation %.3g m + %.3g m, %d planning "
            "threads, maps up to %d cells; waiting for a map on %s",
-           algorithm.c_str(), options.any_angle ? " any-angle" : "",
+           algorithmName(options.algorithm), options.any_angle ? " any-angle" : "",
            options.cost_factor > 0 ? "cost-aware" : "uniform cost", options.lethal_threshold,
            options.unknown_is_obstacle ? "blocked" : "free", inflation.robot_radius_m, inflation.inflation_radius_m,
            planning_threads_, max_map_cells, map_sub_.getTopic().c_str());

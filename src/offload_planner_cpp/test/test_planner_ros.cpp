@@ -182,6 +182,23 @@ TEST(PlanRequestHandler, PlannerOptionsReachTheCore) {
   EXPECT_EQ(res.status, PlanPath::Response::OK) << res.message;
 }
 
+TEST(PlanRequestHandler, InflationInMetresBecomesCellsAtTheMapsResolution) {
+  // Cell (3, 0) is one cell (0.5 m) from the wall: inside a 0.6 m robot radius (1.2 cells), outside 0.4 m.
+  PlanPath::Response res;
+  InflationParams wide;
+  wide.robot_radius_m = 0.6;
+  PlanRequestHandler blocked(PlannerOptions(), 0, wide);
+  ASSERT_TRUE(blocked.setMap(makeMap(), nullptr));
+  blocked.handle(request(wx(3), wy(0), wx(0), wy(0)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::START_BLOCKED) << res.message;
+  InflationParams narrow;
+  narrow.robot_radius_m = 0.4;
+  PlanRequestHandler clear(PlannerOptions(), 0, narrow);
+  ASSERT_TRUE(clear.setMap(makeMap(), nullptr));
+  clear.handle(request(wx(3), wy(0), wx(0), wy(0)), &res);
+  EXPECT_EQ(res.status, PlanPath::Response::OK) << res.message;
+}
+
 TEST(PlanRequestHandler, PathPosesHaveUnitQuaternionsFacingAlongThePath) {
   PlanRequestHandler handler;
   ASSERT_TRUE(handler.setMap(makeMap(), nullptr));

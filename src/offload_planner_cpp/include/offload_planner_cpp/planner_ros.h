@@ -74,6 +74,10 @@ class CancelRegistry {
   std::deque<std::uint64_t> early_;   // cancelled before they began, oldest first, at most kRemembered
 };
 
+// The planner options among a node's private parameters: every node parameter of the core's options table
+// (planner_options.h), by its name, type and default; the first problem found, or "" when they are fine.
+std::string readPlannerParameters(const ros::NodeHandle& pnh, PlannerParameters* parameters);
+
 class PlannerNode {
  public:
   PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh);
