@@ -127,6 +127,33 @@ def test_bridge_options_reach_the_cloud(key_dirs):
         server.stop()
 
 
+def test_bridge_converts_its_metres_to_cells_as_the_local_node(key_dirs):
+    """Radii in metres become cells at the map's resolution by the core's conversion: a cell one cell (5 cm)
+    from a wall is inside a 6 cm robot radius (1.2 cells) and outside 4 cm, as for the local planner node."""
+    server = start_server(key_dirs[0], workers=1)
+    grid = np.zeros((5, 9), np.int8)
+    grid[:, 4] = 100
+    bridges = {radius: make_bridge(server.endpoint, key_dirs[1], robot_radius_m=radius) for radius in (0.06, 0.04)}
+    try:
+        for bridge in bridges.values():
+            give_map(bridge, grid)
+        assert bridges[0.06].plan(point((3, 2)), point((0, 2)), 0.0).status == PlanStatus.START_BLOCKED
+        assert bridges[0.04].plan(point((3, 2)), point((0, 2)), 0.0).status == PlanStatus.OK
+    finally:
+        for bridge in bridges.values():
+            bridge.close()
+        server.stop()
+
+
+def test_bridge_config_defaults_and_names_are_the_cores():
+    config = BridgeConfig(endpoint="tcp://127.0.0.1:9")
+    parameters = config.planner_parameters()
+    assert parameters == {row["name"]: row["default"] for row in offload_planner_cpp.options_table()
+                          if row["node_parameter"]}
+    changed = dict(parameters, robot_radius=0.3, algorithm="astar")
+    assert BridgeConfig(endpoint="x", **BridgeConfig.planner_fields(changed)).planner_parameters() == changed
+
+
 def test_killed_server_gives_timeout_in_time_then_reconnects(key_dirs):
     port = free_port()
     endpoint = f"{LOOPBACK}:{port}"

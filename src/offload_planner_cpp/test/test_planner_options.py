@@ -346,3 +346,15 @@ def test_options_in_cells_divides_radii_and_multiplies_the_decay_by_the_resoluti
         in_cells(0.05, robot_radius_cells=1.0)
     with pytest.raises(TypeError, match="unknown planner option"):
         in_cells(0.05, robot_radius_m=1.0)
+
+
+def test_the_protocol_takes_the_algorithm_codes_and_defaults_from_the_core():
+    assert protocol.ALGORITHMS is offload_planner_cpp.ALGORITHM_NAMES
+    defaults = offload_planner_cpp.OPTION_DEFAULTS
+    assert dataclasses.asdict(PlanOptions()) == {field.name: defaults[field.name]
+                                                 for field in dataclasses.fields(PlanOptions)}
+    for code, name in enumerate(offload_planner_cpp.ALGORITHM_NAMES):
+        body = protocol.encode_plan(1, b"h" * 16, START, GOAL, PlanOptions(algorithm=name, cost_factor=1.0))[1]
+        assert body[protocol.PLAN_BODY.size] == code
+    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, got "bfs"$'):
+        protocol.encode_plan(1, b"h" * 16, START, GOAL, PlanOptions(algorithm="bfs"))

@@ -12,8 +12,9 @@ from typing import Any, Optional, Tuple
 import numpy as np
 import zmq
 
-from offload_planner_cpp import PlanStatus
-from offload_planner_cpp._core import MapGeometry, check_map, no_map_outcome, path_poses, resolve_request
+from offload_planner_cpp import OPTION_DEFAULTS, PlanStatus
+from offload_planner_cpp._core import (MapGeometry, check_map, no_map_outcome, options_in_cells, options_table,
+                                      path_poses, resolve_request)
 from offload_cloud import protocol
 from offload_cloud.client import CloudClient, CloudTimeout, KnownMaps, PlannedGrids
 from offload_cloud.protocol import PlanOptions, Status
@@ -62,6 +63,12 @@ class BridgeResult:
     bytes_received: int = 0
 
 
+_DEFAULT = OPTION_DEFAULTS   # the core's (planner_options.h)
+# The node parameters of the core's options table, and BridgeConfig's field for those it names otherwise.
+_PLANNER_PARAMETERS = [row["name"] for row in options_table() if row["node_parameter"]]
+_FIELD_OF = {"robot_radius": "robot_radius_m", "inflation_radius": "inflation_radius_m"}
+
+
 @dataclass(frozen=True)
 class BridgeConfig:
     endpoint: str
@@ -71,17 +78,27 @@ class BridgeConfig:
     retries: int = 1
     heartbeat_timeout_s: float = 1.0
     upload_retry_max_s: float = 60.0   # a failed map upload is retried after the heartbeat period, doubling to this
-    lethal_threshold: int = 50
-    unknown_is_obstacle: bool = True
+    lethal_threshold: int = _DEFAULT["lethal_threshold"]
+    unknown_is_obstacle: bool = _DEFAULT["unknown_is_obstacle"]
     max_map_cells: int = 64_000_000   # larger maps are refused, as by the local planner node
     # The planner options, as the local planner node's parameters (radii in metres, decay per metre).
-    algorithm: str = "dijkstra"
-    any_angle: bool = False
-    cost_factor: float = 0.0
-    neutral_cost: float = 50.0
-    robot_radius_m: float = 0.0
-    inflation_radius_m: float = 0.0
-    cost_scaling_factor: float = 10.0
+    algorithm: str = _DEFAULT["algorithm"]
+    any_angle: bool = _DEFAULT["any_angle"]
+    cost_factor: float = _DEFAULT["cost_factor"]
+    neutral_cost: float = _DEFAULT["neutral_cost"]
+    robot_radius_m: float = _DEFAULT["robot_radius"]
+    inflation_radius_m: float = _DEFAULT["inflation_radius"]
+    cost_scaling_factor: float = _DEFAULT["cost_scaling_factor"]
+
+    def planner_parameters(self) -> dict:
+        """The planner options by the names of the core's table (its node parameters: radii in metres), for
+        validate_options."""
+        return {name: getattr(self, _FIELD_OF.get(name, name)) for name in _PLANNER_PARAMETERS}
+
+    @staticmethod
+    def planner_fields(parameters: dict) -> dict:
+        """BridgeConfig's keyword arguments for planner parameters named as in the core's table."""
+        return {_FIELD_OF.get(name, name): value for name, value in parameters.items()}
 
 
 class CloudBridge:
@@ -245,9 +262,10 @@ class CloudBridge:
                               unknown_is_obstacle=config.unknown_is_obstacle, algorithm=config.algorithm,
                               any_angle=config.any_angle, cost_factor=config.cost_factor,
                               neutral_cost=config.neutral_cost,
-                              robot_radius_cells=config.robot_radius_m / geometry.resolution,
-                              inflation_radius_cells=config.inflation_radius_m / geometry.resolution,
-                              inflation_decay=config.cost_scaling_factor * geometry.resolution)
+                              # metres -> cells at this map's resolution, as the local planner node converts
+                              **options_in_cells(geometry.resolution, robot_radius=config.robot_radius_m,
+                                                 inflation_radius=config.inflation_radius_m,
+                                                 cost_scaling_factor=config.cost_scaling_factor))
         client = self._borrow_client()
         sent_before, received_before = client.bytes_sent, client.bytes_received
         try:

@@ -9,7 +9,8 @@ Plan request (kind PLAN), after the envelope:
     frame 1: body, struct PLAN_BODY: map hash (16 bytes), start x, y, goal x, y (int32 cells),
              goal tolerance (float64 cells), lethal threshold (int16), flags (u8: unknown_is_obstacle,
              stop_at_goal, any_angle), then, only when a planner option differs from its default, the
-             struct PLANNER_TAIL: algorithm (u8: 0 dijkstra, 1 astar), cost_factor, neutral_cost,
+             struct PLANNER_TAIL: algorithm (u8: its index in the core's ALGORITHM_NAMES, 0 dijkstra,
+             1 astar), cost_factor, neutral_cost,
              robot_radius_cells, inflation_radius_cells, inflation_decay (float64 each). Added within
              version 2: a server that predates the tail answers BAD_REQUEST about the body's size, and a
              request with default options is byte for byte what it was.
@@ -45,7 +46,8 @@ from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from offload_planner_cpp._core import PlanStatus
+from offload_planner_cpp import OPTION_DEFAULTS
+from offload_planner_cpp._core import ALGORITHM_NAMES, PlanStatus, validate_options
 
 MAGIC = b"OFPL"
 # 2: planner outcomes carry the PlanPath codes (version 1 had its own numbering).
@@ -58,7 +60,8 @@ HASH_SIZE = 16
 FLAG_UNKNOWN_IS_OBSTACLE = 1
 FLAG_STOP_AT_GOAL = 2
 FLAG_ANY_ANGLE = 4
-ALGORITHMS = ("dijkstra", "astar")   # PLANNER_TAIL's algorithm code is the index
+# The core's algorithm names (planner_options.h): PLANNER_TAIL's algorithm code is the index, as in the core's enum.
+ALGORITHMS = ALGORITHM_NAMES
 # Largest side the planner accepts, as the ROS node's map validation.
 MAX_MAP_SIDE = 100000
 MAX_METADATA_BYTES = 1024
@@ -105,20 +108,25 @@ class ProtocolError(ValueError):
         self.status = status
 
 
+_DEFAULT = OPTION_DEFAULTS
+
+
 @dataclass(frozen=True)
 class PlanOptions:
-    """The core's planner options (dijkstra.h, the pybind11 module's keyword arguments)."""
-    goal_tolerance_cells: float = 0.0
-    lethal_threshold: int = 50
-    unknown_is_obstacle: bool = True
-    stop_at_goal: bool = True
-    algorithm: str = "dijkstra"
-    any_angle: bool = False
-    cost_factor: float = 0.0
-    neutral_cost: float = 50.0
-    robot_radius_cells: float = 0.0
-    inflation_radius_cells: float = 0.0
-    inflation_decay: float = 0.5
+    """The core's planner options (planner_options.h, the pybind11 module's keyword arguments), with the
+    core's defaults. A request without PLANNER_TAIL means these defaults, so changing one of the core's is a
+    change of the protocol. Values are checked by the core when the server plans (INVALID_REQUEST)."""
+    goal_tolerance_cells: float = _DEFAULT["goal_tolerance_cells"]
+    lethal_threshold: int = _DEFAULT["lethal_threshold"]
+    unknown_is_obstacle: bool = _DEFAULT["unknown_is_obstacle"]
+    stop_at_goal: bool = _DEFAULT["stop_at_goal"]
+    algorithm: str = _DEFAULT["algorithm"]
+    any_angle: bool = _DEFAULT["any_angle"]
+    cost_factor: float = _DEFAULT["cost_factor"]
+    neutral_cost: float = _DEFAULT["neutral_cost"]
+    robot_radius_cells: float = _DEFAULT["robot_radius_cells"]
+    inflation_radius_cells: float = _DEFAULT["inflation_radius_cells"]
+    inflation_decay: float = _DEFAULT["inflation_decay"]
 
     def planner_kwargs(self) -> dict:
         """The options as plan_raw's keyword arguments."""
@@ -217,6 +225,13 @@ def encode_upload(request_id: int, grid: np.ndarray) -> list:
     return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), _buffer_of(grid)]
 
 
+def algorithm_code(name: str) -> int:
+    """PLANNER_TAIL's code of an algorithm: its index in the core's names. ValueError, the core's, for a name
+    that is no algorithm."""
+    validate_options(algorithm=name)
+    return ALGORITHMS.index(name)
+
+
 def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: Sequence[int],
                 options: PlanOptions = PlanOptions(), grid: Optional[np.ndarray] = None) -> list:
     """Frames of a plan request; with `grid` the map travels too (its buffer is sent without a copy)."""
@@ -225,9 +240,7 @@ def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: S
     body = PLAN_BODY.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]),
                           float(options.goal_tolerance_cells), int(options.lethal_threshold), flags)
     if options.algorithm != PlanOptions.algorithm or options._tail() != PlanOptions()._tail():
-        if options.algorithm not in ALGORITHMS:
-            raise ValueError(f"algorithm must be one of {', '.join(ALGORITHMS)}, got {options.algorithm!r}")
-        body += PLANNER_TAIL.pack(ALGORITHMS.index(options.algorithm), *options._tail())
+        body += PLANNER_TAIL.pack(algorithm_code(options.algorithm), *options._tail())
     frames = [envelope(Kind.PLAN, request_id), body]
     if grid is not None:
         frames += [map_metadata(grid), _buffer_of(grid)]
