@@ -44,3 +44,38 @@ def test_bridge_node_start_up_fails_fast_naming_the_key_file(key_root):
                           text=True, timeout=60)
     assert node.returncode == 1, node.stderr
     assert node.stderr.startswith("FATAL ") and str(robot_secret) in node.stderr and "Traceback" not in node.stderr
+
+
+@pytest.fixture
+def node_parameters(monkeypatch):
+    """read_parameters() without a master: `params` are the node's private parameters."""
+    import rospy
+    params = {"~endpoint": "tcp://127.0.0.1:9", "~insecure": True}
+    monkeypatch.setattr(rospy, "get_param", lambda name, default=None: params.get(name, default))
+    return params
+
+
+def test_bridge_node_reads_every_planner_parameter_of_the_cores_table(node_parameters):
+    from offload_learner_py.nodes import cloud_bridge
+    from offload_planner_cpp import options_table
+    rows = [row for row in options_table() if row["node_parameter"]]
+    assert cloud_bridge.read_parameters().planner_parameters() == {row["name"]: row["default"] for row in rows}
+    changed = {"lethal_threshold": 101, "unknown_is_obstacle": False, "algorithm": "astar", "any_angle": True,
+               "cost_factor": 3.0, "neutral_cost": 40.0, "robot_radius": 0.3, "inflation_radius": 0.9,
+               "cost_scaling_factor": 2.5}
+    assert set(changed) == {row["name"] for row in rows}
+    node_parameters.update({"~" + name: value for name, value in changed.items()})
+    assert cloud_bridge.read_parameters().planner_parameters() == changed
+
+
+@pytest.mark.parametrize("name, value", [("lethal_threshold", 0), ("algorithm", "bfs"), ("robot_radius", -1.0),
+                                         ("neutral_cost", 0.0), ("cost_scaling_factor", float("nan"))])
+def test_bridge_node_refuses_a_planner_parameter_in_the_cores_words(node_parameters, name, value):
+    from offload_learner_py.nodes import cloud_bridge
+    from offload_planner_cpp import validate_options
+    with pytest.raises(ValueError) as core:
+        validate_options(**{name: value})
+    node_parameters["~" + name] = value
+    with pytest.raises(ValueError) as node:
+        cloud_bridge.read_parameters()
+    assert str(node.value) == "~" + str(core.value)

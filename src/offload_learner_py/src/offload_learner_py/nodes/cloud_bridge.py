@@ -1,6 +1,5 @@
 """rospy node around bridge.CloudBridge: the robot's door to the cloud planner. It serves the same
 offload_msgs/PlanPath service as the local planner node, so a caller can use either."""
-import math
 import threading
 import time
 
@@ -15,6 +14,10 @@ from rospy.numpy_msg import numpy_msg
 
 from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
 from offload_cloud.gc_pauses import freeze_startup_heap
+from offload_planner_cpp import options_table, validate_options
+
+# A parameter's Python type by the type of its row in the core's options table.
+PARAMETER_TYPES = {"bool": bool, "int": int, "float": float, "algorithm": str}
 
 
 def stamped_pose(msg) -> StampedPose:
@@ -38,29 +41,20 @@ def read_parameters() -> BridgeConfig:
     insecure = bool(rospy.get_param("~insecure", False))
     if not keys_dir and not insecure:
         raise ValueError("~keys_dir is required (CURVE is on by default); set ~insecure true for plaintext")
+    # The planner options: the core table's node parameters, by their names, types and defaults, as the
+    # local planner node reads them.
+    planner = {row["name"]: PARAMETER_TYPES[row["type"]](rospy.get_param("~" + row["name"], row["default"]))
+               for row in options_table() if row["node_parameter"]}
     config = BridgeConfig(endpoint=endpoint, keys_dir=keys_dir, insecure=insecure,
                           timeout_s=float(rospy.get_param("~timeout_s", 5.0)),
                           retries=int(rospy.get_param("~retries", 1)),
                           heartbeat_timeout_s=float(rospy.get_param("~heartbeat_timeout_s", 1.0)),
-                          lethal_threshold=int(rospy.get_param("~lethal_threshold", 50)),
-                          unknown_is_obstacle=bool(rospy.get_param("~unknown_is_obstacle", True)),
                           max_map_cells=int(rospy.get_param("~max_map_cells", 64_000_000)),
-                          algorithm=str(rospy.get_param("~algorithm", "dijkstra")),
-                          any_angle=bool(rospy.get_param("~any_angle", False)),
-                          cost_factor=float(rospy.get_param("~cost_factor", 0.0)),
-                          neutral_cost=float(rospy.get_param("~neutral_cost", 50.0)),
-                          robot_radius_m=float(rospy.get_param("~robot_radius", 0.0)),
-                          inflation_radius_m=float(rospy.get_param("~inflation_radius", 0.0)),
-                          cost_scaling_factor=float(rospy.get_param("~cost_scaling_factor", 10.0)))
-    if config.algorithm not in ("dijkstra", "astar"):
-        raise ValueError(f"~algorithm must be dijkstra or astar, got {config.algorithm!r}")
-    numbers = (config.cost_factor, config.robot_radius_m, config.inflation_radius_m, config.cost_scaling_factor)
-    if not all(math.isfinite(v) and v >= 0 for v in numbers) or not (math.isfinite(config.neutral_cost)
-                                                                    and config.neutral_cost > 0):
-        raise ValueError("~cost_factor, ~robot_radius, ~inflation_radius and ~cost_scaling_factor must be finite "
-                         "and >= 0, ~neutral_cost finite and > 0")
-    if not 1 <= config.lethal_threshold <= 101:
-        raise ValueError(f"~lethal_threshold must be in 1..101, got {config.lethal_threshold}")
+                          **BridgeConfig.planner_fields(planner))
+    try:
+        validate_options(**config.planner_parameters())   # the core's checks, the core's words
+    except ValueError as error:
+        raise ValueError(f"~{error}") from None
     if config.timeout_s <= 0 or config.retries < 0 or config.heartbeat_timeout_s <= 0:
         raise ValueError("~timeout_s and ~heartbeat_timeout_s must be > 0 and ~retries >= 0")
     return config
