@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 from bagtools import make_requests, write
-from offload_learner_py.data import bag_records, bags, records
+from offload_learner_py.data import bag_format, bags, records
 from offload_demos.bag_writer import (DECISION_TOPIC, DECISION_TYPE, OUTCOME_TOPIC, OUTCOME_TYPE, BagWriter,
                                            installed_definitions, typestore_for, unindex)
 from offload_learner_py.core.reward import reward
@@ -346,11 +346,11 @@ def test_a_chunk_that_inflates_past_its_declared_size_is_refused_without_inflati
     bomb = b"".join(pieces)
     assert len(bomb) < (2 << 20)
     with pytest.raises(ValueError, match="inflates past its declared 4096 bytes"):
-        bag_records.decompress_chunk(codec, bomb, {"size": struct.pack("<I", 4096)})
+        bag_format.decompress_chunk(codec, bomb, {"size": struct.pack("<I", 4096)})
     with pytest.raises(ValueError, match="inflates past"):
-        bag_records.decompress_chunk(codec, bomb, {})          # no declared size: the cap bounds it
+        bag_format.decompress_chunk(codec, bomb, {})          # no declared size: the cap bounds it
     with pytest.raises(ValueError, match="more than"):
-        bag_records.decompress_chunk(codec, bomb, {"size": struct.pack("<I", 1 << 30)})
+        bag_format.decompress_chunk(codec, bomb, {"size": struct.pack("<I", 1 << 30)})
 
 
 _REAL_READ_ONE = bags._read_one

@@ -4,7 +4,7 @@ gets its default."""
 import struct
 from typing import Dict, Tuple
 
-from offload_learner_py.data.bag_records import Connection
+from offload_learner_py.data.bag_format import Connection
 
 
 _PRIMITIVES = {"bool": "?", "int8": "b", "uint8": "B", "byte": "B", "char": "B", "int16": "h", "uint16": "H",

@@ -23,7 +23,7 @@ import numpy as np
 
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.data.bag_decoding import Decoder
-from offload_learner_py.data.bag_records import indexed_messages, scan_unindexed
+from offload_learner_py.data.bag_format import indexed_messages, scan_unindexed
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.data.records import DECISION_DEFAULTS, OUTCOME_DEFAULTS, Pairing, PairingCounts, \
     RequestLog, transition_table

@@ -1,4 +1,5 @@
-"""The rosbag v2.0 record layer, without ROS: an index-less front-to-back scan of a bag (what `rosbag
+"""The rosbag v2.0 file format, without ROS and with nothing of the learner's in it (the learner's messages
+are `bag_decoding` and `records`): an index-less front-to-back scan of a bag's records (what `rosbag
 reindex` does, for a `.bag.active` a crash left behind) and the messages of an indexed bag's chunks, each
 chunk decompressed with a bound taken from its own header and a hard cap, so a decompression bomb costs
 at most MAX_CHUNK_BYTES. `report` is the bag's BagReport (notes, damaged chunks, how it was read)."""
