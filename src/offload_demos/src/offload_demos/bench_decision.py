@@ -17,6 +17,7 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.state import STATE_SIZE
 
 
 def measure_us(decide: Callable[[float, float, float], tuple], states: np.ndarray, warm_up: int = 500) -> Dict[str, float]:
@@ -43,8 +44,8 @@ def example_states(count: int, seed: int) -> np.ndarray:
 
 
 def decision_paths(agent: DQNAgent) -> Dict[str, Callable]:
-    def eager(d, u, b):
-        q = agent.q_values(np.array((d, u, b)))
+    def eager(*state):
+        q = agent.q_values(np.array(state))
         return (CLOUD if q[CLOUD] > q[LOCAL] else LOCAL), float(q[LOCAL]), float(q[CLOUD])
 
     paths = {"torch eager": eager}
@@ -56,9 +57,9 @@ def decision_paths(agent: DQNAgent) -> Dict[str, Callable]:
             scripted = torch.jit.script(agent.q_network.eval())
         normalisation = agent.normalisation
 
-        def torchscript(d, u, b):
+        def torchscript(*state):
             with torch.no_grad():
-                q = scripted(torch.from_numpy(normalisation.apply(np.array((d, u, b))))).numpy()
+                q = scripted(torch.from_numpy(normalisation.apply(np.array(state)))).numpy()
             return (CLOUD if q[CLOUD] > q[LOCAL] else LOCAL), float(q[LOCAL]), float(q[CLOUD])
 
         paths["torchscript"] = torchscript
@@ -87,7 +88,8 @@ def main(argv=None) -> int:
         print("fast path disagrees with torch eager", file=sys.stderr)
         return 1
     print(f"one decision (state in, action and both Q-values out), {args.decisions} decisions, "
-          f"network 3 -> {' -> '.join(map(str, agent.config.hidden_sizes))} -> 2, torch threads {args.threads}")
+          f"network {STATE_SIZE} -> {' -> '.join(map(str, agent.config.hidden_sizes))} -> 2, "
+          f"torch threads {args.threads}")
     results = {}
     for name, decide in paths.items():
         results[name] = measure_us(decide, states)

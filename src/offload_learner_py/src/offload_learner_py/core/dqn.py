@@ -1,4 +1,4 @@
-"""The DQN of Algorithm 1: a Q-network 3 -> 256 -> 256 -> 256 -> 2 (ReLU), a target copy refreshed
+"""The DQN of Algorithm 1: a Q-network STATE_SIZE (3) -> 256 -> 256 -> 256 -> 2 (ReLU), a target copy refreshed
 every K steps, FIFO replay, epsilon-greedy actions. Plus a numpy copy of the network for the robot's
 per-request decision, which must cost well under 100 us."""
 import math
@@ -10,9 +10,9 @@ from torch import nn
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
-from offload_learner_py.core.normalisation import INPUT_SIZE_LOG_FLOOR, StateNormalisation
+from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.core.replay import ReplayMemory
-from offload_learner_py.core.state import STATE_SIZE
+from offload_learner_py.core.state import STATE_SCHEMA, STATE_SIZE
 
 N_ACTIONS = 2
 
@@ -54,7 +54,8 @@ def build_network(config: DQNConfig) -> QNetwork:
 
 
 class DQNAgent:
-    """Online learner of Algorithm 1. Feed it raw states (d_t, u_t, b_t): it normalises them itself."""
+    """Online learner of Algorithm 1. Feed it raw states (the schema's fields in order, `State.as_array()`): it
+    normalises them itself."""
 
     def __init__(self, config: DQNConfig = DQNConfig(), normalisation: Optional[StateNormalisation] = None):
         self.config = config
@@ -147,7 +148,7 @@ class FastDecision:
         self.biases = [np.ascontiguousarray(b, dtype=np.float32) for b in biases]
         self._mean = np.asarray(normalisation.mean, dtype=np.float32)
         self._inverse_scale = (1.0 / np.asarray(normalisation.scale, dtype=np.float64)).astype(np.float32)
-        self._log_input_size = normalisation.log_input_size
+        self._logs = STATE_SCHEMA.log_columns if normalisation.log_input_size else ()
 
     @classmethod
     def from_network(cls, network: QNetwork, normalisation: StateNormalisation) -> "FastDecision":
@@ -155,10 +156,16 @@ class FastDecision:
         return cls([m.weight.detach().numpy().T for m in linears], [m.bias.detach().numpy() for m in linears],
                    normalisation)
 
-    def decide(self, input_size: float, cpu_availability: float, round_trip_s: float) -> Tuple[int, float, float]:
-        """(action, Q(s, local), Q(s, cloud)) for one raw state."""
-        d = math.log(max(input_size, 0.0) + INPUT_SIZE_LOG_FLOOR) if self._log_input_size else input_size
-        h = (np.array((d, cpu_availability, round_trip_s), dtype=np.float32) - self._mean) * self._inverse_scale
+    def decide(self, *state: float) -> Tuple[int, float, float]:
+        """(action, Q(s, local), Q(s, cloud)) for one raw state, its fields in schema order
+        (`*State.as_tuple()`)."""
+        if len(state) != STATE_SIZE:
+            raise TypeError(f"a state has {STATE_SIZE} fields, got {len(state)}")
+        if self._logs:
+            state = list(state)
+            for i, floor in self._logs:
+                state[i] = math.log(max(state[i], 0.0) + floor)
+        h = (np.array(state, dtype=np.float32) - self._mean) * self._inverse_scale
         last = len(self.weights) - 1
         for i, (w, b) in enumerate(zip(self.weights, self.biases)):
             h = h @ w

@@ -5,6 +5,7 @@ from typing import Callable, Optional
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.state import STATE_SCHEMA
 from offload_learner_py.data.dataset import TransitionTable
 
 
@@ -72,12 +73,13 @@ def learned_cpu_threshold(q_values: Callable[[np.ndarray], np.ndarray], states: 
     zero more than once, the crossing whose single-threshold rule best agrees with the scanned
     greedy decisions wins. NaN when the policy never switches in the observed range."""
     states = np.asarray(states, dtype=np.float64)
-    low, high = float(states[:, 1].min()), float(states[:, 1].max())
+    d, u = STATE_SCHEMA.index("input_size"), STATE_SCHEMA.index("cpu_availability")
+    low, high = float(states[:, u].min()), float(states[:, u].max())
     grid_u = np.arange(low, high + step / 2, step)
     probe = np.tile(np.median(states, axis=0), (len(grid_u), 1))
     if input_size is not None:
-        probe[:, 0] = input_size
-    probe[:, 1] = grid_u
+        probe[:, d] = input_size
+    probe[:, u] = grid_u
     q = np.asarray(q_values(probe))
     difference = q[:, CLOUD] - q[:, LOCAL]
     prefers_cloud = difference > 0

@@ -10,10 +10,10 @@ from torch import nn
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.core.normalisation import INPUT_SIZE_LOG_FLOOR
 from offload_learner_py.core.policies import Policy
+from offload_learner_py.core.state import STATE_FIELDS, STATE_SCHEMA
 
-FEATURE_COLUMNS = ("input_size", "cpu_availability", "round_trip_s")
+FEATURE_COLUMNS = STATE_FIELDS
 
 
 @dataclass(frozen=True)
@@ -61,9 +61,9 @@ class LSTMPolicy(Policy):
 
     def _features(self, table: TransitionTable) -> np.ndarray:
         columns = []
-        for name in self.config.features:
-            values = getattr(table, name)
-            columns.append(np.log(np.maximum(values, 0.0) + INPUT_SIZE_LOG_FLOOR) if name == "input_size" else values)
+        for name in self.config.features:   # on the schema's log scale where it hints one (the input size)
+            values, floor = getattr(table, name), STATE_SCHEMA[name].log_floor
+            columns.append(values if floor is None else np.log(np.maximum(values, 0.0) + floor))
         return np.stack(columns, axis=1)
 
     def _windows(self, features: np.ndarray) -> np.ndarray:

@@ -1,17 +1,21 @@
-"""State normalisation: the network sees each feature of s_t centred and scaled, with d_t on a log
-scale first. It is fitted once on warm-up states and then frozen, because moving it would silently
-change what the learned weights mean; it is saved with every checkpoint for the same reason."""
+"""State normalisation: the network sees each feature of s_t centred and scaled, the fields the state schema
+hints so (d_t) on a log scale first. It is fitted once on warm-up states and then frozen, because moving it
+would silently change what the learned weights mean; it is saved with every checkpoint for the same reason,
+with the state's field names, so a checkpoint of another state (fields added, removed or reordered) is
+refused rather than fed columns it never learned."""
 from dataclasses import dataclass
 
 import numpy as np
 
-from offload_learner_py.core.state import STATE_SIZE
+from offload_learner_py.core.state import STATE_FIELDS, STATE_SCHEMA, STATE_SIZE
 
 # A constant feature (e.g. a steady round trip) has no spread; it is centred but not blown up.
 MIN_SCALE = 1e-3
 # Normalised d_t spans about four orders of magnitude (a few cells to the whole map) and is 0 for a
-# goal next to the start; log(d + floor) spreads it evenly and stays finite at 0.
-INPUT_SIZE_LOG_FLOOR = 1e-6
+# goal next to the start; log(d + floor) spreads it evenly and stays finite at 0. The floor is the schema's.
+INPUT_SIZE_LOG_FLOOR = STATE_SCHEMA["input_size"].log_floor
+# The fields of a checkpoint saved before they were recorded with its normalisation.
+PAPER_STATE_FIELDS = ("input_size", "cpu_availability", "round_trip_s")
 
 
 @dataclass(frozen=True)
@@ -19,6 +23,7 @@ class StateNormalisation:
     mean: tuple
     scale: tuple
     log_input_size: bool = True
+    """log-scale the fields the state schema hints so (`log_floor`: the input size)."""
 
     @classmethod
     def identity(cls, log_input_size: bool = True) -> "StateNormalisation":
@@ -36,13 +41,12 @@ class StateNormalisation:
 
     @staticmethod
     def _features(states: np.ndarray, log_input_size: bool) -> np.ndarray:
-        features = np.array(states, dtype=np.float64, copy=True)
         if log_input_size:
-            features[:, 0] = np.log(np.maximum(features[:, 0], 0.0) + INPUT_SIZE_LOG_FLOOR)
-        return features
+            return STATE_SCHEMA.log_scaled(states)
+        return np.array(states, dtype=np.float64, copy=True)
 
     def apply(self, states: np.ndarray) -> np.ndarray:
-        """Raw states (N x 3 or 3) to network inputs, float32."""
+        """Raw states (N x STATE_SIZE or STATE_SIZE, in schema order) to network inputs, float32."""
         states = np.asarray(states, dtype=np.float64)
         single = states.ndim == 1
         features = self._features(states.reshape(-1, STATE_SIZE), self.log_input_size)
@@ -50,10 +54,17 @@ class StateNormalisation:
         return out[0] if single else out
 
     def to_dict(self) -> dict:
-        return {"mean": list(self.mean), "scale": list(self.scale), "log_input_size": self.log_input_size}
+        return {"mean": list(self.mean), "scale": list(self.scale), "log_input_size": self.log_input_size,
+                "fields": list(STATE_FIELDS)}
 
     @classmethod
     def from_dict(cls, values: dict) -> "StateNormalisation":
+        fields = values.get("fields", PAPER_STATE_FIELDS)
+        if not (isinstance(fields, (list, tuple)) and all(isinstance(name, str) for name in fields)):
+            raise ValueError(f"normalisation fields must be a list of names, got {fields!r}")
+        if tuple(fields) != STATE_FIELDS:
+            raise ValueError(f"normalisation is of the state ({', '.join(map(str, fields))}), this code's state is "
+                             f"({', '.join(STATE_FIELDS)})")
         mean, scale = tuple(float(v) for v in values["mean"]), tuple(float(v) for v in values["scale"])
         if len(mean) != STATE_SIZE or len(scale) != STATE_SIZE:
             raise ValueError(f"normalisation must have {STATE_SIZE} features, got {len(mean)}")

@@ -216,8 +216,7 @@ class DQNPolicy(Policy):
     def decide(self, state):
         if self.agent is None:
             raise RuntimeError("fit the DQN policy (or pass a trained agent) first")
-        greedy, q_local, q_cloud = self._snapshot.decide(state.input_size, state.cpu_availability,
-                                                         state.round_trip_s)
+        greedy, q_local, q_cloud = self._snapshot.decide(*state.as_tuple())
         action, propensity = epsilon_greedy(self._rng, self.epsilon(), greedy)
         return Decision(action, propensity, q_local, q_cloud)
 

@@ -1,4 +1,5 @@
-"""FIFO replay memory of Algorithm 1: a preallocated numpy ring, oldest experience replaced first."""
+"""FIFO replay memory of Algorithm 1: a preallocated numpy ring, oldest experience replaced first. A row holds
+one raw state, STATE_SIZE wide (the state schema's fields in order)."""
 import numpy as np
 
 from offload_learner_py.core.state import STATE_SIZE

@@ -1,19 +1,20 @@
-"""The one transition table of the project: a step per row with (t, d, u, b, l_local, l_cloud,
-action, action propensity, reward). Saved as .npz (columns as arrays plus JSON metadata) and
-exportable to CSV. Both latencies are in every row, as the paper measured both at every step, so
-any policy can be scored offline against the oracle."""
+"""The one transition table of the project: a step per row with (t, the state s_t's fields, l_local,
+l_cloud, action, action propensity, reward). The state columns are the state schema's fields in its order
+(`core/state.py`: d, u, b). Saved as .npz (columns as arrays plus JSON metadata) and exportable to CSV.
+Both latencies are in every row, as the paper measured both at every step, so any policy can be scored
+offline against the oracle."""
 import csv
 import os
-from dataclasses import dataclass, field
-from typing import Dict
+from typing import Dict, Optional
 
 import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.state import STATE_FIELDS, STATE_SCHEMA
 from offload_learner_py.data.npz_io import VersionedNpz
 
-COLUMNS = ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
-           "action_propensity", "reward")
+OUTCOME_COLUMNS = ("local_s", "cloud_s", "action", "action_propensity", "reward")
+COLUMNS = ("t", *STATE_FIELDS, *OUTCOME_COLUMNS)
 TABLE_FORMAT = "offload_learner_py.transitions/1"
 _INTEGER_COLUMNS = ("t", "action")
 # A CSV is parsed into Python objects (about 50 bytes per field): 64 MiB, about a million rows, stays
@@ -63,42 +64,46 @@ def _require(table: "TransitionTable", name: str, ok: np.ndarray, rule: str) -> 
         raise InvalidTableError(f"{name} must be {rule} in every row; row {bad[0]} is {value}", name, int(bad[0]))
 
 
-@dataclass
 class TransitionTable(VersionedNpz):
+    """Columns by name (`table.local_s`, `table.cpu_availability`), one row per step: every name of COLUMNS
+    given as a keyword, plus optional `metadata`."""
     NPZ_FORMAT, NPZ_ARRAYS, NPZ_WHAT = TABLE_FORMAT, COLUMNS, "transition table"
-    t: np.ndarray
-    input_size: np.ndarray
-    cpu_availability: np.ndarray
-    round_trip_s: np.ndarray
-    local_s: np.ndarray
-    cloud_s: np.ndarray
-    action: np.ndarray
-    action_propensity: np.ndarray
-    reward: np.ndarray
-    metadata: Dict = field(default_factory=dict)
 
-    def __post_init__(self):
+    def __init__(self, *, metadata: Optional[Dict] = None, **columns):
+        missing, unknown = [n for n in COLUMNS if n not in columns], sorted(set(columns) - set(COLUMNS))
+        if missing or unknown:
+            raise TypeError(f"a transition table has the columns {', '.join(COLUMNS)}"
+                            + (f"; missing {', '.join(missing)}" if missing else "")
+                            + (f"; unknown {', '.join(unknown)}" if unknown else ""))
         for name in COLUMNS:
-            setattr(self, name, _column(name, getattr(self, name)))
+            setattr(self, name, _column(name, columns[name]))
+        self.metadata = {} if metadata is None else metadata
         lengths = {name: len(getattr(self, name)) for name in COLUMNS}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"columns have different lengths: {lengths}")
         _require(self, "action", (self.action == LOCAL) | (self.action == CLOUD), f"{LOCAL} (local) or {CLOUD} (cloud)")
-        _require(self, "input_size", self.input_size >= 0, ">= 0")
-        _require(self, "cpu_availability", (self.cpu_availability >= 0) & (self.cpu_availability <= 1), "in [0, 1]")
-        _require(self, "round_trip_s", self.round_trip_s >= 0, ">= 0")
+        for f in STATE_SCHEMA:
+            values = getattr(self, f.name)
+            _require(self, f.name, (values >= f.low) & (values <= f.high), f.bounds_text)
         _require(self, "local_s", self.local_s > 0, "> 0")
         _require(self, "cloud_s", self.cloud_s > 0, "> 0")
         _require(self, "action_propensity", (self.action_propensity > 0) & (self.action_propensity <= 1), "in (0, 1]")
         _require(self, "reward", (self.reward >= -1) & (self.reward <= 1), "in [-1, 1]")
+
+    def __repr__(self) -> str:
+        return f"TransitionTable({len(self)} rows, columns {', '.join(COLUMNS)})"
 
     def __len__(self) -> int:
         return len(self.t)
 
     @property
     def states(self) -> np.ndarray:
-        """N x 3 raw states (d, u, b)."""
-        return np.stack([self.input_size, self.cpu_availability, self.round_trip_s], axis=1)
+        """N x STATE_SIZE raw states, the schema's fields in order."""
+        return STATE_SCHEMA.stack(lambda name: getattr(self, name))
+
+    def state_columns(self) -> Dict[str, np.ndarray]:
+        """The state columns by name, for a table of the same steps with other outcomes."""
+        return {name: getattr(self, name) for name in STATE_FIELDS}
 
     def slice(self, start: int, stop: int) -> "TransitionTable":
         return TransitionTable(**{name: getattr(self, name)[start:stop] for name in COLUMNS},

@@ -11,18 +11,19 @@ import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.reward import CostWeights, reward
+from offload_learner_py.core.state import MAX_LATENCY_S, STATE_FIELDS, STATE_SCHEMA
 from offload_learner_py.data.dataset import TransitionTable
 
 NO_PATH_DELIVERED = 255   # `delivered` when neither side produced a path
 NO_VALUE = object()       # a field the record lacks, derived from the others (see _complete)
 # Physical bounds of a row: beyond them a value is damage or hostility, and one such row would own every
 # figure (an IPS weight of 1e300, a mean latency of 1e308 s, a NaN network). Such rows are counted skips.
-MAX_LATENCY_S = 3600.0      # a latency or round trip of an hour is no planning request
+# The state's are the schema's (each field's [low, recorded_max]); MAX_LATENCY_S bounds l_local and l_cloud.
 MIN_PROPENSITY = 1e-3       # importance weights stay at most 1000
-MAX_INPUT_SIZE = 1e6        # d_t is normalised by the map's cell count (the paper's values are 0 to 5)
 
 # Per field: the value when a record (an older message definition) lacks it; None: the field is required.
-DECISION_DEFAULTS = {"request_id": None, "input_size": None, "cpu_availability": None, "round_trip_s": None,
+# The state's fields are the schema's, named as in OffloadDecision, with the schema's `missing` value.
+DECISION_DEFAULTS = {"request_id": None, **{f.name: f.missing for f in STATE_SCHEMA},
                      "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
                      "policy": "", "model_steps": 0, "probe": NO_VALUE, "mode": "", "routed": NO_VALUE, "breaker": "",
                      "deadline_s": math.nan}
@@ -36,8 +37,7 @@ OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH
 DECISION_FIELDS = tuple(DECISION_DEFAULTS)
 OUTCOME_FIELDS = tuple(OUTCOME_DEFAULTS)
 _TEXT = ("policy", "mode", "breaker")
-_FLOAT = ("input_size", "cpu_availability", "round_trip_s", "action_propensity", "q_local", "q_cloud", "reward",
-          "loss")
+_FLOAT = (*STATE_FIELDS, "action_propensity", "q_local", "q_cloud", "reward", "loss")
 
 
 class RecordMismatchError(ValueError):
@@ -98,11 +98,10 @@ def _complete(decision: Dict, outcome: Dict, weights: CostWeights) -> Optional[s
         return f"decision action {decision['action']}, outcome action {outcome['action']}"
     if decision["action"] not in (LOCAL, CLOUD):
         return f"action {decision['action']} is neither local nor cloud"
-    for name, low, high in (("input_size", 0.0, MAX_INPUT_SIZE), ("cpu_availability", 0.0, 1.0),
-                            ("round_trip_s", 0.0, MAX_LATENCY_S)):
-        value = decision[name]
-        if not (_finite(value) and low <= value <= high):
-            return f"{name} {value} outside [{low:g}, {high:g}]"
+    for f in STATE_SCHEMA:
+        value = decision[f.name]
+        if not (_finite(value) and f.low <= value <= f.recorded_high):
+            return f"{f.name} {value} outside [{f.low:g}, {f.recorded_high:g}]"
     propensity = decision["action_propensity"]
     if not (_finite(propensity) and MIN_PROPENSITY <= propensity <= 1.0):
         return f"action_propensity {propensity} outside [{MIN_PROPENSITY:g}, 1]"
@@ -271,8 +270,7 @@ def transition_table(log: RequestLog, metadata: Dict = None) -> TransitionTable:
     rewards = pick("outcome_reward").astype(np.float64)
     if not np.all(np.isfinite(rewards)):
         raise RecordMismatchError("an outcome flags its reward valid but holds a non-finite reward")
-    return TransitionTable(t=pick("request_id").astype(np.int64), input_size=pick("input_size"),
-                           cpu_availability=pick("cpu_availability"), round_trip_s=pick("round_trip_s"),
+    return TransitionTable(t=pick("request_id").astype(np.int64), **{name: pick(name) for name in STATE_FIELDS},
                            local_s=pick("outcome_local_s"), cloud_s=pick("outcome_cloud_s"),
                            action=pick("action").astype(np.int64), action_propensity=pick("action_propensity"),
                            reward=rewards, metadata=dict(metadata or {}))

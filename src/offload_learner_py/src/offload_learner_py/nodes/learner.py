@@ -130,7 +130,7 @@ class LearnerNode:
         a, b = request.start.pose.position, request.goal.pose.position
         try:
             d = input_size((a.x, a.y), (b.x, b.y), info.resolution, info.width * info.height)
-            return State(d, self.cpu.sample(), self.round_trip_s)
+            return State(input_size=d, cpu_availability=self.cpu.sample(), round_trip_s=self.round_trip_s)
         except (ValueError, RuntimeError, OSError) as error:
             rospy.logwarn("request not learnable: %s", error)
             return None

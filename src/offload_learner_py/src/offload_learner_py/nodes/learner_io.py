@@ -155,10 +155,10 @@ def stamped(msg):
 
 
 def decision_msg(routing, policy: str, model_steps: int) -> OffloadDecision:
+    """The decision of one request; its state fields are the state schema's, named alike in the message."""
     state, decision = routing.state, routing.decision
     return stamped(OffloadDecision(
-        request_id=routing.request_id, input_size=state.input_size, cpu_availability=state.cpu_availability,
-        round_trip_s=state.round_trip_s, action=decision.action, action_propensity=decision.propensity,
+        request_id=routing.request_id, **state.as_dict(), action=decision.action, action_propensity=decision.propensity,
         q_local=decision.q_local, q_cloud=decision.q_cloud, policy=policy, model_steps=model_steps,
         probe=routing.probe, mode=routing.mode, routed=routing.action, breaker=routing.breaker,
         deadline_s=routing.deadline_s))

@@ -40,6 +40,7 @@ from offload_learner_py.offline.plots import (plot_accuracy_bars, plot_action_vs
 from offload_learner_py.core.policies import (AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, OraclePolicy,
                                          RandomPolicy)
 from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.core.state import STATE_FIELDS, STATE_SCHEMA
 from offload_learner_py.data.synthetic import SYNTHETIC_KINDS, SyntheticSettings, generate_synthetic
 from offload_learner_py.data.trace import PlanningTrace
 
@@ -53,8 +54,7 @@ def baseline_policies(seed: int, progress: bool = False) -> list:
     LSTM fits (the slow ones) show a bar over their epochs."""
     return [AlwaysLocal(), AlwaysCloud(), RandomPolicy(seed), InputSizeThreshold(), OraclePolicy(),
             LSTMPolicy(LSTMConfig(seed=seed), progress=progress),
-            _named(LSTMPolicy(LSTMConfig(seed=seed, features=("input_size", "cpu_availability", "round_trip_s")),
-                              progress=progress), "lstm_all_features")]
+            _named(LSTMPolicy(LSTMConfig(seed=seed, features=STATE_FIELDS), progress=progress), "lstm_all_features")]
 
 
 def _named(policy, name: str):
@@ -74,8 +74,8 @@ def _score_baselines(train: TransitionTable, test: TransitionTable, seed: int,
 
 
 def _threshold_report(agent: DQNAgent, states: np.ndarray) -> dict:
-    by_input_size = {f"d_q{q}": learned_cpu_threshold(agent.q_values, states,
-                                                      input_size=float(np.percentile(states[:, 0], q)))
+    d = states[:, STATE_SCHEMA.index("input_size")]
+    by_input_size = {f"d_q{q}": learned_cpu_threshold(agent.q_values, states, input_size=float(np.percentile(d, q)))
                      for q in (10, 50, 90)}
     return {"learned_threshold": learned_cpu_threshold(agent.q_values, states),
             "learned_threshold_by_input_size": by_input_size}

@@ -25,6 +25,7 @@ import numpy as np
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.dqn import greedy_actions
+from offload_learner_py.core.state import STATE_SCHEMA
 from offload_learner_py.data.records import RequestLog
 from offload_learner_py.online.breaker import OPEN, SLOW
 
@@ -177,13 +178,14 @@ def doubly_robust(pi: np.ndarray, action: np.ndarray, propensity: np.ndarray, ou
 
 
 def _features(states: np.ndarray) -> np.ndarray:
-    """log d, u, b and their squares and products: enough shape for a latency that grows with d and
-    falls with u, cheap enough to fit on every run."""
-    base = np.stack([np.log(np.maximum(states[:, 0], 0.0) + 1e-6), states[:, 1], states[:, 2]], axis=1)
+    """Every state field (log d, u, b: on the schema's log scale where it hints one) and their squares and
+    products: enough shape for a latency that grows with d and falls with u, cheap enough to fit on every run."""
+    base = STATE_SCHEMA.log_scaled(states)
     mean, scale = base.mean(axis=0), np.maximum(base.std(axis=0), 1e-9)
     z = (base - mean) / scale
-    columns = [np.ones(len(z))] + [z[:, i] for i in range(3)]
-    columns += [z[:, i] * z[:, j] for i in range(3) for j in range(i, 3)]
+    k = z.shape[1]
+    columns = [np.ones(len(z))] + [z[:, i] for i in range(k)]
+    columns += [z[:, i] * z[:, j] for i in range(k) for j in range(i, k)]
     return np.stack(columns, axis=1)
 
 
@@ -248,8 +250,7 @@ class LoggedSteps:
         delivered_s = pick("outcome_delivered_s").astype(np.float64)
         censored = ~np.isfinite(latency_s) & np.isfinite(delivered_s)
         latency_s = np.where(censored, delivered_s, latency_s)
-        steps = cls(states=np.stack([pick("input_size"), pick("cpu_availability"), pick("round_trip_s")],
-                                    axis=1).astype(np.float64),
+        steps = cls(states=STATE_SCHEMA.stack(pick),
                     action=action, propensity=np.where(forced, 1.0, pick("action_propensity").astype(np.float64)),
                     latency_s=latency_s, probe=probe, local_s=local_s, cloud_s=cloud_s, censored=int(censored.sum()))
         known = np.isfinite(latency_s)

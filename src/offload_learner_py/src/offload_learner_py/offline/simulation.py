@@ -55,8 +55,7 @@ def run_online(agent: DQNAgent, stream: TransitionTable, weights: CostWeights = 
             progress(t + 1, steps, agent, float(np.nanmean(recent)) if np.any(~np.isnan(recent)) else float("nan"),
                      float(step_rewards[window].mean()))
     greedy = greedy_actions(greedy_q)
-    table = TransitionTable(t=stream.t, input_size=stream.input_size, cpu_availability=stream.cpu_availability,
-                            round_trip_s=stream.round_trip_s, local_s=stream.local_s, cloud_s=stream.cloud_s,
+    table = TransitionTable(t=stream.t, **stream.state_columns(), local_s=stream.local_s, cloud_s=stream.cloud_s,
                             action=actions, action_propensity=propensities, reward=step_rewards,
                             metadata={**stream.metadata, "logging_policy": "dqn_epsilon_greedy",
                                       "dqn_config": agent.config.to_dict()})

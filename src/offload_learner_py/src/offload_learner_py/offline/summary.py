@@ -1,7 +1,7 @@
 """The summary of an online run: the chosen actions against always-local, always-cloud and the oracle
 on the run's own probe steps, over the whole run and its second half; accuracy; timeouts; paths
 delivered; the learned offload point in d_t and threshold in u_t; and the oracle's cloud share by
-tercile of d_t, u_t and b_t, which shows whether each feature matters on this run."""
+tercile of each state field (d_t, u_t, b_t), which shows whether each feature matters on this run."""
 import math
 from typing import Callable, Optional
 
@@ -11,10 +11,11 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.dqn import greedy_actions
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.evaluation import accuracy, evaluate, learned_cpu_threshold, oracle_actions
+from offload_learner_py.core.state import STATE_SCHEMA
 from offload_learner_py.data.records import NO_PATH_DELIVERED, RequestLog
 from offload_learner_py.online.breaker import OPEN, SLOW
 
-FEATURES = (("input_size", "d_t"), ("cpu_availability", "u_t"), ("round_trip_s", "b_t"))
+FEATURES = tuple((f.name, f.symbol) for f in STATE_SCHEMA)   # (column, label) of every state field
 
 
 def learned_offload_input_size(q_values: Callable[[np.ndarray], np.ndarray], states: np.ndarray,
@@ -23,12 +24,13 @@ def learned_offload_input_size(q_values: Callable[[np.ndarray], np.ndarray], sta
     Q(local) scanned over the observed d range (log-spaced) and its last local-to-cloud sign change
     interpolated. NaN when the policy does not switch that way in the range."""
     states = np.asarray(states, dtype=np.float64)
-    positive = states[:, 0][states[:, 0] > 0]
+    d = STATE_SCHEMA.index("input_size")
+    positive = states[:, d][states[:, d] > 0]
     if len(positive) < 2:
         return float("nan")
     grid = np.geomspace(positive.min(), positive.max(), points)
     probe = np.tile(np.median(states, axis=0), (points, 1))
-    probe[:, 0] = grid
+    probe[:, d] = grid
     q = np.asarray(q_values(probe))
     difference = q[:, CLOUD] - q[:, LOCAL]
     rising = np.nonzero((difference[:-1] <= 0) & (difference[1:] > 0))[0]
