@@ -60,8 +60,9 @@ TARGETS = {
     "reward": Target("reward", LEARNER / "src" / "offload_learner_py", "core/reward.py",
                      ("test_reward.py", "test_synthetic.py"), LEARNER / "test", budget_s=90),
     "state": Target("state", LEARNER / "src" / "offload_learner_py", "core/state.py",
-                    ("test_state.py", "test_trace.py"), LEARNER / "test", budget_s=90,
-                    test_support=("conftest.py", "test_dataset.py"),  # test_trace imports a helper from it
+                    ("test_state.py", "test_state_schema.py", "test_trace.py"), LEARNER / "test", budget_s=360,
+                    # test_trace imports a helper from test_dataset, test_state_schema from recordtools
+                    test_support=("conftest.py", "test_dataset.py", "recordtools.py"),
                     # the end-to-end trace test needs the built planner, not this module's copy
                     pytest_args=("--deselect=test/test_trace.py::"
                                  "test_trace_command_records_the_real_planner_on_a_real_map",)),
