@@ -150,6 +150,18 @@ def test_normalisation_log_scales_the_fields_the_schema_hints_and_records_the_fi
             StateNormalisation.from_dict({**norm.to_dict(), "fields": fields})
 
 
+def test_normalisation_refuses_states_of_another_width_rather_than_reshaping_them():
+    norm = StateNormalisation.fit(np.ones((4, STATE_SIZE)))
+    for width in (STATE_SIZE - 1, STATE_SIZE + 1):
+        rows = np.ones((STATE_SIZE * (STATE_SIZE + 1), width))     # as many numbers as whole states
+        with pytest.raises(ValueError, match=f"a raw state has {STATE_SIZE} fields"):
+            StateNormalisation.fit(rows)
+        with pytest.raises(ValueError, match=f"a raw state has {STATE_SIZE} fields"):
+            norm.apply(rows)
+    assert norm.apply(np.ones(STATE_SIZE)).shape == (STATE_SIZE,) and norm.apply(np.ones((0, STATE_SIZE))).shape == \
+        (0, STATE_SIZE)
+
+
 def test_the_fast_decision_takes_a_state_in_schema_order():
     from offload_learner_py.core.dqn import DQNAgent
 

@@ -18,6 +18,17 @@ INPUT_SIZE_LOG_FLOOR = STATE_SCHEMA["input_size"].log_floor
 PAPER_STATE_FIELDS = ("input_size", "cpu_availability", "round_trip_s")
 
 
+def _rows(states) -> np.ndarray:
+    """Raw states as N x STATE_SIZE float64 (one state: 1 x STATE_SIZE); another width is refused, never
+    reshaped (a table of the paper's three fields must not be read as rows of four)."""
+    states = np.asarray(states, dtype=np.float64)
+    rows = states[None] if states.ndim == 1 else states
+    if rows.ndim != 2 or rows.shape[1] != STATE_SIZE:
+        raise ValueError(f"a raw state has {STATE_SIZE} fields ({', '.join(STATE_FIELDS)}), got an array of shape "
+                         f"{states.shape}")
+    return rows
+
+
 @dataclass(frozen=True)
 class StateNormalisation:
     mean: tuple
@@ -31,7 +42,7 @@ class StateNormalisation:
 
     @classmethod
     def fit(cls, states: np.ndarray, log_input_size: bool = True) -> "StateNormalisation":
-        states = np.asarray(states, dtype=np.float64).reshape(-1, STATE_SIZE)
+        states = _rows(states)
         if len(states) == 0:
             raise ValueError("cannot fit a normalisation on zero states")
         features = cls._features(states, log_input_size)
@@ -49,7 +60,7 @@ class StateNormalisation:
         """Raw states (N x STATE_SIZE or STATE_SIZE, in schema order) to network inputs, float32."""
         states = np.asarray(states, dtype=np.float64)
         single = states.ndim == 1
-        features = self._features(states.reshape(-1, STATE_SIZE), self.log_input_size)
+        features = self._features(_rows(states), self.log_input_size)
         out = ((features - np.asarray(self.mean)) / np.asarray(self.scale)).astype(np.float32)
         return out[0] if single else out
 
