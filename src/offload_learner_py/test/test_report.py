@@ -43,7 +43,7 @@ def test_the_report_renders_every_figure_with_the_papers_numbers_beside_ours(tmp
     assert page.count('src="data:image/png;base64,') == len(FIGURES)
     assert not re.search(r'src="(?!data:)', page)   # self-contained: nothing to fetch
     assert "<table>" in page and "71.28" in page
-    assert "latency IPS" in md
+    assert "SNIPS (ms)" in md and "probes only (ms)" in md
 
 
 def test_the_model_option_reads_the_offload_point_from_that_checkpoint(tmp_path):

@@ -7,8 +7,8 @@ table), splits them in time (the first 80 % to train, the last 20 % held out), t
 of Algorithm 1 on the training rows and scores it on the held-out rows beside the online policy
 that wrote the bags. Both latencies are known on every training row, so each row teaches the reward
 (eq. 10) of both actions, not only the one taken (`--taken-only` keeps the logged action alone).
-Off-policy estimates (IPS, DR) on the held-out requests, probe or not, stand beside the probe-step
-figures.
+Off-policy estimates on the held-out requests, probe or not (probes scored directly, the others by SNIPS,
+DR and IPS), stand beside the probe-step figures.
 
 DIR receives checkpoint.pt (load it with the learner node's ~model), transitions.npz, evaluation.json,
 evaluation.md and read_report.json. The same bags, --seed and --steps give the same checkpoint.
@@ -34,8 +34,7 @@ from offload_learner_py.core.dqn import DQNAgent, greedy_actions
 from offload_learner_py.core.evaluation import evaluate
 from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.offline.output import code_block, prepare_out_dir, terminal_text
-from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, fit_latency_model, format_results, \
-    to_jsonable
+from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, format_results, to_jsonable
 from offload_learner_py.core.replay import ReplayMemory
 from offload_learner_py.core.reward import CostWeights, rewards
 
@@ -203,7 +202,7 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     log_rows = np.flatnonzero(rewarded_rows(data.log))
     first_test_log_row = log_rows[cut]
     steps = LoggedSteps.from_log(data.log, np.arange(first_test_log_row, len(data.log)))
-    predicted = fit_latency_model(steps.states, steps.action, steps.latency_s)
+    predicted = steps.latency_model()
     candidates = {"retrained": agent.greedy_actions(steps.states), "always_local": np.full(len(steps), LOCAL),
                   "always_cloud": np.full(len(steps), CLOUD)}
     ope = {name: evaluate_policy(steps, actions, predicted) for name, actions in candidates.items()}
