@@ -31,12 +31,9 @@ import time
 import numpy as np
 
 from offload_cloud.cli_args import bounded_float, bounded_int
-from offload_msgs.srv import PlanPathResponse
-from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.data.bags import read_bags
-from offload_learner_py.online.breaker import OPEN
+from offload_demos.bench_measure import measure
+from offload_demos.bench_report import format_table, plot
 from offload_demos.driver import LINK_PROFILES
-from offload_learner_py.offline.summary import delivered_figures
 
 POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
 RUNS = {
@@ -47,11 +44,9 @@ RUNS = {
     "dqn": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05"],
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--hedge"],
 }
-# PlanPath statuses of a cloud call the link failed (offload_msgs/PlanPath: CLOUD_TIMEOUT, CLOUD_ERROR).
-LINK_FAILED = (PlanPathResponse.CLOUD_TIMEOUT, PlanPathResponse.CLOUD_ERROR)
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
-          "bridge_cpu_s_per_request", "learner_cpu_s_per_request", "link_bytes_per_request", "cloud_timeouts",
-          "cloud_share")
+          "bridge_cpu_s_per_request", "learner_cpu_s_per_request", "robot_total_cpu_s_per_request",
+          "robot_workload_cpu_s_per_request", "robot_cpu", "link_bytes_per_request", "cloud_timeouts", "cloud_share")
 
 
 def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra,
@@ -69,93 +64,6 @@ def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yam
     if completed.returncode != 0 or not runs:
         raise RuntimeError(f"demo run failed (exit {completed.returncode}); see {runs_dir / 'demo.log'}")
     return runs[-1]
-
-
-def measure(run_dirs, cloud_timeout_s: float) -> dict:
-    """The figures of one policy over its runs (repeats pooled: every request of every run counts once)."""
-    run_dirs = [run_dirs] if isinstance(run_dirs, pathlib.Path) else list(run_dirs)
-    data = read_bags([str(run_dir / "offload.bag") for run_dir in run_dirs], workers=1)
-    if data.report.failed:
-        raise RuntimeError(data.report.failed[0].error)
-    figures = delivered_figures(data.log, cloud_timeout_s)
-    if "mean_s" not in figures:
-        raise RuntimeError(f"no request was answered in {', '.join(map(str, run_dirs))}: see demo.log beside it")
-    table = data.transition_table({})
-    if len(table):
-        figures["probe_oracle_mean_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
-        figures["probe_steps"] = len(table)
-    log = data.log
-    answered = np.asarray(log["has_outcome"], dtype=bool)
-    delivered_s = np.asarray(log["outcome_delivered_s"], dtype=np.float64)
-    # Where both sides ran every request (the hedge run), the side delivered first is the oracle's choice: what
-    # the oracle would have offloaded, and the robot planning CPU it would have spent (the local plans that won;
-    # a losing local plan's CPU is the probe's cost, not the oracle's).
-    delivered = np.asarray(log["outcome_delivered"])[answered]
-    figures["cloud_share"] = float(np.mean(delivered == CLOUD))
-    figures["first_local_cpu_s_per_request"] = float(np.mean(np.where(
-        delivered == LOCAL, np.asarray(log["outcome_robot_cpu_s"], dtype=np.float64)[answered], 0.0)))
-    figures["delivered_s"] = delivered_s[answered].tolist()
-    # Once the breaker has opened, what a request waited beyond its own local plan (the bar: at most the
-    # hedge deadline, and nothing at all for a request the open breaker routed locally).
-    opened = np.nonzero(np.asarray(log["breaker"], dtype=object) == OPEN)[0]
-    if len(opened):
-        after = answered & (np.arange(len(log)) >= opened[0]) & (np.asarray(log["outcome_delivered"]) == 0)
-        excess = delivered_s[after] - np.asarray(log["outcome_local_s"], dtype=np.float64)[after]
-        figures["worst_wait_beyond_local_after_trip_s"] = float(np.nanmax(excess)) if len(excess) else 0.0
-        figures["max_deadline_s"] = float(np.nanmax(np.asarray(log["deadline_s"], dtype=np.float64)))
-    figures["cloud_failures"] = int(np.sum(answered & np.asarray(log["outcome_cloud_measured"], dtype=bool)
-                                           & np.isin(np.asarray(log["outcome_cloud_status"]), LINK_FAILED)))
-    figures["run_dir"] = ", ".join(map(str, run_dirs))
-    if len(run_dirs) > 1:     # each run's mean: the spread between repeats is the noise of the machine
-        run = np.asarray(log["bag"])[answered]        # index into the reader's (sorted) bag list
-        order = [bag.path for bag in data.report.bags]
-        figures["run_means_s"] = [float(delivered_s[answered][run == order.index(str(run_dir / "offload.bag"))].mean())
-                                  for run_dir in run_dirs]
-    return figures
-
-
-def format_table(results: dict) -> str:
-    header = (f"{'policy':<11}{'requests':>9}{'paths':>7}{'mean ms':>9}{'p50':>8}{'p95':>8}{'p99':>8}"
-              f"{'plan CPU':>9}{'bridge':>8}{'learn':>7}{'KiB/req':>9}{'timeouts':>9}{'cloud %':>8}   (CPU: robot ms per request, of the "
-              "planner, the bridge and the learner's learning; cloud %: paths from the cloud)")
-    lines = [header]
-    for name, f in results["policies"].items():
-        lines.append(f"{name:<11}{f['requests']:>9}{f['paths_delivered']:>7}{1e3 * f['mean_s']:>9.1f}"
-                     f"{1e3 * f['p50_s']:>8.1f}{1e3 * f['p95_s']:>8.1f}{1e3 * f['p99_s']:>8.1f}"
-                     f"{1e3 * f['robot_cpu_s_per_request']:>9.1f}{1e3 * f['bridge_cpu_s_per_request']:>8.1f}"
-                     f"{1e3 * (f.get('learner_cpu_s_per_request') or 0.0):>7.1f}"
-                     f"{f['link_bytes_per_request'] / 1024:>9.1f}"
-                     f"{f['cloud_timeouts']:>9}{100 * (f.get('cloud_share') or 0.0):>8.0f}")
-    if results.get("oracle_mean_s") is not None:
-        lines.append(f"{'oracle':<11}{'':>9}{'':>7}{1e3 * results['oracle_mean_s']:>9.1f}   (the hedge run's probes: "
-                     "the faster side of every request)")
-    if results.get("oracle_robot_cpu_s_per_request") is not None:
-        lines.append(f"oracle: {100 * results['oracle_cloud_share']:.0f} % offloaded, robot planning CPU "
-                     f"{1e3 * results['oracle_robot_cpu_s_per_request']:.1f} ms per request (the hedge run's local "
-                     "plans that came first)")
-    return "\n".join(lines)
-
-
-def plot(results: dict, path: pathlib.Path) -> None:
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-    fig, (cdf, cpu) = plt.subplots(1, 2, figsize=(12, 4.5))
-    names = list(results["policies"])
-    for name in names:
-        values = np.sort(np.asarray(results["delivered_s"][name])) * 1e3
-        cdf.plot(values, np.arange(1, len(values) + 1) / len(values), label=name)
-    cdf.set_xscale("log")
-    cdf.set_xlabel("latency as the caller saw it (ms)")
-    cdf.set_ylabel("share of requests")
-    cdf.set_title(f"delivered latency, {results['map_name']}")
-    cdf.legend()
-    cpu.bar(names, [1e3 * results["policies"][n]["robot_cpu_s_per_request"] for n in names])
-    cpu.set_ylabel("robot planning CPU per request (ms)")
-    cpu.set_title("robot CPU per request")
-    fig.tight_layout()
-    fig.savefig(path, dpi=110)
-    plt.close(fig)
 
 
 def main(argv=None) -> int:

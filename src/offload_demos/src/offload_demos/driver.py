@@ -19,6 +19,7 @@ import time
 from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos.loopback import free_port
 from offload_demos.keys import ensure_demo_keys
+from offload_demos.robot_cpu import PIDS_ENV, PIDS_FILE, SAMPLES_FILE, CpuSampler, format_robot_cpu, run_robot_cpu
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.offline.report import report_run
 from offload_learner_py.offline.summary import format_summary, summarise
@@ -126,9 +127,14 @@ def analyse(out_dir: pathlib.Path, policy: str) -> dict:
         q_values = load_checkpoint(str(checkpoint)).q_values
     summary = summarise(log, table, q_values)
     summary["bag_topics"] = topics
+    # Everything the robot's processes spent over the requests' span (the workload apart), beside the nodes' own
+    # accounting of their planning, bridge and learner CPU.
+    summary["robot_cpu"] = run_robot_cpu(out_dir / SAMPLES_FILE, log["stamp_ns"],
+                                                log["outcome_delivered_s"])
     with open(out_dir / "summary.json", "w") as out:
         json.dump(summary, out, indent=2, default=float)
     print(format_summary(summary))
+    print(format_robot_cpu(summary["robot_cpu"]))
     return summary
 
 
@@ -208,7 +214,9 @@ def main(argv=None) -> int:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
     if args.plan_unknown:
         launch_args.append("unknown_is_obstacle:=false")
-    env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home)
+    env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home,
+               **{PIDS_ENV: str(out_dir / PIDS_FILE)})
+    sampler = CpuSampler(budget.dirs[1] if budget else None, str(out_dir / PIDS_FILE)).start()
     print(f"demo: {args.steps} requests, policy {args.policy}, {args.mode} mode, "
           f"{'trace ' + args.rtt_profile if args.rtt_profile else args.link + ' link'}, goals in "
           f"{'known and unknown' if args.plan_unknown else 'known'} free space, robot on core {args.robot_core} with "
@@ -237,6 +245,8 @@ def main(argv=None) -> int:
             except subprocess.TimeoutExpired:
                 os.killpg(launch.pid, signal.SIGKILL)
                 launch.wait()
+        sampler.stop()       # before the cgroup goes: its last reading of the group's counter
+        sampler.save(out_dir / SAMPLES_FILE)
         if budget:
             budget.close()
     try:

@@ -1,0 +1,72 @@
+"""bench-policies' printed table and figure."""
+import pathlib
+
+import numpy as np
+
+
+def _ms(value, width: int) -> str:
+    return f"{'n/a':>{width}}" if value is None else f"{1e3 * value:>{width}.1f}"
+
+
+def format_table(results: dict) -> str:
+    header = (f"{'policy':<11}{'requests':>9}{'paths':>7}{'mean ms':>9}{'p50':>8}{'p95':>8}{'p99':>8}"
+              f"{'plan CPU':>9}{'bridge':>8}{'learn':>7}{'robot':>7}{'wkld':>7}{'KiB/req':>9}{'timeouts':>9}{'cloud %':>8}"
+              "   (CPU: robot ms per request; plan CPU, bridge, learn: the nodes' own accounting of the planner, the "
+              "bridge and the learner's learning; robot: everything on the robot's side (its cgroup), the total the "
+              "policy costs; wkld: the background workload's, apart; cloud %: paths from the cloud)")
+    lines = [header]
+    for name, f in results["policies"].items():
+        lines.append(f"{name:<11}{f['requests']:>9}{f['paths_delivered']:>7}{1e3 * f['mean_s']:>9.1f}"
+                     f"{1e3 * f['p50_s']:>8.1f}{1e3 * f['p95_s']:>8.1f}{1e3 * f['p99_s']:>8.1f}"
+                     f"{_ms(f['robot_cpu_s_per_request'], 9)}{_ms(f['bridge_cpu_s_per_request'], 8)}"
+                     f"{_ms(f.get('learner_cpu_s_per_request') or 0.0, 7)}"
+                     f"{_ms(f.get('robot_total_cpu_s_per_request'), 7)}{_ms(f.get('robot_workload_cpu_s_per_request'), 7)}"
+                     f"{f['link_bytes_per_request'] / 1024:>9.1f}"
+                     f"{f['cloud_timeouts']:>9}{100 * (f.get('cloud_share') or 0.0):>8.0f}")
+    for name, f in results["policies"].items():
+        cpu = f.get("robot_cpu")
+        if cpu:
+            lines.append(f"{name}: robot CPU {1e3 * cpu['total_cpu_s_per_request']:.2f} ms per request by process "
+                         f"({cpu['source']}): planner {1e3 * cpu['planner_cpu_s_per_request']:.2f}, bridge "
+                         f"{1e3 * cpu['bridge_cpu_s_per_request']:.2f}, learner {1e3 * cpu['learner_cpu_s_per_request']:.2f}, "
+                         f"other {1e3 * cpu['other_cpu_s_per_request']:.2f}, unattributed "
+                         f"{1e3 * cpu['unattributed_cpu_s_per_request']:.2f}")
+    if results.get("oracle_mean_s") is not None:
+        lines.append(f"{'oracle':<11}{'':>9}{'':>7}{1e3 * results['oracle_mean_s']:>9.1f}   (the hedge run's probes: "
+                     "the faster side of every request)")
+    if results.get("oracle_robot_cpu_s_per_request") is not None:
+        lines.append(f"oracle: {100 * results['oracle_cloud_share']:.0f} % offloaded, robot planning CPU "
+                     f"{1e3 * results['oracle_robot_cpu_s_per_request']:.1f} ms per request (the hedge run's local "
+                     "plans that came first)")
+    return "\n".join(lines)
+
+
+def plot(results: dict, path: pathlib.Path) -> None:
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    fig, (cdf, cpu) = plt.subplots(1, 2, figsize=(12, 4.5))
+    names = list(results["policies"])
+    for name in names:
+        values = np.sort(np.asarray(results["delivered_s"][name])) * 1e3
+        cdf.plot(values, np.arange(1, len(values) + 1) / len(values), label=name)
+    cdf.set_xscale("log")
+    cdf.set_xlabel("latency as the caller saw it (ms)")
+    cdf.set_ylabel("share of requests")
+    cdf.set_title(f"delivered latency, {results['map_name']}")
+    cdf.legend()
+    parts = (("planning (node)", "robot_cpu_s_per_request"), ("bridge (node)", "bridge_cpu_s_per_request"),
+             ("learner (node)", "learner_cpu_s_per_request"), ("robot total (cgroup)", "robot_total_cpu_s_per_request"))
+    width = 0.8 / len(parts)
+    for k, (label, key) in enumerate(parts):
+        values = [results["policies"][n].get(key) for n in names]
+        cpu.bar(np.arange(len(names)) + (k - (len(parts) - 1) / 2) * width,
+                [np.nan if value is None else 1e3 * value for value in values], width, label=label)
+    cpu.set_xticks(np.arange(len(names)))
+    cpu.set_xticklabels(names)
+    cpu.set_ylabel("robot CPU per request (ms)")
+    cpu.set_title("robot CPU per request (the workload's apart)")
+    cpu.legend(fontsize="small")
+    fig.tight_layout()
+    fig.savefig(path, dpi=110)
+    plt.close(fig)
