@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo demo-options bench-policies bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
+.PHONY: help deps venv build test demo demo-options bench-policies bench-fleet-learning bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -36,6 +36,7 @@ help:
 	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, LINK=, STEPS=, SEED=, POLICIES=)"
+	@echo "make bench-fleet-learning robots that differ learning through one fleet learner vs alone (STEPS=, ROBOTS=, ARMS=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
 
@@ -129,6 +130,13 @@ bench-policies: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
 		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
 		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown) $(if $(REPEATS),--repeats $(REPEATS))
+
+# Robots that differ (map, link, CPU budget) learning through one fleet learner against each learning alone, live,
+# one run at a time (STEPS= per run, default 400; ROBOTS=, ARMS=). The fleet arm and the bad model say n/a until
+# the robot's fleet mode is on this branch.
+bench-fleet-learning: build
+	@$(ROSENV) $(PY) -m offload_demos.bench_fleet_learning --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),400) \
+		$(if $(ROBOTS),--robots $(ROBOTS)) $(if $(ARMS),--arms $(ARMS))
 
 bench-online: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_online

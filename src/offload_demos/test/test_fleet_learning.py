@@ -1,0 +1,128 @@
+"""bench-fleet-learning's figures (#30 item 8): the per-request oracle pooled over a robot's runs, requests until
+the trailing mean is within 5 % of the oracle, the first-300 mean, a bad model's cost and rollback, and the
+bench's loop over robots and arms on synthetic runs (no ROS)."""
+import json
+import math
+
+import numpy as np
+import pytest
+
+from bagtools import write
+from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.reward import reward
+from offload_demos import bench_fleet_learning as bench
+from offload_demos import fleet_metrics
+from offload_demos.bag_writer import probe_request
+
+
+def test_the_oracle_is_the_faster_side_where_some_run_measured_both():
+    a = {"local_s": [0.1, 0.2, np.nan, 0.4], "cloud_s": [0.3, 0.1, 0.2, np.nan],
+         "both_measured": [True, True, False, False]}
+    b = {"local_s": [0.3, np.nan, 0.5], "cloud_s": [0.1, 0.2, 0.6], "both_measured": [True, False, True]}
+    oracle = fleet_metrics.request_oracle([a, b])
+    assert oracle[:3] == pytest.approx([0.1, 0.1, 0.5])      # request 0: the two runs' oracles averaged
+    assert math.isnan(oracle[3])
+
+
+def test_requests_to_within_is_the_first_window_that_gets_there():
+    oracle = np.full(200, 0.10)
+    delivered = np.concatenate([np.full(100, 0.20), np.full(100, 0.10)])
+    # the window of 50 ending at k holds (100 - (k - 50)) slow requests: its mean is at most 0.105 from k = 148
+    assert fleet_metrics.requests_to_within(delivered, oracle, 0.05, 50) == 148
+    assert fleet_metrics.requests_to_within(delivered, oracle, 0.05, 10) == 110
+    assert fleet_metrics.requests_to_within(np.full(200, 0.2), oracle) is None
+    # only probes know the oracle: a window with fewer than min_oracle of them cannot be judged
+    sparse = np.full(200, np.nan)
+    sparse[::20] = 0.10
+    assert fleet_metrics.requests_to_within(np.full(200, 0.1), sparse, window=50, min_oracle=3) == 50
+    assert fleet_metrics.requests_to_within(np.full(200, 0.1), sparse, window=50, min_oracle=4) is None
+    # a shorter oracle (a shorter oracle run) leaves the rest unknown
+    assert fleet_metrics.requests_to_within(np.full(200, 0.1), np.full(60, 0.1), window=50) == 50
+    with pytest.raises(ValueError):
+        fleet_metrics.requests_to_within(delivered, oracle, tolerance=1.5)
+
+
+def test_the_first_mean_counts_what_there_is():
+    assert fleet_metrics.first_mean(np.arange(400.0), 300) == {"mean_s": pytest.approx(149.5), "requests": 300}
+    assert fleet_metrics.first_mean([1.0, 3.0], 300) == {"mean_s": 2.0, "requests": 2}
+
+
+def test_a_bad_models_cost_is_its_requests_over_the_oracle_until_the_rollback():
+    versions = ["good"] * 10 + ["bad"] * 8 + ["good"] * 5
+    delivered = np.full(23, 0.1)
+    delivered[10:18] = 0.3
+    oracle = np.full(23, 0.1)
+    oracle[12] = np.nan             # not every request's oracle is known
+    cost = fleet_metrics.bad_model_cost(versions, "bad", delivered, oracle, rolled_back_at=18)
+    assert cost["requests_under_bad"] == 8 and cost["requests_to_rollback"] == 8 and cost["rolled_back"]
+    assert cost["oracle_known"] == 7
+    assert cost["excess_s"] == pytest.approx(7 * 0.2) and cost["excess_s_per_request"] == pytest.approx(0.2)
+    never = fleet_metrics.bad_model_cost(versions[:18], "bad", delivered[:18], oracle[:18])
+    assert not never["rolled_back"] and never["requests_to_rollback"] is None and never["requests_under_bad"] == 8
+    assert fleet_metrics.bad_model_cost(versions, "other", delivered, oracle)["requests_under_bad"] == 0
+
+
+def synthetic_run(path, learns_after, n=120, seed=0, probe_every=1):
+    """n requests whose local side is 0.05 s and cloud 0.2 s; a robot that offloads until `learns_after`, then
+    plans locally; every probe_every-th request measures both sides."""
+    rng = np.random.default_rng(seed)
+    requests = []
+    for i in range(n):
+        local_s, cloud_s = 0.05 + 0.001 * rng.random(), 0.2
+        action = CLOUD if i < learns_after else LOCAL
+        decision, outcome = probe_request(5000 + i, 1.0, 0.5, 0.05, local_s, cloud_s, action, 1.0,
+                                          reward(action, local_s, cloud_s), probe=i % probe_every == 0)
+        outcome["delivered_s"] = local_s if action == LOCAL else cloud_s
+        requests.append((decision, outcome))
+    write(path / "offload.bag", requests)
+    return path
+
+
+def test_the_bench_loops_over_robots_and_arms_and_reports(tmp_path, monkeypatch, capsys):
+    learns_after = {"oracle": 0, "alone": 80, "fleet": 20}
+    calls = []
+
+    def fake_run(launch, runs_dir, steps, seed, map_yaml, extra, progress=""):
+        arm = runs_dir.name
+        calls.append((runs_dir.parent.name, arm, map_yaml, extra))
+        run = runs_dir / "20260101-000000"
+        run.mkdir(parents=True)
+        return synthetic_run(run, learns_after[arm], probe_every=1 if arm == "oracle" else 20)
+    monkeypatch.setattr(bench, "run_demo", fake_run)
+    monkeypatch.setattr(bench, "fleet_missing", lambda: "")
+    monkeypatch.setitem(bench.ARMS, "fleet", bench.ARMS["alone"])      # the loop's, not the robot's fleet mode
+    assert bench.main(["--runs-dir", str(tmp_path), "--steps", "120", "--first", "100", "--window", "20"]) == 0
+    assert len(calls) == 3 * len(bench.ROBOTS)
+    assert {call[0] for call in calls} == {robot.name for robot in bench.ROBOTS}
+    husky = [call for call in calls if call[0] == "husky-wan" and call[1] == "alone"][0]
+    assert husky[3][husky[3].index("--budget-cores") + 1] == "0.25" and "wan" in husky[3]
+    assert husky[2].endswith("playpen_map.yaml")
+    results = json.loads(next(tmp_path.glob("bench-fleet-learning-*/results.json")).read_text())
+    robot = results["robots"]["turtlebot-edge"]
+    assert robot["oracle_mean_s"] == pytest.approx(0.0505, abs=0.001)
+    # within 5 % once the last 20 requests are all local: 20 after the switch
+    assert robot["arms"]["alone"]["requests_to_within"] == 100
+    assert robot["arms"]["fleet"]["requests_to_within"] == 40
+    assert robot["arms"]["alone"]["first"]["requests"] == 100
+    assert robot["arms"]["alone"]["first"]["mean_s"] == pytest.approx((80 * 0.2 + 20 * 0.0505) / 100, abs=1e-3)
+    assert results["fleet_fewer_requests"] == len(bench.ROBOTS)
+    out = capsys.readouterr().out
+    assert "fleet fewer requests to 5 % than alone: 4 of 4 robots" in out
+
+
+def test_without_the_fleet_pieces_the_fleet_arm_says_why(tmp_path, monkeypatch, capsys):
+    monkeypatch.setattr(bench, "run_demo", lambda launch, runs_dir, *a, **k: synthetic_run(
+        (runs_dir / "r").mkdir(parents=True) or runs_dir / "r", 0 if runs_dir.name == "oracle" else 30))
+    monkeypatch.setattr(bench, "fleet_missing", lambda: "no robot fleet mode")
+    assert bench.main(["--runs-dir", str(tmp_path), "--robots", "husky-wan", "--steps", "120", "--window", "20"]) == 0
+    results = json.loads(next(tmp_path.glob("bench-fleet-learning-*/results.json")).read_text())
+    assert "fleet" not in results["robots"]["husky-wan"]["arms"] and results["fleet_fewer_requests"] is None
+    assert "n/a" in capsys.readouterr().out
+
+
+def test_fleet_missing_looks_for_the_robots_fleet_mode(tmp_path):
+    (tmp_path / "launch").mkdir()
+    (tmp_path / "launch" / "robot.launch").write_text('<launch><arg name="model" default=""/></launch>')
+    assert "fleet_endpoint" in bench.fleet_missing(tmp_path)
+    (tmp_path / "launch" / "robot.launch").write_text('<launch><arg name="fleet_endpoint" default=""/></launch>')
+    assert "fleet_endpoint" not in bench.fleet_missing(tmp_path)
