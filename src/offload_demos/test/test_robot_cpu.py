@@ -92,28 +92,31 @@ def test_stat_and_names_are_parsed():
 
 def test_known_counters_give_the_total_without_the_workload(tmp_path):
     fake, now = robot(tmp_path), [100.0]
+    # the workload forks helpers (tools.workload_main): in the group, not in robot_confine's list, its command line
+    fake.process(108, node("robot_workload", "robot_workload"), listed=False)
     sampler = fake.sampler(lambda: now[0])
     for t, (planner, bridge, learner, workload, group) in [(100.0, (1.0, 0.5, 2.0, 3.0, 7.0)),
-                                                          (110.0, (3.0, 1.0, 2.5, 8.0, 16.0))]:
+                                                          (110.0, (3.0, 1.0, 2.5, 8.0, 18.0))]:
         now[0] = t
         for pid, value in zip((101, 102, 103, 104), (planner, bridge, learner, workload)):
             fake.cpu(pid, value)
+        fake.cpu(108, (t - 100.0) / 5.0)
         fake.cgroup_s(group)
         sampler.sample()
     figures = robot_cpu.robot_cpu(robot_cpu.window_usage(sampler.samples, 100.0, 110.0), requests=40)
     assert figures["source"] == "cgroup"
-    assert figures["workload_cpu_s"] == pytest.approx(5.0)
-    # the cgroup's 9 s less the workload's 5 s; the nodes account for 2 + 0.5 + 0.5 = 3 s of it
+    assert figures["workload_cpu_s"] == pytest.approx(5.0 + 2.0)
+    # the cgroup's 11 s less the workload's 5 + 2 s; the nodes account for 2 + 0.5 + 0.5 = 3 s of it
     assert figures["total_cpu_s"] == pytest.approx(4.0)
     assert figures["planner_cpu_s"] == pytest.approx(2.0)
     assert figures["bridge_cpu_s"] == pytest.approx(0.5)
     assert figures["learner_cpu_s"] == pytest.approx(0.5)
     assert figures["unattributed_cpu_s"] == pytest.approx(1.0)
     assert figures["total_cpu_s_per_request"] == pytest.approx(0.1)
-    assert figures["workload_cpu_s_per_request"] == pytest.approx(5.0 / 40)
+    assert figures["workload_cpu_s_per_request"] == pytest.approx(7.0 / 40)
     # half the window: every counter interpolated linearly
     half = robot_cpu.robot_cpu(robot_cpu.window_usage(sampler.samples, 102.5, 107.5), requests=20)
-    assert half["total_cpu_s"] == pytest.approx(2.0) and half["workload_cpu_s"] == pytest.approx(2.5)
+    assert half["total_cpu_s"] == pytest.approx(2.0) and half["workload_cpu_s"] == pytest.approx(3.5)
 
 
 def test_every_process_counts_without_a_cgroup_and_one_that_exits_keeps_its_share(tmp_path):
