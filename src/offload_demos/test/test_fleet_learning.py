@@ -60,6 +60,10 @@ def test_a_bad_models_cost_is_its_requests_over_the_oracle_until_the_rollback():
     never = fleet_metrics.bad_model_cost(versions[:18], "bad", delivered[:18], oracle[:18])
     assert not never["rolled_back"] and never["requests_to_rollback"] is None and never["requests_under_bad"] == 8
     assert fleet_metrics.bad_model_cost(versions, "other", delivered, oracle)["requests_under_bad"] == 0
+    # the decisions' model_version column says when the guard rolled it back
+    assert fleet_metrics.rollback_index(versions, "bad") == 18
+    assert fleet_metrics.rollback_index(versions[:18], "bad") is None
+    assert fleet_metrics.rollback_index(versions, "other") is None
 
 
 def synthetic_run(path, learns_after, n=120, seed=0, probe_every=1):

@@ -89,6 +89,17 @@ def bad_model_cost(versions: Sequence[str], bad_version: str, delivered_s: Seque
             "oracle_known": int(len(known))}
 
 
+def rollback_index(versions: Sequence[str], bad_version: str) -> Optional[int]:
+    """The request at which the robot stopped deciding with `bad_version` (its guard rolled it back: the first
+    request after the bad version's first with another version), or None if it never did."""
+    versions = np.asarray(versions, dtype=object)
+    under = np.nonzero(versions == bad_version)[0]
+    if not len(under):
+        return None
+    after = np.nonzero(versions[under[0]:] != bad_version)[0]
+    return int(under[0] + after[0]) if len(after) else None
+
+
 def run_arrays(log) -> Dict[str, np.ndarray]:
     """A request log's columns this module reads, answered requests only, in request order."""
     answered = np.asarray(log["has_outcome"], dtype=bool)
