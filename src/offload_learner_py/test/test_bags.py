@@ -285,6 +285,22 @@ def test_a_hedged_request_whose_other_side_won_is_a_request_and_enters_off_polic
     assert "1 hedged requests enter at their delivery time" in format_results({"always_local": result})
 
 
+def test_a_request_with_neither_its_latency_nor_a_delivery_time_is_left_out_not_censored(tmp_path):
+    """#31: 1c0e6cb counts as censored only a row that enters at its delivery time; a row with neither the taken
+    side's latency nor a delivery time (a request log not from the bag reader, which refuses such rows) is left
+    out, and a mutant counting it as censored survived."""
+    from offload_demos.bag_writer import probe_request
+    from offload_learner_py.data.records import RequestLog
+    from offload_learner_py.offline.off_policy import LoggedSteps
+    plain = [probe_request(k, 1.0, 0.5, 0.05, 0.02, 0.08, 0, 1.0, math.nan, probe=False) for k in range(1, 41)]
+    log = bags.read_bags([write(tmp_path / "run.bag", plain)]).log
+    columns = {name: np.array(values, copy=True) for name, values in log.columns.items()}
+    columns["outcome_local_s"][-1] = columns["outcome_delivered_s"][-1] = math.nan    # nothing known of it
+    columns["outcome_local_s"][-2] = math.nan                                         # known: its delivery time
+    steps = LoggedSteps.from_log(RequestLog(columns))
+    assert steps.censored == 1 and len(steps) == 39
+
+
 def test_writer_roundtrip_of_raw_messages_with_installed_types(tmp_path):
     store = typestore_for(*installed_definitions())
     path = str(tmp_path / "raw.bag")

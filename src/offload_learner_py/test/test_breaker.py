@@ -59,3 +59,16 @@ def test_disabled_breaker_never_opens():
 def test_config_rejects_bad_values(kwargs):
     with pytest.raises(ValueError):
         BreakerConfig(**kwargs)
+
+
+def test_the_retry_period_runs_from_when_the_breaker_opened():
+    """A breaker opened at t = 100 gives its first trial at 100 + retry_after_s, not at once (#31: with every
+    test opening at t = 0, forgetting the opening time went unnoticed)."""
+    clock = Clock()
+    clock.now = 100.0
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=1, retry_after_s=5.0), clock=clock)
+    breaker.record_call(False)
+    clock.now = 101.0
+    assert breaker.admit() == OPEN
+    clock.now = 105.0
+    assert breaker.admit() == TRIAL

@@ -60,3 +60,11 @@ def test_one_pairing_strict_for_live_records_and_tolerant_for_bags():
         (1, 1, 1, 1)
     assert "action_propensity" in counts.invalid_examples[0]
     assert (counts.requests, counts.rewarded_steps, counts.probe_steps) == (1, 1, 1)
+
+
+@pytest.mark.parametrize("propensity", [1.0 + 1e-9, 1.5, float("inf")])
+def test_a_propensity_above_one_is_refused(propensity):
+    """#31: a propensity above 1 (no probability) was accepted by a mutant; the pairing refuses it."""
+    with pytest.raises(RecordMismatchError, match="action_propensity"):
+        pair_records([decision(1, propensity=propensity)], [outcome(1)])
+    assert len(pair_records([decision(1, propensity=1.0)], [outcome(1)])) == 1
