@@ -254,3 +254,20 @@ class _Alternating(AlwaysCloud):
         decision = super().decide(state)
         self.count += 1
         return dataclasses.replace(decision, action=LOCAL) if self.count == 1 else decision
+
+
+def test_a_probes_slower_local_side_is_measured_when_the_cloud_answers_first():
+    """A probe is there to measure both sides: when the cloud delivers first, its local plan runs on to the end
+    (only a newer request may cancel it), so l_local is measured (#31: a mutant cancelling it at the cloud's
+    answer survived, and with it every probe's local latency)."""
+    clock = VirtualClock()
+    local, cloud = CancellablePlanner(clock, 0.3, held=1), FakePlanner(clock, 0.1)
+    router, recorder = router_for(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=1.0)
+    assert router.route("only", STATE).response["side"] is cloud
+    threading.Event().wait(0.05)
+    assert not local.cancelled, "the probe's local plan was cancelled when the cloud answered"
+    local.release()
+    finish(router)
+    (outcome,) = recorder.outcomes
+    assert outcome.local_s == pytest.approx(0.3) and outcome.cloud_s == pytest.approx(0.1)
+    assert outcome.reward == pytest.approx(reward(CLOUD, 0.3, 0.1))
