@@ -3,7 +3,7 @@ five-seed report is the `sweep` command; these runs keep the suite short."""
 import numpy as np
 import pytest
 
-from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.config import EXPERIMENT_SCHEDULE, DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import accuracy, learned_cpu_threshold
 from offload_learner_py.offline.simulation import run_online
@@ -12,7 +12,7 @@ from offload_learner_py.data.synthetic import generate_synthetic
 
 def _online(kind, seed, trace, steps=1000):
     stream = generate_synthetic(kind, trace, steps, seed)
-    agent = DQNAgent(DQNConfig(seed=seed))
+    agent = DQNAgent(DQNConfig(seed=seed, **EXPERIMENT_SCHEDULE))
     run = run_online(agent, stream)
     half = steps // 2
     return agent, stream, accuracy(run.greedy_action[half:], stream.slice(half, steps)), run

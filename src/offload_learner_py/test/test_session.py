@@ -61,5 +61,6 @@ def test_a_loaded_model_trains_on_the_nodes_schedule_and_keeps_its_network(tmp_p
     assert agent.config.train_frequency == 8 and agent.config.epsilon == 0.0
     assert agent.config.learning_rate == DQNConfig().learning_rate and agent.config.seed == 2   # the model's own
     assert agent.steps == 30
-    _, agent = make_policy(SessionConfig(model=model))     # nothing set: the model's own schedule
-    assert agent.config.train_frequency == 5
+    _, agent = make_policy(SessionConfig(model=model))     # nothing set: the node's defaults, the robot's schedule
+    assert agent.config.train_frequency == DQNConfig().train_frequency != 5
+    assert agent.config.learning_starts == 0                # not a training-schedule field: the model's own

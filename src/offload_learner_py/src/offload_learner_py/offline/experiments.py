@@ -28,7 +28,7 @@ import torch
 
 from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_learner_py.core.checkpoint import save_checkpoint
-from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.config import EXPERIMENT_SCHEDULE, DQNConfig
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import evaluate, learned_cpu_threshold
@@ -208,9 +208,9 @@ def comparison_markdown(result: dict) -> str:
 
 
 def _config_from_args(args) -> DQNConfig:
-    """DQNConfig defaults, then the run's seed, then --gamma, then any --set field=value (parsed as JSON when
-    it can be)."""
-    values = DQNConfig().to_dict()
+    """DQNConfig defaults with the experiments' schedule over them, then the run's seed, then --gamma, then any
+    --set field=value (parsed as JSON when it can be)."""
+    values = {**DQNConfig().to_dict(), **EXPERIMENT_SCHEDULE}
     if getattr(args, "seed", None) is not None:
         values["seed"] = args.seed
     if args.gamma is not None:

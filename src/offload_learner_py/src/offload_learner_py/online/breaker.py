@@ -22,8 +22,8 @@ SLOW = "slow"   # not a breaker state: the router's hedge kept one cloud choice 
 class BreakerConfig:
     failures_to_open: int = 3
     """consecutive cloud failures that open the breaker (0 disables the breaker)."""
-    max_round_trip_s: float = math.inf
-    """a heartbeat round trip above this opens it (the hedge deadline is a good value; inf: never)."""
+    max_round_trip_s: float = 1.0
+    """a heartbeat round trip above this opens it (the hedge's longest deadline is a good value; inf: never)."""
     retry_after_s: float = 5.0
     """while open, one request this often is a trial probe."""
 

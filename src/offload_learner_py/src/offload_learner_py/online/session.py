@@ -24,7 +24,8 @@ class SessionConfig:
     model: str = ""                   # the start when the checkpoint does not exist yet
     checkpoint_every: int = 50
     learn: bool = True
-    explore: bool = False             # epsilon-greedy actions (probes explore instead)
+    explore: bool = False             # epsilon-greedy actions; off: learning mode runs both sides anyway and
+                                      # deployed mode explores with its probes, so it would only cost time
     seed: int = 1
     dqn: dict = field(default_factory=dict)   # DQNConfig overrides
     threshold_input_size: float = 1.1
@@ -71,10 +72,9 @@ def make_policy(config: SessionConfig, log: logging.Logger = LOG) -> Tuple[Polic
         agent = load_checkpoint(source, dqn)
         log.info("loaded %s: %d steps, %d gradient steps", source, agent.steps, agent.gradient_steps)
         # The network comes from the checkpoint; how it goes on training is this node's to say (a robot deployed
-        # from a learning run's model trains on the deployed schedule, not the learning run's).
-        schedule = {name: value for name, value in config.dqn.items() if name in TRAINING_SCHEDULE}
-        if schedule:
-            agent.config = replace(agent.config, **schedule)
+        # from a learning run's model trains on the deployed schedule, not the learning run's): DQNConfig's
+        # defaults, which are the robot's, with ~dqn over them.
+        agent.config = replace(agent.config, **{name: getattr(dqn, name) for name in TRAINING_SCHEDULE})
     else:
         agent = DQNAgent(dqn)
         log.warning("no checkpoint at %r and no ~model: the DQN starts untrained", config.checkpoint)
