@@ -2,15 +2,18 @@
 the planners and the goal generator agreeing on what free means, and a named link profile."""
 import re
 import xml.etree.ElementTree as ElementTree
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import pytest
 import yaml
 
-from offload_planner_cpp import free_cells
+from offload_cloud.bridge import BridgeConfig
+from offload_planner_cpp import OPTION_DEFAULTS, free_cells
 from offload_planner_cpp.maps import load_map_server_yaml
 from offload_demos.driver import LINK_PROFILES
+from offload_demos.goal_generator import GoalGeneratorConfig
 from offload_demos.goals import GoalSampler, default_start_cell
 
 WORKSPACE = Path(__file__).resolve().parents[1]
@@ -31,13 +34,14 @@ def default_map_path() -> Path:
 
 
 def test_every_free_space_rule_agrees_that_unknown_cells_block():
-    """The planner, the cloud bridge (the cloud planner's rule) and the goal generator read one rule; the demo
-    passes one value to all three and robot.launch leaves the YAML's value alone unless told."""
-    planner = yaml.safe_load((CONFIG / "planner.yaml").read_text())["planner"]["unknown_is_obstacle"]
-    bridge = yaml.safe_load((CONFIG / "cloud_bridge.yaml").read_text())["cloud_bridge"]["unknown_is_obstacle"]
-    goals = yaml.safe_load((CONFIG / "goal_generator.yaml").read_text())["unknown_is_obstacle"]
-    assert planner is True and bridge is True and goals is True
-    assert launch_defaults("offload_demo.launch")["unknown_is_obstacle"] == "true"
+    """The planner, the cloud bridge (the cloud planner's rule) and the goal generator read one rule: by
+    default unknown cells block in all three, and the demo and robot.launch leave it alone unless told (then
+    they pass one value to all three)."""
+    assert OPTION_DEFAULTS["unknown_is_obstacle"] is True and BridgeConfig.unknown_is_obstacle is True
+    assert GoalGeneratorConfig.unknown_is_obstacle is True
+    for name in ("planner.yaml", "cloud_bridge.yaml", "goal_generator.yaml"):
+        assert "unknown_is_obstacle" not in (CONFIG / name).read_text()
+    assert launch_defaults("offload_demo.launch")["unknown_is_obstacle"] == ""
     assert launch_defaults("robot.launch")["unknown_is_obstacle"] == ""
 
 
@@ -53,7 +57,7 @@ def test_the_default_map_is_bundled_and_large_in_its_known_free_space():
 def test_the_demo_goals_lie_in_known_free_cells_of_the_default_map():
     """The goal generator's own path with the demo's values: every goal is a known cell below the lethal
     threshold. With unknown cells free (the earlier default) many goals fall in unknown space."""
-    config = yaml.safe_load((CONFIG / "goal_generator.yaml").read_text())
+    config = {**asdict(GoalGeneratorConfig()), **yaml.safe_load((CONFIG / "goal_generator.yaml").read_text())}
     grid = load_map_server_yaml(str(default_map_path())).grid
 
     def goals(unknown_is_obstacle: bool) -> np.ndarray:

@@ -6,12 +6,32 @@ import multiprocessing
 import sys
 import threading
 import time
+from dataclasses import dataclass
 
 import rospy
 from std_msgs.msg import Float64
 
 from offload_demos.keys import ensure_demo_keys
+from offload_learner_py.nodes import params
 from offload_demos.workload import LoadSchedule, parse_levels, run_workload
+
+
+@dataclass(frozen=True)
+class WorkloadNodeConfig:
+    """robot_workload's settings beside its LoadSchedule (levels, phase_s, seed)."""
+    budget_cores: float = 1.0
+    """the robot's CPU budget in cores (its cgroup quota / period)."""
+    processes: int = 1
+    """processes sharing the burn: the kernel shares a cgroup's quota between runnable tasks, so more of them
+    leave the planner less."""
+    epoch: float = 0.0
+    """CLOCK_MONOTONIC second at which the schedule starts, shared with the run's other schedules (goal
+    generator, WAN emulator); 0: this node's start."""
+
+
+# robot_workload's ~name -> (dataclass, field), its default the field's.
+WORKLOAD_PARAMETERS = {**{name: (LoadSchedule, name) for name in ("levels", "phase_s", "seed")},
+                       **{name: (WorkloadNodeConfig, name) for name in WorkloadNodeConfig.__dataclass_fields__}}
 
 
 def cloud_server_main():
@@ -40,24 +60,17 @@ def _burn(schedule, budget_share, stop_event, began):
 def workload_main():
     """Robot workload node: burns a varying share of the robot's CPU budget.
 
-    Parameters (private):
-      ~levels (list of float, [0.0, 0.3, 0.55, 0.75])  shares of the budget, one drawn per phase
-      ~phase_s (float, 8.0)          seconds per level
-      ~budget_cores (float, 1.0)     the robot's CPU budget in cores (its cgroup quota / period)
-      ~processes (int, 1)            processes sharing the burn: the kernel shares a cgroup's quota
-                                     between runnable tasks, so more of them leave the planner less
-      ~seed (int, 1)
-      ~epoch (float, 0.0)            CLOCK_MONOTONIC second at which the schedule starts, shared with the
-                                     run's other schedules (goal generator, WAN emulator); 0: this node's start
+    Parameters (private): WORKLOAD_PARAMETERS, LoadSchedule's levels (shares of the budget, one drawn per
+    phase), phase_s (seconds per level) and seed, and WorkloadNodeConfig's fields.
     Topics: publishes ~load (std_msgs/Float64, latched): the current level, for the bag.
     """
     rospy.init_node("robot_workload")
     try:
-        schedule = LoadSchedule(parse_levels(rospy.get_param("~levels", [0.0, 0.3, 0.55, 0.75])),
-                                float(rospy.get_param("~phase_s", 8.0)), int(rospy.get_param("~seed", 1)))
-        budget_cores = float(rospy.get_param("~budget_cores", 1.0))
-        processes = int(rospy.get_param("~processes", 1))
-        epoch = float(rospy.get_param("~epoch", 0.0))
+        values = params.read(lambda name, default: rospy.get_param("~" + name, default), WORKLOAD_PARAMETERS)
+        values["levels"] = parse_levels(values["levels"])
+        schedule = LoadSchedule(**params.for_class(values, WORKLOAD_PARAMETERS, LoadSchedule))
+        node = WorkloadNodeConfig(**params.for_class(values, WORKLOAD_PARAMETERS, WorkloadNodeConfig))
+        budget_cores, processes, epoch = node.budget_cores, node.processes, node.epoch
         if not budget_cores > 0 or processes < 1:
             raise ValueError(f"~budget_cores must be positive and ~processes >= 1, got {budget_cores}, {processes}")
         if not (math.isfinite(epoch) and epoch >= 0):

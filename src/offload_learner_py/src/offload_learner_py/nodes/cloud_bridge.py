@@ -2,6 +2,7 @@
 offload_msgs/PlanPath service as the local planner node, so a caller can use either."""
 import threading
 import time
+from dataclasses import dataclass
 
 import rospy
 import zmq
@@ -14,6 +15,7 @@ from rospy.numpy_msg import numpy_msg
 
 from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
 from offload_cloud.gc_pauses import freeze_startup_heap
+from offload_learner_py.nodes import params
 from offload_planner_cpp import options_table, validate_options
 
 # A parameter's Python type by the type of its row in the core's options table.
@@ -33,24 +35,45 @@ def pose_stamped(header, row) -> PoseStamped:
     return pose
 
 
+@dataclass(frozen=True)
+class BridgeNodeConfig:
+    """The node's own settings beside BridgeConfig's."""
+    heartbeat_period_s: float = 0.5
+    """ping period for ~latency (b_t fresh for the learner); 0 disables the heartbeat."""
+    planner_name: str = "cloud"
+    """the `planner` field of ~timing."""
+
+
+# ~name -> (dataclass, field), its default the field's, for the parameters beside the planner options (those
+# are the core's options table's node parameters, read by its names, types and defaults: planner_defaults()).
+# ~endpoint has no default (required).
+PARAMETERS = {name: (BridgeConfig, name) for name in (
+    "keys_dir", "insecure", "timeout_s", "retries", "heartbeat_timeout_s", "max_map_cells")}
+NODE_PARAMETERS = {name: (BridgeNodeConfig, name) for name in BridgeNodeConfig.__dataclass_fields__}
+
+
+def _get(name: str, default):
+    return rospy.get_param("~" + name, default)
+
+
+def planner_defaults() -> dict:
+    """The planner options the node reads, by name, with the core's defaults."""
+    return {row["name"]: row["default"] for row in options_table() if row["node_parameter"]}
+
+
 def read_parameters() -> BridgeConfig:
-    endpoint = rospy.get_param("~endpoint", "")
+    endpoint = rospy.get_param("~endpoint", None)
     if not endpoint:
         raise ValueError("~endpoint is required, e.g. tcp://cloud.example.org:5555")
-    keys_dir = rospy.get_param("~keys_dir", "") or None
-    insecure = bool(rospy.get_param("~insecure", False))
-    if not keys_dir and not insecure:
+    values = params.read(_get, PARAMETERS)
+    values["keys_dir"] = values["keys_dir"] or None
+    if not values["keys_dir"] and not values["insecure"]:
         raise ValueError("~keys_dir is required (CURVE is on by default); set ~insecure true for plaintext")
     # The planner options: the core table's node parameters, by their names, types and defaults, as the
     # local planner node reads them.
-    planner = {row["name"]: PARAMETER_TYPES[row["type"]](rospy.get_param("~" + row["name"], row["default"]))
+    planner = {row["name"]: PARAMETER_TYPES[row["type"]](_get(row["name"], row["default"]))
                for row in options_table() if row["node_parameter"]}
-    config = BridgeConfig(endpoint=endpoint, keys_dir=keys_dir, insecure=insecure,
-                          timeout_s=float(rospy.get_param("~timeout_s", 5.0)),
-                          retries=int(rospy.get_param("~retries", 1)),
-                          heartbeat_timeout_s=float(rospy.get_param("~heartbeat_timeout_s", 1.0)),
-                          max_map_cells=int(rospy.get_param("~max_map_cells", 64_000_000)),
-                          **BridgeConfig.planner_fields(planner))
+    config = BridgeConfig(endpoint=str(endpoint), **values, **BridgeConfig.planner_fields(planner))
     try:
         validate_options(**config.planner_parameters())   # the core's checks, the core's words
     except ValueError as error:
@@ -58,6 +81,10 @@ def read_parameters() -> BridgeConfig:
     if config.timeout_s <= 0 or config.retries < 0 or config.heartbeat_timeout_s <= 0:
         raise ValueError("~timeout_s and ~heartbeat_timeout_s must be > 0 and ~retries >= 0")
     return config
+
+
+def read_node_parameters() -> BridgeNodeConfig:
+    return BridgeNodeConfig(**params.read(_get, NODE_PARAMETERS))
 
 
 class CloudBridgeNode:
@@ -156,29 +183,18 @@ class CloudBridgeNode:
 def main():
     """Cloud bridge node.
 
-    Parameters (private):
-      ~endpoint (str, required)          cloud server, e.g. tcp://cloud.example.org:5555
-      ~keys_dir (str, "")                this robot's keys dir (client.key_secret, server.key)
-      ~insecure (bool, false)            plaintext; only for a server run with --insecure
-      ~timeout_s (float, 5.0)            deadline of one plan request; then CLOUD_TIMEOUT
-      ~retries (int, 1)                  resends within the deadline (Lazy Pirate)
-      ~heartbeat_period_s (float, 1.0)   ping period; 0 disables the heartbeat
-      ~heartbeat_timeout_s (float, 1.0)  deadline of one ping
-      ~lethal_threshold (int, 50)        occupancy >= this is an obstacle (1..101)
-      ~unknown_is_obstacle (bool, true)
-      ~max_map_cells (int, 64000000)     larger maps are refused (0: no limit)
-      ~planner_name (str, "cloud")       `planner` field of ~timing
+    Parameters (private): ~endpoint (required), PARAMETERS and NODE_PARAMETERS (each defaulting to its
+    field's default) and the core's planner options; the package README's table lists them.
     Topics: subscribes map (nav_msgs/OccupancyGrid); publishes ~latency (offload_msgs/LinkLatency),
     ~timing (offload_msgs/PlanTiming), ~path (nav_msgs/Path, latched).
     Services: ~plan (offload_msgs/PlanPath), ~make_plan (nav_msgs/GetPlan).
     """
     rospy.init_node("cloud_bridge")
     try:
-        config = read_parameters()
-        heartbeat_period_s = float(rospy.get_param("~heartbeat_period_s", 1.0))
+        config, own = read_parameters(), read_node_parameters()
         # None: the heartbeat thread waits for shutdown only.
-        node = CloudBridgeNode(config, heartbeat_period_s if heartbeat_period_s > 0 else None,
-                               rospy.get_param("~planner_name", "cloud"))
+        node = CloudBridgeNode(config, own.heartbeat_period_s if own.heartbeat_period_s > 0 else None,
+                               own.planner_name)
     except (ValueError, OSError, zmq.ZMQError) as error:
         # One line naming the cause (a key file: KeyFileError names it), then exit: never a node that
         # runs without a working link.

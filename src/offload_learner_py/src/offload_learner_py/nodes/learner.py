@@ -2,7 +2,8 @@
 two planners it routes to (the local planner node and the cloud bridge), and wires the ROS-free online loop
 (offload_learner_py.online: the router acts, the learner learns) to ROS: it builds s_t from the messages and
 publishes every decision, outcome and training statistic, so a bag rebuilds the transition table. Its
-topics, services and parameters are in the package README; their defaults in launch/config/learner.yaml."""
+topics, services and parameters are in the package README; their defaults are the config dataclasses' fields
+(nodes/learner_params.py), launch/config/learner.yaml what a deployment overrides."""
 import time
 
 import rospy
@@ -16,61 +17,40 @@ from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
-from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.core.state import State, input_size
 from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
     StaleMapCheck, account, config_msg, decision_msg, exit_fatal, outcome_msg, path_of, rejection, stamped, stats_msg, \
     wait_for_recorder
-from offload_learner_py.online.breaker import BreakerConfig
+from offload_learner_py.nodes.learner_params import read_learner_parameters
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.router import OffloadRouter
-from offload_learner_py.online.router_types import RouterConfig
-from offload_learner_py.online.session import SessionConfig, dqn_settings
 from offload_cloud.gc_pauses import freeze_startup_heap
 
 
 class LearnerNode:
     def __init__(self):
-        p = lambda name, default: rospy.get_param("~" + name, default)  # noqa: E731
-        seed, alpha = int(p("seed", 1)), float(p("alpha", 0.5))
+        settings = read_learner_parameters(lambda name, default: rospy.get_param("~" + name, default))
+        node, session, config = settings.node, settings.session, settings.router
+        self.router_config = config
+        seed, alpha = session.seed, config.weights.alpha
         # One thread: fastest for this small network, leaves the robot's other cores to the planner, and keeps the
         # learner's CPU per request (its thread's time) whole.
-        torch.set_num_threads(int(p("torch_threads", 1)))
-        dqn = dqn_settings(str(p("mode", "deployed")), p("dqn", {}), p("deployed_dqn", {}))
-        session = SessionConfig(
-            policy=str(p("policy", "dqn")), checkpoint=str(p("checkpoint", "")), model=str(p("model", "")),
-            checkpoint_every=int(p("checkpoint_every", 50)), learn=bool(p("learn", True)),
-            # Learning mode runs both sides anyway and deployed mode explores with its probes:
-            # epsilon-greedy exploration would only cost the robot time, so it is off unless asked for.
-            explore=bool(p("explore", False)), seed=seed, dqn=dqn,
-            threshold_input_size=float(p("threshold_input_size", 1.1)), stats_window=int(p("stats_window", 50)),
-            progress_every=int(p("progress_every", 25)))
-        breaker = BreakerConfig(failures_to_open=int(p("breaker_failures", 3)),
-                                max_round_trip_s=float(p("breaker_max_round_trip_s", 1.0)),
-                                retry_after_s=float(p("breaker_retry_s", 5.0)))
-        config = self.router_config = RouterConfig(
-            mode=str(p("mode", "deployed")), probe_rate=float(p("probe_rate", 0.05)),
-            cloud_timeout_s=float(p("cloud_timeout_s", 5.0)), weights=CostWeights(alpha, 1.0 - alpha), seed=seed,
-            map_wait_s=float(p("map_wait_s", 2.0)), hedge=bool(p("hedge", False)),
-            hedge_deadline_s=float(p("hedge_deadline_s", 0.0)), hedge_quantile=float(p("hedge_quantile", 0.95)),
-            hedge_min_s=float(p("hedge_min_s", 0.05)), hedge_max_s=float(p("hedge_max_s", 1.0)), breaker=breaker)
+        torch.set_num_threads(node.torch_threads)
         self.learner = OnlineLearner.resume(session, STATUSES, RosLog, weights=config.weights,
                                             cloud_timeout_s=config.cloud_timeout_s, latency_model=config.latency_model)
-        self.cpu = make_cpu_sampler(str(p("cpu_cores", "")), str(p("cpu_cgroup", "")))
+        self.cpu = make_cpu_sampler(node.cpu_cores, node.cpu_cgroup)
         # With a cgroup budget (nanosecond counters) u_t covers the time since the last request ended,
         # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
         # are too coarse for that and keep the window from request to request.
-        self.cpu_window_from_outcome = bool(p("cpu_cgroup", ""))
+        self.cpu_window_from_outcome = bool(node.cpu_cgroup)
         self.map_info, self.round_trip_s = None, None
-        self.goals = RvizGoals(self.serve, float(p("goal_tolerance", 0.5)),
-                               (float(p("start_x", float("nan"))), float(p("start_y", float("nan")))),
-                               str(p("base_frame", "base_link")), lambda: self.map_info)
+        self.goals = RvizGoals(self.serve, node.goal_tolerance, (node.start_x, node.start_y), node.base_frame,
+                               lambda: self.map_info)
         # The local planner's plans are cancelled through its ~cancel topic when a newer request needs it; the
         # cloud side runs calls concurrently and is never cancelled.
-        self.sides = (planner_proxy(str(p("local_service", "/planner/plan")), str(p("local_cancel_topic", "/planner/cancel"))),
-                      PlannerProxy(str(p("cloud_service", "/cloud_bridge/plan"))))
-        wait_s = float(p("service_wait_s", 60.0))
+        self.sides = (planner_proxy(node.local_service, node.local_cancel_topic), PlannerProxy(node.cloud_service))
+        wait_s = node.service_wait_s
         for side in self.sides:
             rospy.loginfo("waiting for %s", side.service)
             rospy.wait_for_service(side.service, timeout=wait_s)
@@ -83,14 +63,14 @@ class LearnerNode:
         self.config_pub = rospy.Publisher("~config", LearnerConfig, queue_size=1, latch=True)
         self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
         self.config_pub.publish(config_msg(config, self.learner, seed, alpha))
-        recorder = str(p("recorder_node", "offload_record"))
-        wait_for_recorder((self.decision_pub, self.outcome_pub), float(p("wait_for_recorder_s", 0.0)),
+        recorder = node.recorder_node
+        wait_for_recorder((self.decision_pub, self.outcome_pub), node.wait_for_recorder_s,
                           rospy.names.resolve_name(recorder) if recorder else "")
         self.router = OffloadRouter(self.learner, *self.sides, STATUSES, config,
                                     on_decision=self.publish_decision, on_outcome=self.on_outcome,
                                     stale=StaleMapCheck(lambda: self.map_info), account=account)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
-        latency_topic = str(p("latency_topic", "/cloud_bridge/latency"))
+        latency_topic = node.latency_topic
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
         # s_t needs the map's size and a first round trip: serve once both are in (or the wait is over).
         deadline = time.monotonic() + wait_s

@@ -1,19 +1,14 @@
 """map_publisher: publishes a map file as a latched nav_msgs/OccupancyGrid, like map_server, for the
 planner nodes, the cloud bridge and the demo (Debian ships no map_server).
 
-Parameters:
-    ~map (str, required): a map_server `.yaml` or a MovingAI `.map` file.
-    ~frame_id (str, "map"): frame of the published map.
-    ~movingai_resolution (float, 0.05): metres per cell for MovingAI maps, which have none.
-    ~static_child_frame (str, ""): when set, also broadcasts an identity transform from ~frame_id to this
-        frame on /tf_static, so the map frame exists in TF (RViz's fixed frame) where nothing localises
-        the robot (the demo). Leave it empty on a robot whose localisation publishes map -> odom.
+Parameters: ~map (required: a map_server `.yaml` or a MovingAI `.map` file) and MapPublisherConfig's fields.
 
 Topics:
     map (nav_msgs/OccupancyGrid, latched), map_metadata (nav_msgs/MapMetaData, latched),
     /tf_static (tf2_msgs/TFMessage, latched; only with ~static_child_frame).
 """
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import rospy
@@ -25,6 +20,19 @@ from rospy.numpy_msg import numpy_msg
 from offload_planner_cpp.maps import MapFormatError, OccupancyMap, load_map
 
 NumpyOccupancyGrid = numpy_msg(OccupancyGrid)
+
+
+@dataclass(frozen=True)
+class MapPublisherConfig:
+    """The node's parameters (~name) beside ~map, and their defaults."""
+    frame_id: str = "map"
+    """frame of the published map."""
+    movingai_resolution: float = 0.05
+    """metres per cell for MovingAI maps, which have none."""
+    static_child_frame: str = ""
+    """when set, also broadcasts an identity transform from ~frame_id to this frame on /tf_static, so the map
+    frame exists in TF (RViz's fixed frame) where nothing localises the robot (the demo). Leave it empty on a
+    robot whose localisation publishes map -> odom."""
 
 
 def to_message(occupancy: OccupancyMap, frame_id: str, stamp) -> NumpyOccupancyGrid:
@@ -54,9 +62,9 @@ def identity_transform(parent: str, child: str, stamp) -> TransformStamped:
 
 def main():
     rospy.init_node("map_publisher")
-    path = rospy.get_param("~map", "")
-    frame_id = rospy.get_param("~frame_id", "map")
-    static_child_frame = str(rospy.get_param("~static_child_frame", ""))
+    path = str(rospy.get_param("~map", None) or "")
+    frame_id = str(rospy.get_param("~frame_id", MapPublisherConfig.frame_id))
+    static_child_frame = str(rospy.get_param("~static_child_frame", MapPublisherConfig.static_child_frame))
     if not path:
         rospy.logfatal("~map is required: a map_server .yaml or a MovingAI .map file")
         raise SystemExit(2)
@@ -66,8 +74,8 @@ def main():
         rospy.logfatal("cannot load map: %s", error)
         raise SystemExit(2)
     if path.endswith(".map"):
-        occupancy = OccupancyMap(occupancy.grid, float(rospy.get_param("~movingai_resolution", 0.05)),
-                                 name=occupancy.name)
+        resolution = float(rospy.get_param("~movingai_resolution", MapPublisherConfig.movingai_resolution))
+        occupancy = OccupancyMap(occupancy.grid, resolution, name=occupancy.name)
     msg = to_message(occupancy, frame_id, rospy.Time.now())
     map_pub = rospy.Publisher("map", NumpyOccupancyGrid, queue_size=1, latch=True)
     meta_pub = rospy.Publisher("map_metadata", MapMetaData, queue_size=1, latch=True)

@@ -1,0 +1,73 @@
+"""The offload_learner node's parameters: each one a field of SessionConfig, RouterConfig, BreakerConfig,
+CostWeights or the node's own LearnerNodeConfig, whose default is the parameter's. launch/config/learner.yaml
+holds only what a deployment overrides; the README's table is checked against PARAMETERS."""
+import math
+from dataclasses import dataclass, field
+from typing import NamedTuple
+
+from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.nodes import params
+from offload_learner_py.online.breaker import BreakerConfig
+from offload_learner_py.online.router_types import RouterConfig
+from offload_learner_py.online.session import SessionConfig, dqn_settings
+
+
+@dataclass(frozen=True)
+class LearnerNodeConfig:
+    """The node's own settings: its planners, topics and CPU source, and the RViz goals."""
+    torch_threads: int = 1
+    """torch threads: one is fastest for this network, leaves the robot's other cores to the planner and keeps
+    the learning thread's CPU time whole."""
+    deployed_dqn: dict = field(default_factory=dict)
+    """DQNConfig fields over ~dqn in deployed mode only."""
+    local_service: str = "/planner/plan"
+    local_cancel_topic: str = "/planner/cancel"
+    """the local planner's ~cancel ("": its plans are never cancelled)."""
+    cloud_service: str = "/cloud_bridge/plan"
+    latency_topic: str = "/cloud_bridge/latency"
+    service_wait_s: float = 60.0
+    """wait for both planners, the map metadata and a first round trip."""
+    cpu_cgroup: str = ""
+    cpu_cores: str = ""
+    recorder_node: str = "offload_record"
+    wait_for_recorder_s: float = 0.0
+    goal_tolerance: float = 0.5
+    """tolerance of RViz goals (m)."""
+    start_x: float = math.nan
+    start_y: float = math.nan
+    base_frame: str = "base_link"
+
+
+# ~name -> (dataclass, field). ~seed also seeds the router's probe draws (RouterConfig.seed, the same default).
+PARAMETERS = {
+    **{name: (SessionConfig, name) for name in (
+        "policy", "model", "checkpoint", "checkpoint_every", "learn", "explore", "seed", "dqn",
+        "threshold_input_size", "progress_every", "stats_window")},
+    **{name: (RouterConfig, name) for name in (
+        "mode", "probe_rate", "cloud_timeout_s", "map_wait_s", "hedge", "hedge_deadline_s", "hedge_quantile",
+        "hedge_min_s", "hedge_max_s")},
+    "breaker_failures": (BreakerConfig, "failures_to_open"),
+    "breaker_max_round_trip_s": (BreakerConfig, "max_round_trip_s"),
+    "breaker_retry_s": (BreakerConfig, "retry_after_s"),
+    "alpha": (CostWeights, "alpha"),
+    **{spec: (LearnerNodeConfig, spec) for spec in LearnerNodeConfig.__dataclass_fields__},
+}
+
+
+class LearnerParameters(NamedTuple):
+    session: SessionConfig
+    router: RouterConfig
+    node: LearnerNodeConfig
+
+
+def read_learner_parameters(get: params.Getter) -> LearnerParameters:
+    """Every parameter from `get(name, default)`; a value a config refuses raises ValueError."""
+    values = params.read(get, PARAMETERS)
+    node = LearnerNodeConfig(**params.for_class(values, PARAMETERS, LearnerNodeConfig))
+    session = params.for_class(values, PARAMETERS, SessionConfig)
+    session["dqn"] = dqn_settings(values["mode"], values["dqn"], node.deployed_dqn)
+    alpha = values["alpha"]
+    router = RouterConfig(**params.for_class(values, PARAMETERS, RouterConfig), seed=values["seed"],
+                          weights=CostWeights(alpha, 1.0 - alpha),
+                          breaker=BreakerConfig(**params.for_class(values, PARAMETERS, BreakerConfig)))
+    return LearnerParameters(SessionConfig(**session), router, node)
