@@ -99,9 +99,7 @@ bench-decision: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_decision
 
 STEPS ?= 360
-POLICY ?= dqn
-MODE ?= learning
-SEED ?= 1
+# POLICY, MODE and SEED unset pass nothing: offload_demo.launch's value, else the learner's default.
 # Checked before the build and before ROS: a bad STEPS or a MAP that is not a file fails in one line at once
 # (the driver then checks the map's YAML and image before it starts anything).
 demo-options:
@@ -120,14 +118,14 @@ demo: demo-options build
 		--out .ros/offload.rviz; export OFFLOAD_RVIZ_CONFIG=$(ROOT)/.ros/offload.rviz;) \
 		$(if $(HEADLESS),$(PY) -m offload_demos.rviz_view headless --runs-dir runs --) \
 		$(PY) -m offload_demos.driver --launch launch/offload_demo.launch --steps $(STEPS) \
-		--policy $(POLICY) --seed $(SEED) --mode $(MODE) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
+		$(if $(POLICY),--policy $(POLICY)) $(if $(SEED),--seed $(SEED)) $(if $(MODE),--mode $(MODE)) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
 		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL)) $(if $(LINK),--link $(LINK)) \
 		$(if $(filter free,$(UNKNOWN)),--plan-unknown)
 
 # Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
 # STEPS=200, plus a learning run for the DQN and the link-failure scenario).
 bench-policies: build
-	@$(ROSENV) $(PY) -m offload_demos.bench_policies --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),200) --seed $(SEED) \
+	@$(ROSENV) $(PY) -m offload_demos.bench_policies $(if $(filter command line environment,$(origin STEPS)),--steps $(STEPS)) $(if $(SEED),--seed $(SEED)) \
 		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
 		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown) $(if $(REPEATS),--repeats $(REPEATS))
 

@@ -10,8 +10,8 @@ every run. (Paced by the answers instead, a slower policy met later, other parts
 - local, cloud: always plan on the robot / always offload (deployed, no probes);
 - hedge: both sides on every request, the caller gets the first good path (learning mode, frozen policy);
 - threshold: offload above the paper's input-size threshold;
-- dqn: the DQN deployed (probe rate 0.05), warm-started from a learning run's checkpoint on the same map,
-  learning on from every request;
+- dqn: the DQN deployed (at the learner's default probe rate), warm-started from a learning run's checkpoint on
+  the same map, learning on from every request;
 - dqn_hedge: the same with the deadline hedge.
 
 It reports, per policy, latency as the caller saw it (mean, p50, p95, p99), robot planning CPU-seconds and
@@ -33,6 +33,7 @@ import numpy as np
 from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos.bench_measure import measure
 from offload_demos.bench_report import format_table, plot
+from offload_learner_py.online.router_types import RouterConfig
 from offload_demos.driver import LINK_PROFILES
 
 POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
@@ -41,8 +42,8 @@ RUNS = {
     "cloud": ["--policy", "cloud", "--mode", "deployed", "--probe-rate", "0"],
     "hedge": ["--policy", "local", "--mode", "learning", "--learn", "false"],
     "threshold": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],
-    "dqn": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05"],
-    "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--hedge"],
+    "dqn": ["--policy", "dqn", "--mode", "deployed"],
+    "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--hedge"],
 }
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
           "bridge_cpu_s_per_request", "learner_cpu_s_per_request", "robot_total_cpu_s_per_request",
@@ -86,7 +87,8 @@ def main(argv=None) -> int:
                              "requests last about 70 s at 0.175 s each)")
     parser.add_argument("--outage-s", type=bounded_float("--outage-s", 0.0, low_open=True), default=30.0)
     parser.add_argument("--jump-trace", default="launch/config/rtt_jump.txt")
-    parser.add_argument("--cloud-timeout-s", type=float, default=5.0)
+    parser.add_argument("--cloud-timeout-s", type=float, default=RouterConfig.cloud_timeout_s,
+                        help="the learner's ~cloud_timeout_s in the runs (default: its default)")
     parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0), default=4.0,
                         help="open-loop request rate (0: each request 0.1 s after the previous answer)")
     parser.add_argument("--start-lead-s", type=bounded_float("--start-lead-s", 0.0, 600.0), default=20.0,

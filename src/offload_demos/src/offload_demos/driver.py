@@ -23,6 +23,8 @@ from offload_demos.robot_cpu import PIDS_ENV, PIDS_FILE, SAMPLES_FILE, CpuSample
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.offline.report import report_run
 from offload_learner_py.offline.summary import format_summary, summarise
+from offload_learner_py.online.router_types import MODES
+from offload_learner_py.online.session import SessionConfig
 
 CGROUP_ROOT = "/sys/fs/cgroup"
 CGROUP_PERIOD_US = 4000   # the kernel's smallest quota is 1 ms, so 4 ms is the shortest period for 25 %
@@ -87,7 +89,7 @@ LINK_PROFILES = ("edge", "wan")
 
 def check_options(args) -> str:
     """Why the options cannot make a run, in one line, or "" (checked before anything starts)."""
-    if args.steps < 1:
+    if args.steps is not None and args.steps < 1:
         return f"STEPS must be a positive integer, got {args.steps}"
     if args.map:
         from offload_planner_cpp.maps import MapFormatError, load_map_server_yaml
@@ -141,31 +143,36 @@ def analyse(out_dir: pathlib.Path, policy: str) -> dict:
 def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--launch", required=True, help="launch/offload_demo.launch")
-    parser.add_argument("--steps", type=bounded_int("--steps", 1, 10_000_000), default=300)
+    parser.add_argument("--steps", type=bounded_int("--steps", 1, 10_000_000),
+                        help="requests (default: offload_demo.launch's steps)")
     parser.add_argument("--map", default="", help="map_server YAML (default: the bundled nav2 warehouse)")
-    parser.add_argument("--link", choices=LINK_PROFILES, default="edge",
-                        help="link profile: edge (on-site Wi-Fi to an edge server, 8-120 ms) or wan (a cloud region, 20-400 ms)")
+    parser.add_argument("--link", choices=LINK_PROFILES,
+                        help="link profile: edge (on-site Wi-Fi to an edge server, 8-120 ms) or wan (a cloud region, "
+                             "20-400 ms); default: offload_demo.launch's")
     parser.add_argument("--plan-unknown", action="store_true",
                         help="plan through unknown cells and draw goals there too (default: known free space only)")
-    parser.add_argument("--policy", default="dqn")
-    parser.add_argument("--mode", choices=("learning", "deployed"), default="learning",
-                        help="learning: both sides on every request (the paper); deployed: the chosen side alone")
-    parser.add_argument("--probe-rate", type=bounded_float("--probe-rate", 0.0, 1.0), default=0.05,
+    # Unset options pass nothing: the launch's value, else the node's default (its config dataclass's).
+    parser.add_argument("--policy", default=SessionConfig.policy)
+    parser.add_argument("--mode", choices=MODES,
+                        help="learning: both sides on every request (the paper, the demo's default); deployed: the "
+                             "chosen side alone")
+    parser.add_argument("--probe-rate", type=bounded_float("--probe-rate", 0.0, 1.0),
                         help="deployed: share of requests run on both sides")
     parser.add_argument("--hedge", action="store_true", help="deadline hedge (deployed)")
     parser.add_argument("--model", default="", help="checkpoint to start the DQN from")
-    parser.add_argument("--learn", choices=("true", "false"), default="true")
+    parser.add_argument("--learn", choices=("true", "false"))
     parser.add_argument("--wan-args", default="", help="extra WAN emulator options, e.g. '--outage 40:30'")
     parser.add_argument("--no-report", action="store_true", help="skip the HTML report (benchmarks)")
-    parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--seed", type=int, help="the run's seed (default: offload_demo.launch's)")
     parser.add_argument("--runs-dir", default="runs")
     parser.add_argument("--budget-cores", type=float, default=0.5,
                         help="robot CPU budget in cores (cgroup quota), 0 for none")
     parser.add_argument("--robot-core", default="0")
     parser.add_argument("--cloud-core", default="1")
     parser.add_argument("--rtt-profile", default="")
-    parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0), default=0.0,
-                        help="open-loop requests at this rate (0: the next request 0.1 s after each answer)")
+    parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0),
+                        help="open-loop requests at this rate (unset or 0: the goal generator's pause after each "
+                             "answer)")
     parser.add_argument("--start-lead-s", type=bounded_float("--start-lead-s", 0.0, 600.0), default=0.0,
                         help="start the RTT trace, the workload schedule and the goals together, this long after "
                              "the launch (time for every node to come up; 0: each on its own)")
@@ -197,19 +204,19 @@ def main(argv=None) -> int:
                            "scripts", "robot_confine")
     robot_prefix = f"{os.path.abspath(confine)} {args.robot_core} {cgroup if budget else '-'}"
     master_port = free_port()
-    launch_args = [f"steps:={args.steps}", f"policy:={args.policy}", f"seed:={args.seed}", f"out_dir:={out_dir}",
-                   f"mode:={args.mode}", f"probe_rate:={args.probe_rate}", f"hedge:={str(args.hedge).lower()}",
-                   f"learn:={args.learn}", f"wan_args:={args.wan_args}",
+    launch_args = [f"policy:={args.policy}", f"out_dir:={out_dir}", f"wan_args:={args.wan_args}",
                    f"keys_root:={keys_root}", f"server_port:={free_port()}", f"wan_port:={free_port()}",
                    f"robot_prefix:={robot_prefix}", f"cloud_prefix:=taskset -c {args.cloud_core}",
                    f"cpu_cgroup:={cgroup if budget else ''}", f"cpu_cores:={args.robot_core}",
-                   f"budget_cores:={args.budget_cores if budget else 1.0}", f"rviz:={str(args.rviz).lower()}",
-                   f"goal_rate_hz:={args.goal_rate_hz}"]
+                   f"rviz:={str(args.rviz).lower()}"]
+    given = {"steps": args.steps, "seed": args.seed, "mode": args.mode, "probe_rate": args.probe_rate,
+             "learn": args.learn, "goal_rate_hz": args.goal_rate_hz, "link": args.link,
+             "budget_cores": args.budget_cores if budget else None, "hedge": "true" if args.hedge else None}
+    launch_args += [f"{name}:={value}" for name, value in given.items() if value is not None]
     if args.map:
         launch_args.append(f"map:={os.path.abspath(args.map)}")
     if args.model:
         launch_args.append(f"model:={os.path.abspath(args.model)}")
-    launch_args.append(f"link:={args.link}")
     if args.rtt_profile:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
     if args.plan_unknown:
@@ -217,8 +224,9 @@ def main(argv=None) -> int:
     env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home,
                **{PIDS_ENV: str(out_dir / PIDS_FILE)})
     sampler = CpuSampler(budget.dirs[1] if budget else None, str(out_dir / PIDS_FILE)).start()
-    print(f"demo: {args.steps} requests, policy {args.policy}, {args.mode} mode, "
-          f"{'trace ' + args.rtt_profile if args.rtt_profile else args.link + ' link'}, goals in "
+    launch_default = "the launch's"
+    print(f"demo: {args.steps or launch_default} requests, policy {args.policy}, {args.mode or launch_default} mode, "
+          f"{'trace ' + args.rtt_profile if args.rtt_profile else (args.link or launch_default) + ' link'}, goals in "
           f"{'known and unknown' if args.plan_unknown else 'known'} free space, robot on core {args.robot_core} with "
           f"{args.budget_cores if budget else 'no'} core budget, cloud on core {args.cloud_core}; output {out_dir}",
           flush=True)
