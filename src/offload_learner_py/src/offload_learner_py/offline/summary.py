@@ -12,6 +12,7 @@ from offload_learner_py.core.dqn import greedy_actions
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.evaluation import accuracy, evaluate, learned_cpu_threshold, oracle_actions
 from offload_learner_py.core.state import STATE_SCHEMA
+from offload_learner_py.core.reward import DEFAULT_CLOUD_TIMEOUT_S
 from offload_learner_py.data.records import NO_PATH_DELIVERED, RequestLog
 from offload_learner_py.online.breaker import OPEN, SLOW
 
@@ -58,7 +59,7 @@ def oracle_share_by_tercile(table: TransitionTable) -> dict:
     return shares
 
 
-def delivered_figures(log: RequestLog, cloud_timeout_s: float = 5.0) -> dict:
+def delivered_figures(log: RequestLog, cloud_timeout_s: float = DEFAULT_CLOUD_TIMEOUT_S) -> dict:
     """What the robot got and paid, request by request, with the decisions acting: latency from arrival
     to path as the caller saw it (mean and tail), paths delivered, robot planning CPU-seconds and link
     bytes per request, cloud timeouts and the requests that waited at least the cloud timeout."""

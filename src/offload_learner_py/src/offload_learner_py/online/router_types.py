@@ -6,7 +6,7 @@ from dataclasses import dataclass, field
 from typing import Any, Optional
 
 from offload_learner_py.core.policies import Decision
-from offload_learner_py.core.reward import CostWeights
+from offload_learner_py.core.reward import DEFAULT_CLOUD_TIMEOUT_S, CostWeights
 from offload_learner_py.core.state import State
 from offload_learner_py.online.breaker import CLOSED, BreakerConfig
 from offload_learner_py.online.latency_model import LatencyModelConfig
@@ -103,7 +103,7 @@ class RouterConfig:
     while either side's latency model lacks its first samples (a warm-started DQN on a fresh node: a
     one-sided request would teach nothing, there being nothing to impute with, and the hedge would have no
     deadline); then, as a fixed policy always does, it probes at probe_rate only."""
-    cloud_timeout_s: float = 5.0
+    cloud_timeout_s: float = DEFAULT_CLOUD_TIMEOUT_S
     """l_cloud of a request the cloud did not answer (the paper's 5 s). This and `weights` (eq. 10's alpha and
     beta) are the learner's settings (learning.py); the node passes them on with `latency_model`."""
     weights: CostWeights = field(default_factory=CostWeights)
