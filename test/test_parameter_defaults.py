@@ -52,7 +52,8 @@ def bridge_defaults() -> dict:
 # node: (README, its section heading, {~name: default} of every parameter it reads, required parameters (no
 # default), the YAML file of its overrides and the section in it)
 NODES = {
-    "offload_learner": (LEARNER / "README.md", "### offload_learner", lambda: params.defaults(learner_params.PARAMETERS),
+    "offload_learner": (LEARNER / "README.md", "### offload_learner",
+                        lambda: params.defaults(learner_params.PARAMETERS),
                         (), CONFIG / "learner.yaml", None),
     "cloud_bridge": (LEARNER / "README.md", "### cloud_bridge", bridge_defaults, ("endpoint",),
                      CONFIG / "cloud_bridge.yaml", "cloud_bridge"),
@@ -63,7 +64,8 @@ NODES = {
     "planner": (PLANNER / "README.md", "### planner_node", planner_node_defaults, (), CONFIG / "planner.yaml",
                 "planner"),
     "map_publisher": (PLANNER / "README.md", "### map_publisher",
-                      lambda: {name: getattr(MapPublisherConfig, name) for name in MapPublisherConfig.__dataclass_fields__},
+                      lambda: {name: getattr(MapPublisherConfig, name)
+                               for name in MapPublisherConfig.__dataclass_fields__},
                       ("map",), CONFIG / "planner.yaml", "map_publisher"),
 }
 UNSET = object()
@@ -284,6 +286,15 @@ def test_the_readme_states_the_dqn_defaults_it_names():
         assert len(named) >= 4, text
         wrong = {name: value for name, value in named.items() if not same(value, expected[name])}
         assert not wrong, (wrong, expected)
+
+
+def test_the_learner_readme_states_the_defaults_its_measurements_name():
+    """The off-policy evaluation section names the deployed defaults it measured at."""
+    text = " ".join((LEARNER / "README.md").read_text().split())
+    probe_rate, epsilon = RouterConfig.probe_rate, DQNConfig.epsilon
+    for phrase in (f"| {probe_rate:g}, {epsilon:g} (the deployed defaults) |",
+                   f"the deployed probe rate {probe_rate:g}"):
+        assert phrase in text, phrase
 
 
 def test_the_root_readme_states_the_learners_defaults_it_names():
