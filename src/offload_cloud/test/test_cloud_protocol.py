@@ -173,7 +173,8 @@ def test_golden_bytes_of_every_message():
     # And the other way: golden bytes decode to the values they stand for.
     decoded = protocol.decode_plan(258, plan[1:], MAX_CELLS)
     assert (decoded.map_hash, decoded.start, decoded.goal) == (bytes(range(16)), (1, 2), (3, 4))
-    assert decoded.options == PlanOptions(1.5, 60, False, True)
+    assert decoded.options == PlanOptions(goal_tolerance_cells=1.5, lethal_threshold=60, unknown_is_obstacle=False,
+                                          stop_at_goal=True)
     back = protocol.decode_reply(reply)
     assert (back.request_id, back.status, back.goal, back.expansions, back.planning_time_s, back.cost_cells) == \
         (9, Status.GOAL_BLOCKED, (3, 4), 77, 0.25, 2.5)

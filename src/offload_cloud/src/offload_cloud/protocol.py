@@ -41,12 +41,12 @@ import enum
 import hashlib
 import json
 import struct
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, make_dataclass
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from offload_planner_cpp import OPTION_DEFAULTS
+from offload_planner_cpp import options_table
 from offload_planner_cpp._core import ALGORITHM_NAMES, PlanStatus, validate_options
 
 MAGIC = b"OFPL"
@@ -108,37 +108,32 @@ class ProtocolError(ValueError):
         self.status = status
 
 
-_DEFAULT = OPTION_DEFAULTS
+# The core's options that a request carries in cells: PlanOptions' fields, their order and defaults.
+_CELL_OPTIONS = [row for row in options_table() if row["scope"] == "cells"]
+_OPTION_TYPES = {"int": int, "bool": bool, "float": float, "algorithm": str}
 
 
-@dataclass(frozen=True)
-class PlanOptions:
-    """The core's planner options (planner_options.h, the pybind11 module's keyword arguments), with the
-    core's defaults. A request without PLANNER_TAIL means these defaults, so changing one of the core's is a
-    change of the protocol. Values are checked by the core when the server plans (INVALID_REQUEST)."""
-    goal_tolerance_cells: float = _DEFAULT["goal_tolerance_cells"]
-    lethal_threshold: int = _DEFAULT["lethal_threshold"]
-    unknown_is_obstacle: bool = _DEFAULT["unknown_is_obstacle"]
-    stop_at_goal: bool = _DEFAULT["stop_at_goal"]
-    algorithm: str = _DEFAULT["algorithm"]
-    any_angle: bool = _DEFAULT["any_angle"]
-    cost_factor: float = _DEFAULT["cost_factor"]
-    neutral_cost: float = _DEFAULT["neutral_cost"]
-    robot_radius_cells: float = _DEFAULT["robot_radius_cells"]
-    inflation_radius_cells: float = _DEFAULT["inflation_radius_cells"]
-    inflation_decay: float = _DEFAULT["inflation_decay"]
+class _PlanOptionsMethods:
+    __slots__ = ()
 
     def planner_kwargs(self) -> dict:
         """The options as plan_raw's keyword arguments."""
-        return dict(lethal_threshold=self.lethal_threshold, unknown_is_obstacle=self.unknown_is_obstacle,
-                    goal_tolerance=self.goal_tolerance_cells, stop_at_goal=self.stop_at_goal,
-                    algorithm=self.algorithm, any_angle=self.any_angle, cost_factor=self.cost_factor,
-                    neutral_cost=self.neutral_cost, robot_radius_cells=self.robot_radius_cells,
-                    inflation_radius_cells=self.inflation_radius_cells, inflation_decay=self.inflation_decay)
+        kwargs = {row["name"]: getattr(self, row["name"]) for row in _CELL_OPTIONS}
+        kwargs["goal_tolerance"] = kwargs.pop("goal_tolerance_cells")
+        return kwargs
 
     def _tail(self) -> tuple:
         return (float(self.cost_factor), float(self.neutral_cost), float(self.robot_radius_cells),
                 float(self.inflation_radius_cells), float(self.inflation_decay))
+
+
+# Built from the core's table (planner_options.h): a new cell option of the core is a field here with no
+# change to this file. A request without PLANNER_TAIL means the core's defaults, so changing one of the core's
+# is a change of the protocol. Values are checked by the core when the server plans (INVALID_REQUEST).
+PlanOptions = make_dataclass(
+    "PlanOptions", [(row["name"], _OPTION_TYPES[row["type"]], field(default=row["default"])) for row in _CELL_OPTIONS],
+    bases=(_PlanOptionsMethods,), frozen=True, namespace={"__module__": __name__, "__doc__":
+        "The core's planner options in cells (the pybind11 module's keyword arguments), with the core's defaults."})
 
 
 @dataclass(frozen=True)
