@@ -72,3 +72,43 @@ def test_the_retry_period_runs_from_when_the_breaker_opened():
     assert breaker.admit() == OPEN
     clock.now = 105.0
     assert breaker.admit() == TRIAL
+
+
+def test_slow_answers_count_as_failures():
+    """#31 Medium 10: a cloud that pings fine but takes 4.5 s a plan never tripped the breaker (67 of 100 requests
+    waited 4.5 s). An answer slower than slow_call_s counts as a failure."""
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=3, slow_call_s=2.0), clock=Clock())
+    for _ in range(2):
+        breaker.record_call(True, 4.5)
+    breaker.record_call(True, 0.1)                 # a timely answer resets the count
+    for _ in range(3):
+        breaker.record_call(True, 4.5)
+    assert breaker.admit() == OPEN and "slow" in breaker.reason
+
+
+def test_a_healthy_heartbeat_does_not_undo_failed_calls():
+    """#31 Low: an erroring cloud that pings fine re-closed the breaker at each heartbeat (35 trips in 200
+    requests). Opened by calls, only a trial's timely answer closes it; and a heartbeat between failures does not
+    reset their count (two failures, a heartbeat, one failure: open)."""
+    clock = Clock()
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=3, retry_after_s=5.0), clock=clock)
+    breaker.record_call(False)
+    breaker.record_call(False)
+    breaker.record_heartbeat(True, 0.01)
+    breaker.record_call(False)
+    assert breaker.admit() == OPEN
+    breaker.record_heartbeat(True, 0.01)
+    assert breaker.is_open and breaker.trips == 1, "a ping says nothing of the plans that failed"
+    clock.now = 5.0
+    assert breaker.admit() == TRIAL
+    breaker.record_call(True, 0.2)
+    assert breaker.admit() == CLOSED
+
+
+def test_a_link_the_heartbeat_found_down_closes_when_the_heartbeat_finds_it_back():
+    breaker = LinkBreaker(BreakerConfig(failures_to_open=3), clock=Clock())
+    for _ in range(3):
+        breaker.record_call(False)
+    breaker.record_heartbeat(False, 5.0)           # the link itself is down: its return may close the breaker
+    breaker.record_heartbeat(True, 0.02)
+    assert breaker.admit() == CLOSED

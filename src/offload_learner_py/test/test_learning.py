@@ -110,8 +110,19 @@ def test_the_latency_models_learn_every_measured_latency_and_only_those():
     learner.learn(outcome(local=(OK, 0.2), cloud=(OK, 0.1)))
     learner.learn(outcome(cloud=(OK, 0.1), probe=False))
     learner.learn(outcome(local=(NO_PATH, 0.01), cloud=(NO_PATH, 0.02)))      # not plannable: no latency
-    learner.learn(outcome(local=(OK, 0.2), cloud=(TIMEOUT, 5.0)))             # a failure is not a cloud latency
-    assert (learner.models[LOCAL].samples, learner.models[CLOUD].samples) == (2, 2)
+    learner.learn(outcome(local=(OK, 0.2), cloud=(TIMEOUT, 5.0)))             # a failure costs the timeout
+    assert (learner.models[LOCAL].samples, learner.models[CLOUD].samples) == (2, 3)
+
+
+def test_an_erroring_cloud_is_imputed_at_what_it_costs():
+    """#31 Low: imputation learned only the cloud's successes, so a cloud failing most requests was imputed as
+    fast as its rare answers. Its failures enter the model at the timeout they cost (the paper's l_cloud)."""
+    learner = OnlineLearner(Teachable(), STATUSES, cloud_timeout_s=3.0)
+    for k in range(20):
+        failed = k % 4 != 0                                                   # 3 of 4 requests fail
+        learner.learn(outcome(local=(OK, 0.2), cloud=(ERROR, 0.01) if failed else (OK, 0.05)))
+    # The model's central estimate of 3 s failures and 0.05 s answers: far above the answers alone (0.05 s).
+    assert learner.models[CLOUD].impute_s(FEATURES) > 0.5
 
 
 def test_a_deployed_request_before_the_model_of_the_other_side_is_ready_teaches_nothing():

@@ -193,7 +193,10 @@ def test_breaker_opens_after_cloud_failures_and_routes_locally_without_calling_t
     assert len(cloud.calls) == failures
     assert [r.breaker for r in recorder.routings] == ["closed"] * failures + ["open"] * (6 - failures)
     assert all(r.action == LOCAL and r.decision.action == CLOUD for r in recorder.routings[failures:])
-    router.breaker.record_heartbeat(True, 0.05)  # a ping says the link is back
+    router.breaker.record_heartbeat(True, 0.05)  # a ping alone says nothing of the calls that timed out
+    assert router.breaker.is_open
+    router.breaker.record_heartbeat(False, 5.0)  # the link was down, then a ping says it is back
+    router.breaker.record_heartbeat(True, 0.05)
     router.route("req", STATE)
     finish(router)
     assert recorder.routings[-1].breaker == "closed" and len(cloud.calls) == failures + 1

@@ -49,6 +49,7 @@ PARAMETERS = {
     "breaker_failures": (BreakerConfig, "failures_to_open"),
     "breaker_max_round_trip_s": (BreakerConfig, "max_round_trip_s"),
     "breaker_retry_s": (BreakerConfig, "retry_after_s"),
+    "breaker_slow_call_s": (BreakerConfig, "slow_call_s"),
     "alpha": (CostWeights, "alpha"),
     **{spec: (LearnerNodeConfig, spec) for spec in LearnerNodeConfig.__dataclass_fields__},
 }

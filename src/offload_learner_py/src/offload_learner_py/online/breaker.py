@@ -1,12 +1,15 @@
 """Link-health circuit breaker: stop offloading into a cloud the robot already knows is down or too slow.
 
-Closed (normal): cloud calls go ahead. It opens after `failures_to_open` cloud failures in a row (a timeout
-or a link error, never a request the planner refused), or when a heartbeat says the cloud is unreachable or
-its round trip exceeds `max_round_trip_s` (a link that cannot beat the deadline). While open, the router
-plans locally without touching the link, so no request pays the cloud timeout. It closes again on the first
-heartbeat (the bridge's periodic ping, a few bytes) that is reachable and within `max_round_trip_s`, or on a
-trial: every `retry_after_s` one request is let through as a probe (both sides at once, the caller gets the
-first good path, so a trial into a dead link costs the caller nothing) and a cloud answer closes it.
+Closed (normal): cloud calls go ahead. It opens after `failures_to_open` cloud failures in a row (a timeout,
+a link error, or an answer slower than `slow_call_s`: a cloud that pings fine but plans slowly; never a request
+the planner refused), or when a heartbeat says the cloud is unreachable or its round trip exceeds
+`max_round_trip_s` (a link that cannot beat the deadline). While open, the router plans locally without
+touching the link, so no request pays the cloud timeout. Opened by a heartbeat, it closes on the first heartbeat
+(the bridge's periodic ping, a few bytes) that is reachable and within `max_round_trip_s`. Opened by failed
+calls, a healthy ping proves nothing about planning (an erroring cloud that pings fine re-closed it at every
+heartbeat), so only a trial closes it: every `retry_after_s` one request is let through as a probe (both sides
+at once, the caller gets the first good path, so a trial into a dead link costs the caller nothing) and a
+timely cloud answer closes it. Only a timely cloud answer resets the count of failures.
 """
 import math
 import threading
@@ -26,6 +29,8 @@ class BreakerConfig:
     """a heartbeat round trip above this opens it (the hedge's longest deadline is a good value; inf: never)."""
     retry_after_s: float = 5.0
     """while open, one request this often is a trial probe."""
+    slow_call_s: float = 2.0
+    """a cloud answer slower than this counts as a failure (a cloud that pings fine but plans slowly); inf: never."""
 
     def __post_init__(self):
         if self.failures_to_open < 0:
@@ -34,6 +39,8 @@ class BreakerConfig:
             raise ValueError(f"max_round_trip_s must be > 0, got {self.max_round_trip_s}")
         if not (self.retry_after_s > 0 and math.isfinite(self.retry_after_s)):
             raise ValueError(f"retry_after_s must be positive and finite, got {self.retry_after_s}")
+        if not self.slow_call_s > 0:
+            raise ValueError(f"slow_call_s must be > 0, got {self.slow_call_s}")
 
 
 class LinkBreaker:
@@ -45,6 +52,7 @@ class LinkBreaker:
         self._lock = threading.Lock()
         self._failures = 0
         self._open = False
+        self._opened_by_calls = False
         self._last_trial = 0.0
         self.reason = ""
         self.trips = 0
@@ -72,39 +80,45 @@ class LinkBreaker:
                 return TRIAL
             return OPEN
 
-    def record_call(self, succeeded: bool) -> None:
-        """A cloud call's result: succeeded means the cloud answered (any planner status), failed means a
-        timeout or link error."""
+    def record_call(self, succeeded: bool, seconds: float = 0.0) -> None:
+        """A cloud call's result: succeeded means the cloud answered (any planner status) and `seconds` is how
+        long it took; failed means a timeout or link error. An answer slower than slow_call_s is a failure."""
         if not self.enabled:
             return
         with self._lock:
-            if succeeded:
+            slow = succeeded and not seconds <= self.config.slow_call_s
+            if succeeded and not slow:
                 self._failures = 0
                 self._close_locked()
                 return
             self._failures += 1
             if self._failures >= self.config.failures_to_open:
-                self._open_locked(f"{self._failures} cloud failures in a row")
+                what = "slow or failed cloud calls" if slow else "cloud failures"
+                self._open_locked(f"{self._failures} {what} in a row", by_calls=True)
 
     def record_heartbeat(self, reachable: bool, round_trip_s: float) -> None:
         if not self.enabled:
             return
         with self._lock:
             if not reachable:
-                self._open_locked("heartbeat: cloud unreachable")
+                self._open_locked("heartbeat: cloud unreachable", by_calls=False)
             elif not round_trip_s <= self.config.max_round_trip_s:
-                self._open_locked(f"heartbeat: round trip {round_trip_s:.3f} s over {self.config.max_round_trip_s:g} s")
-            else:
-                self._failures = 0
+                self._open_locked(f"heartbeat: round trip {round_trip_s:.3f} s over {self.config.max_round_trip_s:g} s",
+                                  by_calls=False)
+            elif self._open and not self._opened_by_calls:
                 self._close_locked()
 
-    def _open_locked(self, reason: str) -> None:
+    def _open_locked(self, reason: str, by_calls: bool) -> None:
         if not self._open:
             self._open = True
             self._last_trial = self.clock()
             self.trips += 1
+            self._opened_by_calls = by_calls
+        elif not by_calls:
+            self._opened_by_calls = False   # the heartbeat finds the link down: its return may close the breaker
         self.reason = reason
 
     def _close_locked(self) -> None:
         self._open = False
+        self._opened_by_calls = False
         self.reason = ""

@@ -120,11 +120,13 @@ class OnlineLearner:
         cloud_ok = outcome.cloud is not None and outcome.cloud.status == self.statuses.ok
         if local_ok:
             self.models[LOCAL].observe(state, outcome.local_s)
-        if cloud_ok:
-            self.models[CLOUD].observe(state, outcome.cloud_s)
         local_s = outcome.local_s if local_ok else None
-        # A cloud that failed (or never answered from the map in force) cost the timeout: that is measured too.
+        # A cloud that failed (or never answered from the map in force) cost the timeout: that is measured too,
+        # and the cloud's latency model learns it, so a request it imputes l_cloud for sees an erroring cloud as
+        # the cost it is (learning only its successes made a cloud that mostly failed look fast).
         cloud_measured = outcome.cloud is not None and (cloud_ok or self.statuses.cloud_failed(outcome.cloud.status))
+        if cloud_measured:
+            self.models[CLOUD].observe(state, outcome.cloud_s)
         cloud_s = outcome.cloud_s if cloud_measured else None
         if local_s is None and cloud_s is None:
             return     # nothing measured about planning (a refused request, a stale map, a dead local planner)

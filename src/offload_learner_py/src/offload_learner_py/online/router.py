@@ -255,7 +255,7 @@ class OffloadRouter:
                     lane.end(call_id)
                 result.started_after_s = started_after_s
         if side == CLOUD and not result.cancelled and req.outcome.state is not None:
-            self.breaker.record_call(not result.link_failed)
+            self.breaker.record_call(not result.link_failed, result.seconds)
         self._settle(req, side, result, request)
 
     def _cancel(self, side: int, call_ids) -> None:
