@@ -36,6 +36,9 @@ before it holds more than that of it, and bounds each key's connections together
 first message makes the server cut the connection (its --max-first-message-mib admits larger ones while
 robots from before the rule remain). Added within version 2: every client of this package pings first; a
 server that predates the rule answers the extra ping.
+
+Fleet learner kinds ROWS, MODEL_QUERY, MODEL_FETCH (offload-cloud-learner; added within version 2, a planner
+server answers BAD_REQUEST): numbered and bounded here, their frames coded in protocol_fleet.py (split out by size).
 """
 import enum
 import hashlib
@@ -69,6 +72,11 @@ MAX_METADATA_BYTES = 1024
 FIRST_MESSAGE_MAX_BYTES = 1 << 20
 # A stats reply is small (per-client counts are bounded by the server); a client refuses a larger one.
 MAX_STATS_BYTES = 1 << 20
+# Fleet learner: ROWS carries at most MAX_ROWS decision/outcome pairs in ROS 1 wire format, MAX_ROWS_BYTES in all,
+# with the two FLEET_TYPES' definitions (at most MAX_DEFINITIONS_BYTES); a version is a SHA-256, 64 hex.
+FLEET_TYPES = ("offload_msgs/OffloadDecision", "offload_msgs/OffloadOutcome")
+MAX_ROWS, MAX_ROWS_BYTES, MAX_DEFINITIONS_BYTES, MAX_ROLLED_BACK, MAX_FLEET_JSON_BYTES = 512, 4 << 20, 64 << 10, 64, 4096
+MAX_MODEL_BYTES = 16 << 20   # a MODEL_FETCH answer; offload_learner_py.core.model_file.MAX_MODEL_BYTES (a test checks)
 
 
 class Kind(enum.IntEnum):
@@ -77,6 +85,9 @@ class Kind(enum.IntEnum):
     UPLOAD = 3
     REPLY = 4
     STATS = 5     # server counters, answered by the broker (as PING) without waiting behind plans
+    ROWS = 6          # fleet learner: JSON {"definitions", "md5", "rows": N} + 2N rows; reply {"accepted", "refused"}
+    MODEL_QUERY = 7   # fleet learner: JSON {"current", "rolled_back"}; reply JSON {"version", "bytes"}
+    MODEL_FETCH = 8   # fleet learner: JSON {"version"}; reply OK with the model file as its last frame
 
 
 class LinkStatus(enum.IntEnum):
@@ -203,17 +214,39 @@ def encode_stats_reply(request_id: int, stats: dict) -> list:
 
 def decode_stats(reply: Reply) -> dict:
     """The counters of a STATS reply; ProtocolError when it is an error reply or not a JSON object."""
+    return decode_json_reply(reply, "stats", MAX_STATS_BYTES)
+
+
+def decode_json_reply(reply: Reply, what: str, max_bytes: int = MAX_FLEET_JSON_BYTES) -> dict:
+    """The JSON object in an OK reply's message frame; ProtocolError naming `what` otherwise."""
     if reply.status != Status.OK:
-        raise ProtocolError(reply.status, f"stats refused: {reply.status.name}: {reply.message}")
-    if len(reply.message) > MAX_STATS_BYTES:
-        raise ProtocolError(Status.BAD_REQUEST, f"stats reply of {len(reply.message)} characters is too long")
-    try:
-        stats = json.loads(reply.message)
+        raise ProtocolError(reply.status, f"{what} refused: {reply.status.name}: {reply.message}")
+    if len(reply.message) > max_bytes:
+        raise ProtocolError(Status.BAD_REQUEST, f"{what} reply of {len(reply.message)} characters is too long")
+    return json_object(reply.message, f"{what} reply")
+
+
+def json_object(text, what: str) -> dict:
+    try:   # RecursionError: deeply nested arrays within the size cap
+        value = json.loads(text)
     except (ValueError, RecursionError):
-        raise ProtocolError(Status.BAD_REQUEST, "stats reply is not JSON") from None
-    if not isinstance(stats, dict):
-        raise ProtocolError(Status.BAD_REQUEST, "stats reply is not a JSON object")
-    return stats
+        raise ProtocolError(Status.BAD_REQUEST, f"{what} is not JSON") from None
+    if not isinstance(value, dict):
+        raise ProtocolError(Status.BAD_REQUEST, f"{what} is not a JSON object")
+    return value
+
+
+def canonical_json(value) -> bytes:
+    return json.dumps(value, sort_keys=True, separators=(",", ":"), allow_nan=False).encode()
+
+
+def encode_json_reply(request_id: int, value: dict, status: Status = Status.OK) -> list:
+    return encode_reply(Reply(request_id, status, canonical_json(value).decode()))
+
+
+def encode_blob_reply(request_id: int, data: bytes) -> list:
+    """An OK reply whose last frame is `data` (a model file) in place of a path."""
+    return encode_reply(Reply(request_id, Status.OK))[:3] + [data]
 
 
 def encode_upload(request_id: int, grid: np.ndarray) -> list:
@@ -333,8 +366,9 @@ def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
     return PlanRequest(request_id, digest, (sx, sy), (gx, gy), options, grid)
 
 
-def decode_reply(frames) -> Reply:
-    """A reply from all its frames (envelope first); ProtocolError when malformed."""
+def decode_reply(frames, blob: bool = False):
+    """A reply from all its frames (envelope first); ProtocolError when malformed. With blob, (the reply without
+    a path, its last frame's bytes): a MODEL_FETCH's answer."""
     if len(frames) != 4:
         raise ProtocolError(Status.BAD_REQUEST, f"reply needs 4 frames, got {len(frames)}")
     kind, request_id = decode_envelope(frames[0])
@@ -343,12 +377,14 @@ def decode_reply(frames) -> Reply:
         raise ProtocolError(Status.BAD_REQUEST, "malformed reply")
     status, gx, gy, expansions, planning_time_s, cost = REPLY_BODY.unpack(body)
     path_bytes = memoryview(frames[2 + 1])
-    if path_bytes.nbytes % 8:
+    if path_bytes.nbytes % 8 and not blob:
         raise ProtocolError(Status.BAD_REQUEST, "reply path is not whole (x, y) int32 pairs")
     try:
         status = Status(status)
     except ValueError:
         raise ProtocolError(Status.BAD_REQUEST, f"unknown reply status {status}") from None
+    message = bytes(frames[2]).decode("utf-8", "replace")
+    if blob:
+        return Reply(request_id, status, message), bytes(path_bytes)
     path = np.frombuffer(path_bytes, dtype=np.int32).reshape(-1, 2)
-    return Reply(request_id, status, bytes(frames[2]).decode("utf-8", "replace"), path, (gx, gy), expansions,
-                 planning_time_s, cost)
+    return Reply(request_id, status, message, path, (gx, gy), expansions, planning_time_s, cost)
