@@ -165,9 +165,10 @@ class CloudClient:
     def __exit__(self, *exc):
         self.close()
 
-    def request(self, build_frames, deadline: Optional[float] = None) -> Reply:
-        """Sends build_frames(request_id) Lazy-Pirate style; returns the matched reply or raises
-        CloudTimeout at `deadline` (time.monotonic(); default now + timeout_s)."""
+    def request(self, build_frames, deadline: Optional[float] = None, decode=protocol.decode_reply):
+        """Sends build_frames(request_id) Lazy-Pirate style; returns the matched reply (decode(frames): a Reply,
+        or a tuple whose first item is one) or raises CloudTimeout at `deadline` (time.monotonic(); default now +
+        timeout_s)."""
         if deadline is None:
             deadline = time.monotonic() + self.timeout_s
         attempts = self.retries + 1
@@ -196,13 +197,13 @@ class CloudClient:
                 self._reset()
                 continue
             self.bytes_sent += size
-            reply = self._await(request_id, attempt_deadline)
+            reply = self._await(request_id, attempt_deadline, decode)
             if reply is not None:
                 return reply
             self._reset()   # Lazy Pirate: the old socket may hold a dead connection or a stale reply
         raise CloudTimeout(f"no reply from {self.endpoint} within {self.timeout_s:g} s")
 
-    def _await(self, request_id: int, deadline: float) -> Optional[Reply]:
+    def _await(self, request_id: int, deadline: float, decode=protocol.decode_reply):
         while True:
             wait_ms = int(max(0.0, deadline - time.monotonic()) * 1000) + 1
             if not self._socket.poll(wait_ms, zmq.POLLIN):
@@ -212,10 +213,10 @@ class CloudClient:
             frames = self._socket.recv_multipart(copy=False)
             self.bytes_received += sum(len(frame) for frame in frames)
             try:
-                reply = protocol.decode_reply([frame.buffer for frame in frames])
+                reply = decode([frame.buffer for frame in frames])
             except ProtocolError:
                 continue   # garbage from a confused server: keep waiting for ours
-            if reply.request_id == request_id:
+            if (reply[0] if isinstance(reply, tuple) else reply).request_id == request_id:
                 return reply
             # a stale reply to an earlier request: dropped
 
