@@ -58,16 +58,18 @@ def gradient_steps_for(rows: int, config: DQNConfig, epochs: float = DEFAULT_EPO
 
 def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: Optional[int] = None,
                   weights: CostWeights = CostWeights(), taken_only: bool = False,
-                  progress: bool = False) -> OfflineResult:
+                  progress: bool = False, agent: Optional[DQNAgent] = None) -> OfflineResult:
     """The Q-network trained on a fixed table: the normalisation fitted on the training states and
     frozen, every transition in replay at once, `gradient_steps` minibatch steps of Algorithm 1's
     loss (target copies every K steps when gamma > 0). The agent's step counter is set past the
-    warm-up, so a node that loads the checkpoint acts on it at once."""
+    warm-up, so a node that loads the checkpoint acts on it at once. With `agent` (a warm start, e.g. the fleet
+    learner's version in use) that network is trained further with its own normalisation."""
     if len(train) == 0:
         raise ValueError("no training rows")
     if gradient_steps is None:
         gradient_steps = gradient_steps_for(len(train), config, taken_only=taken_only)
-    agent = DQNAgent(config, StateNormalisation.fit(train.states, config.log_input_size))
+    if agent is None:
+        agent = DQNAgent(config, StateNormalisation.fit(train.states, config.log_input_size))
     states = train.states
     next_states = np.concatenate([states[1:], states[-1:]])
     if taken_only:
