@@ -1,0 +1,123 @@
+"""One training round of the fleet learner: each robot's recent rows from the pool, the DQN trained (warm-started
+from the version in use) with offload_learner_py.offline.retrain's training, the candidate gated on each
+contributing robot's most recent rows (held out of its training), and the round recorded in the store.
+
+Per robot the window is its last `window_rows` requests (bags read newest first only as far as needed is not
+attempted: a robot's pool directory is bounded by its disk share, and it is read whole). The window's first
+1 - holdout of requests train (the rows with both latencies: the transition table), the rest judge (every logged
+request, probe or not: off-policy evaluation). A robot with fewer than `min_robot_rows` requests does not
+contribute. When no version is in use yet, the candidate is judged against what each robot logged: its greedy
+action from the Q-values it recorded, else the action it took."""
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Dict, Optional
+
+import numpy as np
+import torch
+
+from offload_cloud.learner.gate import gate
+from offload_cloud.learner.pool import ExperiencePool
+from offload_cloud.learner.store import ModelStore
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent, greedy_actions
+from offload_learner_py.core.model_file import agent_model_bytes, load_model, model_version
+from offload_learner_py.data.bags import read_bags
+from offload_learner_py.data.dataset import COLUMNS, TransitionTable
+from offload_learner_py.data.records import RequestLog, transition_table
+from offload_learner_py.offline.off_policy import LoggedSteps
+from offload_learner_py.offline.retrain import DEFAULT_EPOCHS, gradient_steps_for, train_offline
+
+LOG = logging.getLogger("offload_cloud.learner")
+
+
+@dataclass
+class TrainingConfig:
+    window_rows: int = 2000
+    holdout: float = 0.3
+    min_robot_rows: int = 20
+    margin_s: float = 0.0
+    epochs: float = DEFAULT_EPOCHS
+    dqn: Dict = field(default_factory=dict)     # DQNConfig overrides (--set)
+
+
+def warm_agent(data: bytes, config: DQNConfig) -> DQNAgent:
+    """A DQNAgent holding a model file's network and normalisation (its layer widths replace the config's)."""
+    fast, normalisation = load_model(data)
+    widths = tuple(int(w.shape[1]) for w in fast.weights[:-1])
+    agent = DQNAgent(DQNConfig.from_dict({**config.to_dict(), "hidden_sizes": list(widths)}), normalisation)
+    linears = [m for m in agent.q_network.layers if isinstance(m, torch.nn.Linear)]
+    with torch.no_grad():
+        for layer, w, b in zip(linears, fast.weights, fast.biases):
+            layer.weight.copy_(torch.from_numpy(np.ascontiguousarray(w.T)))
+            layer.bias.copy_(torch.from_numpy(b))
+    agent.target_network.load_state_dict(agent.q_network.state_dict())
+    return agent
+
+
+def _rows(log: RequestLog, rows: np.ndarray) -> RequestLog:
+    return RequestLog({name: values[rows] for name, values in log.columns.items()})
+
+
+def logged_actions(log: RequestLog, rows: np.ndarray) -> np.ndarray:
+    q_local, q_cloud = log["q_local"][rows], log["q_cloud"][rows]
+    known = np.isfinite(q_local) & np.isfinite(q_cloud)
+    taken = log["routed" if "routed" in log.columns else "action"][rows].astype(np.int64)
+    return np.where(known, greedy_actions(np.stack([q_local, q_cloud], axis=-1)), taken)
+
+
+def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConfig) -> Optional[dict]:
+    """Trains, gates and records one round; the history entry, or None when no robot has enough rows."""
+    started = time.monotonic()
+    dqn = DQNConfig.from_dict(config.dqn)
+    current = store.state()["current"]
+    current_data = store.get(current) if current else None
+    tables, judged, used = [], {}, {}
+    for robot in pool.robots():
+        data = read_bags(pool.bag_paths(robot), workers=1)
+        log = data.log
+        if len(log) < config.min_robot_rows:
+            continue
+        window = np.arange(max(0, len(log) - config.window_rows), len(log))
+        cut = int(round(len(window) * (1.0 - config.holdout)))
+        train_log = _rows(log, window[:cut])
+        table = transition_table(train_log)
+        steps = LoggedSteps.from_log(log, window[cut:])
+        if len(table) == 0 or len(steps) == 0:
+            continue
+        tables.append(table)
+        used[robot] = len(table)
+        judged[robot] = (steps, logged_actions(log, window[cut:]) if len(steps) == len(window) - cut else None)
+    if not tables or sum(used.values()) < 2:
+        return None
+    table = TransitionTable(**{name: np.concatenate([getattr(t, name) for t in tables]) for name in COLUMNS})
+    base = warm_agent(current_data, dqn) if current_data else None
+    steps_count = gradient_steps_for(len(table), dqn, config.epochs)
+    result = train_offline(table, base.config if base else dqn, steps_count, agent=base)
+    data = agent_model_bytes(result.agent)
+    version = model_version(data)
+    reference = warm_agent(current_data, dqn) if current_data else None
+    figures, passed = {}, True
+    for robot, (steps, logged) in judged.items():
+        new = result.agent.greedy_actions(steps.states)
+        old = reference.greedy_actions(steps.states) if reference else logged
+        if old is None:   # rows left out by LoggedSteps (nothing known of them): judge on the taken side
+            old = steps.action
+        ok, difference = gate(steps, new, old, config.margin_s)
+        passed &= ok
+        figures[robot] = {"accepted": ok, "rows": len(steps), "difference_s": _finite(difference.value),
+                          "low_s": _finite(difference.low), "high_s": _finite(difference.high),
+                          "disagree": int(np.sum(new != old))}
+    entry = {"version": version, "parent": current, "rows": used, "gate": figures, "gate_passed": passed,
+             "gradient_steps": steps_count, "train_s": round(time.monotonic() - started, 3)}
+    if version == current:
+        entry["gate_passed"], passed = False, False   # nothing new to publish
+    entry["published"] = store.record_round(entry, data if passed else None)
+    LOG.info("training round: %d rows from %d robots, %d steps in %.2f s, candidate %s %s", len(table), len(used),
+             steps_count, entry["train_s"], version[:12], "published" if entry["published"] else "refused by the gate")
+    return entry
+
+
+def _finite(value: float) -> Optional[float]:
+    return float(value) if math.isfinite(value) else None
