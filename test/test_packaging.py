@@ -73,9 +73,26 @@ def imports(source: Path, inside: str):
             yield from (f"{base}.{alias.name}" for alias in node.names if alias.name != "*")
 
 
-def declared_distributions(package):
-    return {normalized(re.match(r"[A-Za-z0-9._-]+", requirement).group(0))
-            for requirement in pyproject(package)["project"]["dependencies"]}
+# Optional parts of a wheel: modules under the folder need only the extra's distributions beyond the core ones
+# (the cloud package's fleet learner, `pip install 'offload-cloud[learner]'`).
+EXTRAS = {"offload_cloud": {"offload_cloud/learner/": "learner"}}
+# The workspace's packages that are installed from source beside the wheels, not from an index.
+FROM_SOURCE = {"offload_learner_py"}
+
+
+def _names(requirements):
+    return {normalized(re.match(r"[A-Za-z0-9._-]+", requirement).group(0)) for requirement in requirements}
+
+
+def declared_distributions(package, inside: str = ""):
+    """The distributions the wheel declares for the module `inside`: the core dependencies, plus an extra's when
+    the module belongs to an optional part."""
+    project = pyproject(package)["project"]
+    declared = _names(project["dependencies"])
+    for folder, extra in EXTRAS.get(package.name, {}).items():
+        if inside.startswith(folder):
+            declared |= _names(project["optional-dependencies"][extra])
+    return declared
 
 
 def test_the_planner_wheel_is_the_planner_alone():
@@ -94,18 +111,18 @@ def test_the_cloud_wheel_ships_the_server_and_the_client():
 def test_every_third_party_import_is_a_declared_dependency(top):
     package = WHEELS[top]
     providers = importlib.metadata.packages_distributions()
-    declared = declared_distributions(package)
     left_out = {dotted(inside) for inside, (_, shipped) in package_modules(package).items() if not shipped}
     missing = []
     for inside, source in shipped_modules(package).items():
         names = set(imports(source, inside))
+        declared = declared_distributions(package, inside)
         for module in sorted(names):
             if any(module == out or module.startswith(out + ".") for out in left_out):
                 missing.append(f"{inside} imports {module}, which the wheel leaves out")
         for imported in sorted({module.split(".")[0] for module in names}):
             if imported in sys.stdlib_module_names or imported == top:
                 continue
-            if imported in WHEELS:   # the workspace's own wheels, installed from source
+            if imported in WHEELS or imported in FROM_SOURCE:   # the workspace's own packages, from source
                 if normalized(imported) not in declared:
                     missing.append(f"{inside} imports {imported}: add {normalized(imported)} to [project] dependencies")
                 continue
@@ -120,3 +137,24 @@ def test_the_check_sees_lazy_imports_inside_functions():
     # maps.py imports yaml and PIL inside its loaders, which is how they went undeclared once.
     found = set(imports(PLANNER / "src" / "offload_planner_cpp" / "maps.py", "offload_planner_cpp/maps.py"))
     assert {"yaml", "PIL"} <= found
+
+
+def test_the_learner_extra_is_declared_and_only_the_learner_uses_it():
+    """The fleet learner's torch, rosbags and offload_learner_py are the `learner` extra's, and no module outside
+    offload_cloud/learner/ imports them or the learner: the planner server and the client library stay without
+    torch."""
+    extra = _names(pyproject(CLOUD)["project"]["optional-dependencies"]["learner"])
+    assert {"torch", "rosbags", "offload-learner-py"} <= extra
+    assert not extra & declared_distributions(CLOUD)
+    assert pyproject(CLOUD)["project"]["scripts"]["offload-cloud-learner"] == "offload_cloud.learner.cli:main"
+    for inside, source in shipped_modules(CLOUD).items():
+        if inside.startswith("offload_cloud/learner/"):
+            continue
+        heavy = {m for m in imports(source, inside)
+                 if m.split(".")[0] in ("torch", "rosbags", "offload_learner_py") or m.startswith("offload_cloud.learner")}
+        assert not heavy, f"{inside} imports {sorted(heavy)}: only offload_cloud/learner/ may"
+
+
+def test_the_extra_check_sees_an_undeclared_learner_import():
+    assert "torch" not in declared_distributions(CLOUD, "offload_cloud/server.py")
+    assert "torch" in declared_distributions(CLOUD, "offload_cloud/learner/training.py")

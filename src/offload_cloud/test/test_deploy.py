@@ -93,3 +93,40 @@ def test_systemd_unit_verifies_and_its_command_is_accepted(tmp_path):
     broken.write_text(local.read_text().replace("Restart=on-failure", "Restart=sometimes"))
     assert "sometimes" in subprocess.run(["systemd-analyze", "verify", str(broken)], capture_output=True,
                                          text=True).stderr
+
+
+def learner_manifests():
+    return [doc for doc in yaml.safe_load_all((DEPLOY / "kubernetes" / "cloud-learner.yaml").read_text()) if doc]
+
+
+def test_learner_kubernetes_manifest_is_valid_and_runs_the_learner():
+    from offload_cloud.learner.cli import parse_args as learner_args
+
+    docs = learner_manifests()
+    assert {doc["kind"] for doc in docs} == {"Deployment", "Service", "PersistentVolumeClaim"}
+    for doc in docs:
+        kubernetes_validate.validate(doc, K8S_VERSION, strict=True)
+    container = docs[0]["spec"]["template"]["spec"]["containers"][0]
+    assert scripts()[container["command"][0]] == "offload_cloud.learner.cli:main"
+    args = learner_args(container["args"])
+    assert args.command == "serve" and args.keys_dir == "/keys" and args.store == "/store" and not args.insecure
+    assert {m["mountPath"] for m in container["volumeMounts"]} == {"/keys", "/store"}
+    assert docs[0]["spec"]["replicas"] == 1   # one store, one source of versions
+
+
+def test_learner_systemd_unit_verifies_and_its_command_is_accepted(tmp_path):
+    from offload_cloud.learner.cli import parse_args as learner_args
+
+    unit = (DEPLOY / "systemd" / "offload-cloud-learner.service").read_text()
+    exec_start = shlex.split(re.search(r"^ExecStart=(.+)$", unit, re.M).group(1))
+    assert Path(exec_start[0]).name == "offload-cloud-learner" and "offload-cloud-learner" in scripts()
+    args = learner_args(exec_start[1:])
+    assert args.keys_dir == "/etc/offload/keys" and args.store == "/var/lib/offload-learner"
+    local = tmp_path / "offload-cloud-learner.service"
+    local.write_text(unit.replace(exec_start[0], sys.executable))
+    verified = subprocess.run(["systemd-analyze", "verify", str(local)], capture_output=True, text=True)
+    assert verified.returncode == 0, verified.stderr
+    broken = tmp_path / "broken.service"
+    broken.write_text(local.read_text().replace("Restart=on-failure", "Restart=sometimes"))
+    assert "sometimes" in subprocess.run(["systemd-analyze", "verify", str(broken)], capture_output=True,
+                                         text=True).stderr
