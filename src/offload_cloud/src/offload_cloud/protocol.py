@@ -75,7 +75,7 @@ MAX_STATS_BYTES = 1 << 20
 # Fleet learner: ROWS carries at most MAX_ROWS decision/outcome pairs in ROS 1 wire format, MAX_ROWS_BYTES in all,
 # with the two FLEET_TYPES' definitions (at most MAX_DEFINITIONS_BYTES); a version is a SHA-256, 64 hex.
 FLEET_TYPES = ("offload_msgs/OffloadDecision", "offload_msgs/OffloadOutcome")
-MAX_ROWS, MAX_ROWS_BYTES, MAX_DEFINITIONS_BYTES, MAX_ROLLED_BACK, MAX_FLEET_JSON_BYTES = 512, 4 << 20, 64 << 10, 64, 4096
+MAX_ROWS, MAX_ROWS_BYTES, MAX_DEFINITIONS_BYTES, MAX_ROLLED_BACK, MAX_FLEET_JSON_BYTES = 512, 4 << 20, 64 << 10, 64, 8192
 MAX_MODEL_BYTES = 16 << 20   # a MODEL_FETCH answer; offload_learner_py.core.model_file.MAX_MODEL_BYTES (a test checks)
 
 

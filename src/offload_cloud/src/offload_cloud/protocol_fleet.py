@@ -38,6 +38,8 @@ def decode_rows(frames) -> Tuple[dict, dict, List[Tuple[bytes, bytes]]]:
     """(definitions, md5, [(decision, outcome)]) from the frames after a ROWS envelope; ProtocolError otherwise."""
     if len(frames) > 1 + 2 * MAX_ROWS or sum(memoryview(f).nbytes for f in frames) > MAX_ROWS_BYTES:
         raise ProtocolError(Status.TOO_LARGE, f"at most {MAX_ROWS} rows and {MAX_ROWS_BYTES} bytes a message")
+    if frames and memoryview(frames[0]).nbytes > 2 * MAX_DEFINITIONS_BYTES + 1024:   # before parsing it
+        raise ProtocolError(Status.TOO_LARGE, f"rows metadata over {2 * MAX_DEFINITIONS_BYTES + 1024} bytes")
     meta = json_object(bytes(frames[0]), "rows metadata") if frames else {}
     definitions, md5, count = meta.get("definitions"), meta.get("md5"), meta.get("rows")
     if not (isinstance(definitions, dict) and isinstance(md5, dict) and sorted(definitions) == sorted(md5) ==

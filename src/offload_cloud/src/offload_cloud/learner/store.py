@@ -159,8 +159,9 @@ class ModelStore:
         if not self.has(version):
             raise StoreError(f"no version {version} in {self.models}")
         def change(state):
-            if robot:
+            if robot:   # an operator's word: the learner no longer holds the robot's rollback of it against it
                 state["pins"][robot] = version
+                state["rolled_back"][robot] = [v for v in state["rolled_back"].get(robot, []) if v != version]
             else:
                 state["current"], state["fleet_pinned"] = version, True
         return self._update(change, {"event": "pin", "version": version, "robot": robot or ""})

@@ -1,0 +1,185 @@
+"""The fleet learner end to end on loopback: rows in -> bags on disk -> read back by the learner's bag reader,
+hostile rows refused and counted, the disk budget, the gate, versions, pins and rollbacks, a restart."""
+import json
+import os
+import time
+
+import numpy as np
+import pytest
+
+import fleet_helpers as h
+from offload_cloud import protocol, protocol_fleet
+from offload_cloud.client import CloudClient
+from offload_cloud.fleet_client import FleetBusy, FleetClient
+from offload_cloud.learner import cli
+from offload_cloud.learner.gate import gate
+from offload_cloud.learner.pool import PoolLimits
+from offload_cloud.learner.service import FleetLearner, LearnerConfig
+from offload_cloud.learner.store import ModelStore
+from offload_cloud.learner.training import TrainingConfig
+from offload_learner_py.core.config import DQNConfig
+from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.model_file import agent_model_bytes, load_model, model_version
+from offload_learner_py.data.bags import read_bags
+from offload_learner_py.offline.off_policy import LoggedSteps
+from offload_learner_py.data.records import pair_records
+
+SMALL = TrainingConfig(epochs=5, dqn={"hidden_sizes": [16, 16]})
+DEFS, MD5 = h.definitions()
+
+
+@pytest.fixture
+def learner(tmp_path):
+    started = []
+
+    def start(**changes):
+        config = LearnerConfig(insecure=True, store=str(tmp_path / "store"), train_every_rows=10 ** 6,
+                               training=SMALL, **changes)
+        service = FleetLearner(config)
+        service.start()
+        started.append(service)
+        return service, FleetClient(service.endpoint, insecure=True, timeout_s=10, retries=0)
+    yield start
+    for service in started:
+        if not service._stop.is_set():
+            service.stop()
+
+
+def test_rows_become_a_bag_that_the_bag_reader_reads_back_unchanged(learner):
+    service, client = learner()
+    sent = h.rows(40, seed=1)
+    assert client.send_rows(DEFS, MD5, sent) == (40, 0)
+    assert client.send_rows(DEFS, MD5, sent) == (40, 0)   # a resend (Lazy Pirate): answered, not pooled twice
+    client.close()
+    service.stop()   # closes the bag: indexed, renamed .bag
+    bags = service.pool.bag_paths("insecure")
+    assert len(bags) == 1 and bags[0].endswith(".bag")
+    from rosbags.rosbag1 import Reader
+    with Reader(bags[0]) as reader:
+        raw = [data for _, _, data in reader.messages()]
+        assert {c.topic for c in reader.connections} == {"/offload_learner/decision", "/offload_learner/outcome"}
+    assert raw == [part for row in sent for part in row]   # the robot's bytes, as they came
+    data = read_bags(bags, workers=1)
+    expected = h.requests(40, seed=1)
+    assert list(data.log["request_id"]) == [d["request_id"] for d, _ in expected]
+    np.testing.assert_allclose(data.log["cpu_availability"], [d["cpu_availability"] for d, _ in expected])
+    assert len(data.transition_table()) == 40
+
+
+def test_hostile_rows_are_refused_counted_and_the_service_keeps_running(learner):
+    service, client = learner(limits=PoolLimits(rows_per_s=10, rows_burst=60, bytes_per_s=0))
+    hostile = [h.nan_row(1001, cpu_availability=float("nan")), h.nan_row(1002, action_propensity=1.5),
+               h.nan_row(1003, input_size=float("inf")), (b"garbage", b"\x00" * 3)]
+    assert client.send_rows(DEFS, MD5, hostile + h.rows(2, start_id=5)) == (2, 4)
+    bomb = {name: text + "\n" + "".join(f"float64 f{i}\n" for i in range(300)) for name, text in DEFS.items()}
+    assert client.send_rows(bomb, MD5, h.rows(3, start_id=20)) == (0, 3)   # over the reader's definition caps
+    broken = {name: "this is not a message definition !!" for name in DEFS}
+    assert client.send_rows(broken, MD5, h.rows(3, start_id=30)) == (0, 3)
+    with pytest.raises(ValueError):
+        client.send_rows(DEFS, MD5, h.rows(1, start_id=40) * 513)   # the client batches; the wire refuses:
+    raw = CloudClient(service.endpoint, insecure=True, timeout_s=10)
+    reply = raw.request(lambda i: protocol_fleet.encode_rows(i, DEFS, MD5, [(b"d", b"o")] * 513))
+    assert reply.status == protocol.Status.TOO_LARGE
+    raw.close()
+    with pytest.raises(FleetBusy):   # 60 tokens: 2 + 3 + 3 + 10 rows taken so far, 50 more cannot fit
+        client.send_rows(DEFS, MD5, h.rows(10, start_id=50)) and client.send_rows(DEFS, MD5, h.rows(50, start_id=70))
+    counts = service.stats()["robots"]["insecure"]
+    assert counts["accepted"] == 12 and counts["busy"] == 1
+    assert counts["refused"]["invalid"] == 3 and counts["refused"]["definitions"] == 6
+    assert counts["refused_rows"] >= 10
+    assert CloudClient(service.endpoint, insecure=True).ping() > 0
+
+
+def test_disk_budget_evicts_the_oldest_bags_first(learner):
+    service, client = learner(limits=PoolLimits(bag_bytes=8 << 10, total_bytes=40 << 10, robot_bytes=40 << 10,
+                                                rows_per_s=0))
+    for batch in range(12):
+        assert client.send_rows(DEFS, MD5, h.rows(20, start_id=1 + 20 * batch))[0] == 20
+    assert service.pool.evicted_bags > 0 and service.pool.disk_bytes() <= 40 << 10
+    data = read_bags(service.pool.bag_paths("insecure"), workers=1)
+    ids = data.log["request_id"]
+    assert ids.max() == 240 and ids.min() > 1   # the newest kept, the oldest gone
+
+
+def _steps(n=400, seed=3):
+    from types import SimpleNamespace
+    pairs = h.requests(n, seed=seed)
+    log = pair_records([SimpleNamespace(**d) for d, _ in pairs], [SimpleNamespace(**o) for _, o in pairs])
+    return LoggedSteps.from_log(log)
+
+
+def test_gate_accepts_a_better_policy_and_refuses_a_worse_one():
+    steps = _steps()
+    best = np.where(steps.states[:, 1] >= 0.5, 0, 1)   # the known truth: local when the CPU is free
+    worst = 1 - best
+    local = np.zeros(len(steps), dtype=np.int64)
+    ok, difference = gate(steps, best, local)
+    assert ok and difference.high < 0
+    ok, difference = gate(steps, worst, local)
+    assert not ok and difference.low > 0
+    assert gate(steps, local, local)[0]   # the same policy: exactly no difference
+    assert not gate(steps.slice(np.arange(0)), best, local)[0]
+
+
+def _model(seed):
+    return agent_model_bytes(DQNAgent(DQNConfig.from_dict({"hidden_sizes": [4], "seed": seed})))
+
+
+def test_a_trained_version_is_published_only_past_the_gate(learner, monkeypatch):
+    service, client = learner()
+    client.send_rows(DEFS, MD5, h.rows(300, seed=4))
+    entry = service.train_once()
+    assert entry["published"] and entry["gate"]["insecure"]["accepted"]
+    version, size = client.current_version()
+    assert version == entry["version"] and size > 0
+    data = client.fetch(version)
+    assert model_version(data) == version and load_model(data, version)
+    from offload_cloud.learner import training   # a candidate the gate refuses stays unpublished
+    monkeypatch.setattr(training, "gate", lambda *args, **kwargs: (False, gate(*args, **kwargs)[1]))
+    client.send_rows(DEFS, MD5, h.rows(100, seed=5, start_id=1000))
+    refused = service.train_once()
+    assert refused["parent"] == version and not refused["published"]
+    assert client.current_version(version) == (version, size)
+    assert [e["published"] for e in service.store.history("trained")] == [True, False]
+
+
+def test_pins_rollbacks_and_never_a_rolled_back_version(learner, tmp_path, capsys):
+    service, client = learner()
+    store = service.store
+    first, second = _model(1), _model(2)
+    assert store.record_round({"version": model_version(first), "parent": "", "rows": {}, "gate": {}}, first)
+    v1, v2 = model_version(first), model_version(second)
+    assert store.record_round({"version": v2, "parent": v1, "rows": {}, "gate": {}}, second)
+    assert client.current_version(v1)[0] == v2
+    # the robot rolled v2 back: it is offered v1 and pinned there, whatever the fleet runs
+    assert client.current_version(v1, [v2])[0] == v1
+    assert client.current_version(v1)[0] == v1 and store.state()["pins"]["insecure"] == v1
+    store_dir = str(tmp_path / "store")
+    assert cli.main(["unpin", "--robot", "insecure", "--store", store_dir]) == 0
+    assert client.current_version(v1)[0] == v2
+    assert client.current_version(v1, [v2])[0] == v1   # the robot's own list still rules out v2
+    assert cli.main(["rollback", "--store", store_dir]) == 0   # the operator rolls the fleet back to v1
+    assert store.state()["current"] == v1 and store.state()["fleet_pinned"]
+    assert client.current_version("")[0] == v1
+    assert cli.main(["pin", v2, "--robot", "insecure", "--store", store_dir]) == 0
+    assert client.current_version("")[0] == v2
+    assert cli.main(["pin", "0" * 64, "--store", store_dir]) == 1
+    assert cli.main(["list", "--store", store_dir]) == 0 and v2[:16] in capsys.readouterr().out
+    with pytest.raises(Exception):
+        client.fetch("0" * 64)
+    assert client.fetch(v2) == second
+
+
+def test_killed_and_restarted_the_store_and_pool_are_intact(learner, tmp_path):
+    service, client = learner()
+    client.send_rows(DEFS, MD5, h.rows(300, seed=6))
+    version = service.train_once()["version"]
+    client.send_rows(DEFS, MD5, h.rows(30, seed=7, start_id=5000))
+    client.close()
+    service._stop.set()   # as a kill: no orderly close of the open bag
+    time.sleep(0.3)
+    again, client = learner()
+    assert client.current_version()[0] == version
+    assert len(read_bags(again.pool.bag_paths("insecure"), workers=1).log) == 330
+    assert json.loads(open(os.path.join(str(tmp_path / "store"), "state.json")).read())["current"] == version
+    assert len(ModelStore(str(tmp_path / "store")).history("trained")) == 1
