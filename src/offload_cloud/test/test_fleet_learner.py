@@ -183,3 +183,47 @@ def test_killed_and_restarted_the_store_and_pool_are_intact(learner, tmp_path):
     assert len(read_bags(again.pool.bag_paths("insecure"), workers=1).log) == 330
     assert json.loads(open(os.path.join(str(tmp_path / "store"), "state.json")).read())["current"] == version
     assert len(ModelStore(str(tmp_path / "store")).history("trained")) == 1
+
+
+def test_gate_judges_the_interval_not_the_point():
+    """A policy that differs from the current one on a handful of exploratory rows: its point estimate may look
+    better, but the interval cannot rule out worse, so it is refused."""
+    steps = _steps(400, seed=8)
+    local = np.zeros(len(steps), dtype=np.int64)
+    best = np.where(steps.states[:, 1] >= 0.5, 0, 1)
+    few = local.copy()
+    differs = np.flatnonzero(best != local)[:20]   # better where it differs, on 20 rows (about 10 explored)
+    few[differs] = 1
+    ok, difference = gate(steps, few, local)
+    assert difference.value < 0 and difference.high > 0 and not ok
+
+
+def test_a_robots_rolled_back_version_is_never_offered_even_without_a_pin(tmp_path):
+    store = ModelStore(str(tmp_path / "store"))
+    first, second = _model(1), _model(2)
+    v1, v2 = model_version(first), model_version(second)
+    store.record_round({"version": v1, "parent": "", "rows": {}, "gate": {}}, first)
+    store.record_round({"version": v2, "parent": v1, "rows": {}, "gate": {}}, second)
+    assert store.version_for("r1", "", [v2]) == ""   # nothing it may run: it keeps what it has
+    assert store.version_for("r2", "", []) == v2
+
+
+def test_the_client_refuses_a_file_that_is_not_the_version_asked_for():
+    import threading
+    import zmq
+
+    context = zmq.Context()
+    socket = context.socket(zmq.ROUTER)
+    port = socket.bind_to_random_port("tcp://127.0.0.1")
+
+    def lie():
+        frames = socket.recv_multipart()
+        socket.send_multipart([frames[0]] + [bytes(f) for f in protocol.encode_blob_reply(
+            protocol.request_id_of(frames[1]), b"not the model")])
+    threading.Thread(target=lie, daemon=True).start()
+    client = FleetClient(f"tcp://127.0.0.1:{port}", insecure=True, timeout_s=5, retries=0)
+    with pytest.raises(Exception, match="SHA-256"):
+        client.fetch("0" * 64)
+    client.close()
+    socket.close(0)
+    context.term()
