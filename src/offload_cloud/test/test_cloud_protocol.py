@@ -181,7 +181,10 @@ def test_golden_bytes_of_every_message():
 
 
 def test_wire_codes_are_fixed():
-    assert {k.name: int(k) for k in Kind} == {"PING": 1, "PLAN": 2, "UPLOAD": 3, "REPLY": 4, "STATS": 5}
+    assert {k.name: int(k) for k in Kind} == {"PING": 1, "PLAN": 2, "UPLOAD": 3, "REPLY": 4, "STATS": 5, "ROWS": 6,
+                                              "MODEL_QUERY": 7, "MODEL_FETCH": 8}
+    assert (protocol.MAX_ROWS, protocol.MAX_ROWS_BYTES, protocol.MAX_DEFINITIONS_BYTES, protocol.MAX_MODEL_BYTES) == \
+        (512, 4 << 20, 64 << 10, 16 << 20)
     assert {s.name: int(s) for s in protocol.LinkStatus} == {
         "MAP_UNKNOWN": 20, "BAD_REQUEST": 21, "UNSUPPORTED_VERSION": 22, "TOO_LARGE": 23, "BUSY": 24,
         "SERVER_ERROR": 25}

@@ -21,7 +21,7 @@ from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.model_file import agent_model_bytes, load_model, model_version
 from offload_learner_py.data.bags import read_bags
-from offload_learner_py.offline.off_policy import LoggedSteps
+from offload_learner_py.offline.off_policy_steps import LoggedSteps
 from offload_learner_py.data.records import pair_records
 
 SMALL = TrainingConfig(epochs=5, dqn={"hidden_sizes": [16, 16]})
@@ -101,9 +101,9 @@ def test_disk_budget_evicts_the_oldest_bags_first(learner):
     assert ids.max() == 240 and ids.min() > 1   # the newest kept, the oldest gone
 
 
-def _steps(n=400, seed=3):
+def _steps(n=400, seed=3, probe=True):
     from types import SimpleNamespace
-    pairs = h.requests(n, seed=seed)
+    pairs = h.requests(n, seed=seed, probe=probe)
     log = pair_records([SimpleNamespace(**d) for d, _ in pairs], [SimpleNamespace(**o) for _, o in pairs])
     return LoggedSteps.from_log(log)
 
@@ -186,16 +186,20 @@ def test_killed_and_restarted_the_store_and_pool_are_intact(learner, tmp_path):
 
 
 def test_gate_judges_the_interval_not_the_point():
-    """A policy that differs from the current one on a handful of exploratory rows: its point estimate may look
-    better, but the interval cannot rule out worse, so it is refused."""
-    steps = _steps(400, seed=8)
+    """A policy better than the current one on 20 rows where only the taken side was measured (no probes): too
+    little to bound the difference, so it is refused (n/a, an unbounded interval); on 40 such rows it is accepted."""
+    steps = _steps(400, seed=8, probe=False)
     local = np.zeros(len(steps), dtype=np.int64)
     best = np.where(steps.states[:, 1] >= 0.5, 0, 1)
     few = local.copy()
     differs = np.flatnonzero(best != local)[:20]   # better where it differs, on 20 rows (about 10 explored)
     few[differs] = 1
     ok, difference = gate(steps, few, local)
-    assert difference.value < 0 and difference.high > 0 and not ok
+    assert not ok and not difference.high <= 0
+    more = local.copy()
+    more[np.flatnonzero(best != local)[:40]] = 1
+    ok, difference = gate(steps, more, local)
+    assert ok and difference.high < 0
 
 
 def test_a_robots_rolled_back_version_is_never_offered_even_without_a_pin(tmp_path):

@@ -12,7 +12,7 @@ from collections import Counter
 from typing import Dict, List, Sequence, Tuple
 
 from offload_learner_py.data.bag_decoding import Decoder
-from offload_learner_py.data.bag_records import Connection
+from offload_learner_py.data.bag_format import Connection
 from offload_learner_py.data.bags import BagReadError, read_bag
 from offload_learner_py.data.records import DECISION_DEFAULTS
 

@@ -26,7 +26,7 @@ from offload_learner_py.core.model_file import agent_model_bytes, load_model, mo
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.data.dataset import COLUMNS, TransitionTable
 from offload_learner_py.data.records import RequestLog, transition_table
-from offload_learner_py.offline.off_policy import LoggedSteps
+from offload_learner_py.offline.off_policy_steps import LoggedSteps
 from offload_learner_py.offline.retrain import DEFAULT_EPOCHS, gradient_steps_for, train_offline
 
 LOG = logging.getLogger("offload_cloud.learner")
