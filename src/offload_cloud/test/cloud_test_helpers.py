@@ -45,16 +45,17 @@ def curve_dealer(context, key_dir, endpoint):
 
 
 def spawn_server(port: int, server_keys, workers: int = 2, timeout_s: float = 20.0, extra_args=(),
-                 log_path=None) -> subprocess.Popen:
+                 log_path=None, preexec_fn=None) -> subprocess.Popen:
     """The server as its own process (so a test can SIGKILL it or measure its memory); returns once it
-    listens. server_keys None: --insecure. Its log goes to `log_path` when given."""
+    listens. server_keys None: --insecure. Its log goes to `log_path` when given; `preexec_fn` runs in the
+    child before it starts (e.g. to set its descriptor limit)."""
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     keys_args = ["--keys-dir", str(server_keys)] if server_keys is not None else ["--insecure"]
     log = open(log_path, "w") if log_path else subprocess.DEVNULL
     process = subprocess.Popen(
         [sys.executable, "-m", "offload_cloud", "--bind", f"{LOOPBACK}:{port}",
          "--workers", str(workers), *keys_args, "--log-level", "WARNING", *extra_args],
-        stdout=subprocess.PIPE, stderr=log, env=env, text=True)
+        stdout=subprocess.PIPE, stderr=log, env=env, text=True, preexec_fn=preexec_fn)
     if log_path:
         log.close()
     deadline = time.monotonic() + timeout_s

@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import pytest
 
 from offload_cloud.admission import Admission, AdmissionConfig
-from offload_cloud.connection_guard import ConnectionGuard
+from offload_cloud.connection_guard import STALE, ConnectionGuard
 from offload_cloud.protocol import ProtocolError, Status
 
 
@@ -267,11 +267,11 @@ def test_a_message_an_earlier_connection_on_the_same_fd_left_waiting_is_credited
     g.accepted(7)
     pipe = lambda number: b"\x00" + number.to_bytes(4, "big")   # noqa: E731
     assert g.delivered(7, pipe(1000)) is g.connections[7]
-    assert g.delivered(7, pipe(999)) is None                    # the earlier connection's, read late
+    assert g.delivered(7, pipe(999)) is STALE                   # the earlier connection's, read late: dropped
     assert g.delivered(7, b"\x07chosen") is None                # a routing id a peer chose itself
     assert g.delivered(7, pipe(1000)) is g.connections[7]
     tcp.received[8] = 0
     g.accepted(8)
     assert g.delivered(8, pipe(2**32 - 1)) is g.connections[8]
     assert g.delivered(8, pipe(1)) is g.connections[8]          # the counter wrapped: a newer pipe
-    assert g.delivered(8, pipe(2**32 - 1)) is None
+    assert g.delivered(8, pipe(2**32 - 1)) is STALE

@@ -1,6 +1,12 @@
-"""The server's robot-facing ROUTER socket: the bounds libzmq enforces on it, TCP keepalive, and its bind."""
+"""The server's robot-facing ROUTER socket: the bounds libzmq enforces on it, TCP keepalive, its bind and its
+monitor."""
+import logging
+from typing import Optional, Tuple
+
 import zmq
 
+from offload_cloud import curve_speed
+from offload_cloud.auth import Authenticator, RateLimitedLog, curve_server
 from offload_cloud.server_config import ServerConfig
 
 
@@ -22,6 +28,41 @@ def robot_socket(context: zmq.Context, config: ServerConfig) -> zmq.Socket:
         frontend.setsockopt(zmq.TCP_KEEPALIVE_INTVL, 10)
         frontend.setsockopt(zmq.TCP_KEEPALIVE_CNT, 3)
     return frontend
+
+
+def open_frontend(context: zmq.Context, config: ServerConfig, log_limited: RateLimitedLog,
+                  log: logging.Logger) -> Tuple[zmq.Socket, Optional[Authenticator], str]:
+    """The bound frontend, its CURVE allowlist (None with --insecure) and the endpoint bound."""
+    frontend = robot_socket(context, config)
+    auth = None
+    try:
+        if config.insecure:
+            log.warning("running INSECURE: plaintext and no client authentication (--insecure)")
+        else:
+            auth = curve_server(context, frontend, config.keys_dir, log_limited)
+            if curve_speed.bundled_libsodium():
+                log.warning("CURVE runs through the libsodium bundled in pyzmq's wheel, about 25x slower than the "
+                            "system's: a large map holds an I/O thread for seconds. Fix: %s", curve_speed.REMEDY)
+        endpoint = bind(frontend, config.bind)
+    except BaseException:
+        if auth is not None:
+            auth.stop()
+        frontend.close(0)
+        raise
+    return frontend, auth, endpoint
+
+
+def monitor_socket(context: zmq.Context, frontend: zmq.Socket, events: int) -> zmq.Socket:
+    """The frontend's connection events on a PAIR without a high-water mark: libzmq drops an event when the
+    monitor's pipe is full (1000 by default), and a flood of connections would make the guard lose accepts
+    and closes."""
+    address = f"inproc://monitor-{id(frontend)}"
+    frontend.monitor(address, events)
+    monitor = context.socket(zmq.PAIR)
+    monitor.rcvhwm = 0   # the inproc pipe's bound is the sum of both ends' marks, and 0 means none
+    monitor.linger = 0
+    monitor.connect(address)
+    return monitor
 
 
 def bind(frontend: zmq.Socket, endpoint: str) -> str:

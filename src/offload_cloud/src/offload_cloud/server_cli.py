@@ -45,6 +45,10 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--max-connections-per-key", type=bounded_int("--max-connections-per-key", 0, 65536),
                         default=32, help="open connections one client key may have; beyond it the key's least "
                                          "recently active one is cut (default 32; 0: no bound)")
+    parser.add_argument("--max-connections", type=bounded_int("--max-connections", 0, 1 << 20), default=0,
+                        help="open TCP connections in all; over it the oldest that has not said whose it is (else the "
+                             "least recently active) is cut (default 0: the descriptor limit, raised to its hard "
+                             "limit at start, less the server's own and a margin of 1/16)")
     parser.add_argument("--max-first-message-mib", type=bounded_int("--max-first-message-mib", 1, 4096), default=1,
                         help="largest first message of a connection, in MiB; clients of this release ping ahead of a "
                              "larger one. Raise it to --max-message-mib while robots from before the rule remain "
@@ -98,7 +102,7 @@ def main(argv=None) -> int:
             cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
             max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
             max_pending_bytes=args.max_pending_mib << 20, max_pending_bytes_per_key=args.max_pending_per_key_mib << 20,
-            max_connections_per_key=args.max_connections_per_key,
+            max_connections_per_key=args.max_connections_per_key, max_connections=args.max_connections,
             max_first_message_bytes=args.max_first_message_mib << 20,
             max_pending_unidentified_bytes=args.max_pending_unidentified_mib << 20, keepalive_s=args.keepalive_s,
             max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client, burst_per_client=args.burst_per_client,

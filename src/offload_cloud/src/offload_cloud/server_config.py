@@ -21,6 +21,7 @@ class ServerConfig:
                                           # libzmq is still receiving); over it the largest holders are cut
     max_pending_bytes_per_key: int = 384 << 20   # the same for the connections of one client key
     max_connections_per_key: int = 32     # open connections of one client key; 0: no bound
+    max_connections: int = 0              # open TCP connections in all; 0: what fits the descriptor limit
     max_first_message_bytes: int = FIRST_MESSAGE_MAX_BYTES   # largest first message of a connection; up to
                                           # max_message_bytes for robots from before the rule
     max_pending_unidentified_bytes: int = 64 << 20   # what connections yet to send a message hold together
@@ -68,6 +69,8 @@ class ServerConfig:
             raise ValueError("the unidentified connections' budget must be at least the first message bound")
         if not 0 <= self.keepalive_s <= 86400:
             raise ValueError(f"the keepalive idle time must be in 0..86400 s, got {self.keepalive_s}")
+        if not 0 <= self.max_connections <= 1 << 20:
+            raise ValueError(f"the max connections must be in 0..{1 << 20}, got {self.max_connections}")
         if not 0 <= self.max_connections_per_key <= 65536:
             raise ValueError(f"the connections per key must be in 0..65536, got {self.max_connections_per_key}")
         if min(self.max_pending_bytes, self.max_pending_bytes_per_key) < self.max_message_bytes:
