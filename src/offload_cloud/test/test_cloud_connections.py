@@ -21,7 +21,7 @@ from offload_cloud.protocol import Kind, Status
 from offload_cloud.request_queue import RequestQueue
 from offload_cloud.server import CloudServer, ServerConfig
 
-from cloud_test_helpers import LOOPBACK, MIB, curve_dealer, free_port, spawn_server, stop_process
+from cloud_test_helpers import LOOPBACK, MIB, curve_dealer, free_port, spawn_server, start_server, stop_process
 
 pytestmark = pytest.mark.timeout(180)
 
@@ -372,3 +372,20 @@ def test_the_server_raises_its_soft_descriptor_limit_to_the_hard_one(key_root, t
     (line,) = [line for line in limits.splitlines() if line.startswith("Max open files")]
     assert line.split()[3:5] == ["4096", "4096"], line
     assert "(descriptor limit 4096)" in (tmp_path / "server.log").read_text()
+
+
+def test_a_connection_that_never_completes_its_handshake_is_closed_after_the_handshake_timeout():
+    """A greeting, then nothing: it holds a descriptor here and, behind HAProxy, a slot there, for
+    --handshake-timeout-s (default 10 s; libzmq's own default was 30 s)."""
+    assert ServerConfig(insecure=True).handshake_timeout_s == 10.0
+    server = start_server(None, handshake_timeout_s=0.5)
+    try:
+        with socket.create_connection(("127.0.0.1", int(server.endpoint.rsplit(":", 1)[1])), timeout=5) as idle:
+            idle.sendall(b"\xff" + bytes(8) + b"\x7f")
+            started = time.monotonic()
+            while idle.recv(64):     # the server's greeting, then the end
+                pass
+            waited = time.monotonic() - started
+    finally:
+        server.stop()
+    assert 0.3 < waited < 3.0, waited

@@ -1,11 +1,15 @@
 """The recipes for real cloud hosts, validated offline with the tools that can: the Kubernetes manifests
 against the API schemas (kubernetes-validate), the HAProxy configurations with `haproxy -c`, the systemd
-unit with `systemd-analyze verify`; and every command line in them is one the server and the health
-check accept."""
+unit with `systemd-analyze verify`; every command line in them is one the server and the health check
+accept; and the HAProxy recipe run on loopback keeps a source that is no robot it has seen to a few
+connections while robots are served."""
 import re
 import shlex
+import shutil
+import socket
 import subprocess
 import sys
+import time
 import tomllib
 from pathlib import Path
 
@@ -13,8 +17,11 @@ import kubernetes_validate
 import pytest
 import yaml
 
+from offload_cloud.client import CloudClient
 from offload_cloud.server_cli import parse_args as server_args
 from offload_demos.fleet import haproxy_config
+
+from cloud_test_helpers import free_port, start_server
 
 PACKAGE = Path(__file__).resolve().parents[1]
 DEPLOY = PACKAGE / "deploy"
@@ -130,3 +137,74 @@ def test_learner_systemd_unit_verifies_and_its_command_is_accepted(tmp_path):
     broken.write_text(local.read_text().replace("Restart=on-failure", "Restart=sometimes"))
     assert "sometimes" in subprocess.run(["systemd-analyze", "verify", str(broken)], capture_output=True,
                                          text=True).stderr
+
+
+def haproxy_recipe():
+    return (DEPLOY / "haproxy" / "haproxy.cfg").read_text()
+
+
+def test_haproxy_recipe_probes_idle_peers_on_both_sides_and_bounds_sources_it_has_not_seen():
+    """Keepalive: behind HAProxy the servers' probes reach HAProxy only, so HAProxy probes the robots itself. A
+    source that is no robot it has seen is held to a few connections and to a share of the frontend."""
+    text = haproxy_recipe()
+    defaults = text.split("defaults", 1)[1].split("frontend", 1)[0]
+    assert "option clitcpka" in defaults and "option srvtcpka" in defaults
+    assert re.search(r"clitcpka-idle (\d+)s", defaults) and re.search(r"srvtcpka-idle (\d+)s", defaults)
+    frontend = text.split("frontend robots", 1)[1].split("\nbackend", 1)[0]
+    maxconn = int(re.search(r"maxconn (\d+)", frontend).group(1))
+    newcomers = int(re.search(r"sc1_conn_cur\(newcomers\) gt (\d+)", frontend).group(1))
+    per_source = int(re.search(r"!seen_robot \{ sc0_conn_cur gt (\d+) \}", frontend).group(1))
+    assert newcomers <= maxconn // 2 and per_source <= 16
+    assert int(re.search(r"inspect-delay (\d+)s", frontend).group(1)) <= 5
+
+
+@pytest.mark.timeout(120)
+def test_haproxy_recipe_on_loopback_refuses_a_flood_from_one_source_and_serves_robots(key_root, tmp_path):
+    """The recipe with its bind and servers on loopback: one source address opens connections that send a
+    ZMTP greeting and idle; past 8 HAProxy closes them at once (landed recipe: 64 per source, 125 sources fill
+    its 8000 slots), and robots from other addresses are served meanwhile."""
+    binary = shutil.which("haproxy") or "/usr/sbin/haproxy"
+    server = start_server(key_root / "server")
+    port = free_port()
+    text = haproxy_recipe().replace("bind :5555", f"bind 127.0.0.1:{port}")
+    text = re.sub(r"(    server cloud\d .*\n)+", f"    server cloud0 127.0.0.1:{server.endpoint.rsplit(':', 1)[1]} check\n",
+                  text)
+    (tmp_path / "haproxy.cfg").write_text(text)
+    haproxy = subprocess.Popen([binary, "-f", str(tmp_path / "haproxy.cfg"), "-db"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)
+    flood = []
+    try:
+        deadline = time.monotonic() + 10
+        while time.monotonic() < deadline:
+            try:
+                socket.create_connection(("127.0.0.1", port), timeout=1).close()
+                break
+            except OSError:
+                time.sleep(0.1)
+        time.sleep(2.5)   # two health checks: the server is up
+        for _ in range(12):
+            sock = socket.socket()
+            sock.bind(("127.0.0.7", 0))
+            sock.connect(("127.0.0.1", port))
+            sock.sendall(b"\xff" + bytes(8) + b"\x7f")
+            flood.append(sock)
+        time.sleep(0.5)
+        open_ones = 0
+        for sock in flood:
+            sock.settimeout(0.2)
+            try:
+                open_ones += sock.recv(64) != b""      # the server's greeting came back through HAProxy
+            except socket.timeout:
+                open_ones += 1
+            except OSError:
+                pass
+        with CloudClient(f"tcp://127.0.0.8:0;127.0.0.1:{port}", keys_dir=str(key_root / "robot"),
+                         timeout_s=5.0) as robot:
+            robot.ping()
+    finally:
+        for sock in flood:
+            sock.close()
+        haproxy.terminate()
+        haproxy.wait(10)
+        server.stop()
+    assert open_ones == 8, open_ones

@@ -19,6 +19,9 @@ def robot_socket(context: zmq.Context, config: ServerConfig) -> zmq.Socket:
     # memory: at most the queued bytes budget's worth of maximum-size messages, and 2 x max_queued.
     frontend.rcvhwm = config.receive_hwm
     frontend.router_mandatory = False
+    # A connection that never completes its handshake (a greeting, then nothing) holds a descriptor and, behind
+    # HAProxy, a slot there: closed after this (libzmq's own default is 30 s).
+    frontend.setsockopt(zmq.HANDSHAKE_IVL, int(config.handshake_timeout_s * 1000))
     if config.keepalive_s:
         # A peer gone without a FIN (power loss, a NAT that forgot the connection) is dropped, so it neither
         # holds memory nor counts against its key's connections. The kernel's keepalive, not ZMTP heartbeats:

@@ -60,6 +60,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     parser.add_argument("--keepalive-s", type=bounded_float("--keepalive-s", 0, 86400), default=30.0,
                         help="TCP keepalive: seconds a connection is idle before the kernel probes its peer (3 probes "
                              "10 s apart); a peer gone without a FIN is dropped (default 30; 0: none)")
+    parser.add_argument("--handshake-timeout-s", type=bounded_float("--handshake-timeout-s", 0, 3600), default=10.0,
+                        help="a connection that has not completed its ZMTP/CURVE handshake by then is closed (default "
+                             "10; 0: none)")
     parser.add_argument("--max-wait-s", type=bounded_float("--max-wait-s", 0, 3600, low_open=True), default=1.0,
                         help="longest a request waits for a worker before it gets BUSY instead (default 1.0); "
                              "keep it under the robots' per-attempt timeout")
@@ -105,6 +108,7 @@ def main(argv=None) -> int:
             max_connections_per_key=args.max_connections_per_key, max_connections=args.max_connections,
             max_first_message_bytes=args.max_first_message_mib << 20,
             max_pending_unidentified_bytes=args.max_pending_unidentified_mib << 20, keepalive_s=args.keepalive_s,
+            handshake_timeout_s=args.handshake_timeout_s,
             max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client, burst_per_client=args.burst_per_client,
             stats_log_s=args.stats_log_s, stats_admins=tuple(args.stats_admin)))
     except (OSError, ValueError, zmq.ZMQError) as error:

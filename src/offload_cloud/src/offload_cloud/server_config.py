@@ -27,6 +27,8 @@ class ServerConfig:
     max_pending_unidentified_bytes: int = 64 << 20   # what connections yet to send a message hold together
     keepalive_s: float = 30.0             # TCP keepalive: idle seconds before the first probe (3 probes, 10 s
                                           # apart); a peer gone without a FIN is dropped; 0: none
+    handshake_timeout_s: float = 10.0     # a connection that has not completed its ZMTP/CURVE handshake by then is
+                                          # closed (libzmq's own default: 30 s); 0: none
     max_frames: int = 8                   # more frames than any valid message: dropped unread
     max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
     rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
@@ -67,6 +69,8 @@ class ServerConfig:
                              f"bytes (the protocol's to the max message size), got {self.max_first_message_bytes}")
         if self.max_pending_unidentified_bytes < self.max_first_message_bytes:
             raise ValueError("the unidentified connections' budget must be at least the first message bound")
+        if not 0 <= self.handshake_timeout_s <= 3600:
+            raise ValueError(f"the handshake timeout must be in 0..3600 s, got {self.handshake_timeout_s}")
         if not 0 <= self.keepalive_s <= 86400:
             raise ValueError(f"the keepalive idle time must be in 0..86400 s, got {self.keepalive_s}")
         if not 0 <= self.max_connections <= 1 << 20:
