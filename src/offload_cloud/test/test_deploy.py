@@ -1,8 +1,8 @@
 """The recipes for real cloud hosts, validated offline with the tools that can: the Kubernetes manifests
 against the API schemas (kubernetes-validate), the HAProxy configurations with `haproxy -c`, the systemd
 unit with `systemd-analyze verify`; every command line in them is one the server and the health check
-accept; and the HAProxy recipe run on loopback keeps a source that is no robot it has seen to a few
-connections while robots are served."""
+accept; every recipe bounds the server's connections below a descriptor limit; and the HAProxy recipe run on
+loopback keeps a source that is no robot it has seen to a few connections while robots are served."""
 import re
 import shlex
 import shutil
@@ -52,6 +52,8 @@ def test_kubernetes_commands_are_the_servers_and_the_health_checks():
     container = deployment["spec"]["template"]["spec"]["containers"][0]
     args = server_args(container["args"])
     assert args.keys_dir == "/keys" and not args.insecure
+    # A Pod cannot set a descriptor limit: the server's own cap bounds its connections below the runtime's.
+    assert 0 < args.max_connections <= 65536
     probe = container["readinessProbe"]["exec"]["command"]
     assert probe[0] == "offload-cloud-ping" and scripts()[probe[0]] == "offload_cloud.client:main"
     assert "--ping" in probe and probe[probe.index("--keys-dir") + 1] == "/probe-keys"
@@ -68,6 +70,10 @@ def test_dockerfile_runs_the_servers_console_script():
     command = yaml.safe_load(re.search(r"^CMD (.+)$", text, re.M).group(1))
     assert scripts()[entrypoint[0]] == "offload_cloud.server_cli:main"
     assert server_args(command).keys_dir == "/keys"
+    # The documented run command gives the container a descriptor limit with room for the connection cap.
+    run = re.search(r"^#\s+(docker run .+)$", text, re.M).group(1)
+    soft, hard = map(int, re.search(r"--ulimit nofile=(\d+):(\d+)", run).groups())
+    assert soft == hard and 0 < server_args(command).max_connections <= soft - 1024
     health = yaml.safe_load(re.search(r"CMD (\[\"offload-cloud-ping\".+)$", text, re.M).group(1))
     assert scripts()[health[0]] == "offload_cloud.client:main"
 
@@ -91,6 +97,9 @@ def test_systemd_unit_verifies_and_its_command_is_accepted(tmp_path):
     exec_start = shlex.split(re.search(r"^ExecStart=(.+)$", unit, re.M).group(1))
     assert Path(exec_start[0]).name == "offload-cloud-server" and "offload-cloud-server" in scripts()
     assert server_args(exec_start[1:]).keys_dir == "/etc/offload/keys"
+    # systemd's soft limit is 1024 descriptors: the unit sets one with room for the connection cap.
+    limit = int(re.search(r"^LimitNOFILE=(\d+)$", unit, re.M).group(1))
+    assert 0 < server_args(exec_start[1:]).max_connections <= limit - 1024
     # systemd-analyze needs the command to exist: point it at this interpreter for the check.
     local = tmp_path / "offload-cloud-server.service"
     local.write_text(unit.replace(exec_start[0], sys.executable))
