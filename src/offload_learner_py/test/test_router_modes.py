@@ -342,3 +342,34 @@ def test_the_learners_own_cpu_for_a_request_is_accounted():
         finish(router)
         (outcome,) = recorder.outcomes
         assert low <= outcome.learner_cpu_s < high, (policy.name, outcome.learner_cpu_s)   # two transitions
+
+
+def test_a_cloud_refusal_is_checked_locally_and_a_lying_one_counts_as_a_cloud_failure():
+    """#31 Medium 5: in deployed mode a cloud's NO_PATH was delivered as final: against a cloud that always
+    says NO_PATH, 192 of 200 requests got no path and the breaker never tripped. The local planner checks a
+    refusal; its path is delivered, and the cloud's answer is a cloud failure (the breaker, the learner)."""
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.1), FakePlanner(clock, 0.02, status=NO_PATH)
+    router, recorder = configured_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0,
+                                         probe_while_warming_up=False)
+    router.breaker.clock = lambda: 0.0          # no trial falls due
+    for _ in range(5):
+        delivered = router.route("req", STATE)
+        assert delivered.status == OK and delivered.response["side"] is local
+    finish(router)
+    failures = router.config.breaker.failures_to_open
+    assert len(cloud.calls) == failures, "the lying cloud was not taken out of service"
+    lied = [o for o in recorder.outcomes if o.cloud is not None]
+    assert len(lied) == failures and all(o.cloud.status == ERROR and "contradicted" in o.cloud.raised for o in lied)
+
+
+def test_a_refusal_the_local_planner_agrees_with_is_delivered_and_is_no_failure():
+    clock = VirtualClock()
+    local, cloud = FakePlanner(clock, 0.1, status=NO_PATH), FakePlanner(clock, 0.02, status=NO_PATH)
+    router, recorder = configured_router(AlwaysCloud("cloud"), local, cloud, clock, probe_rate=0.0,
+                                         probe_while_warming_up=False)
+    for _ in range(5):
+        assert router.route("req", STATE).status == NO_PATH
+    finish(router)
+    assert len(cloud.calls) == 5 and not router.breaker.is_open
+    assert all(o.cloud.status == NO_PATH for o in recorder.outcomes)

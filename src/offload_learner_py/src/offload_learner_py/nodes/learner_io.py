@@ -19,7 +19,8 @@ from offload_learner_py.online.router_types import Statuses
 
 STATUSES = Statuses(ok=PlanPathResponse.OK, cloud_timeout=PlanPathResponse.CLOUD_TIMEOUT,
                     cloud_error=PlanPathResponse.CLOUD_ERROR, stale_map=PlanPathResponse.STALE_MAP,
-                    cancelled=PlanPathResponse.CANCELLED)
+                    cancelled=PlanPathResponse.CANCELLED,
+                    refusals=(PlanPathResponse.NO_PATH, PlanPathResponse.START_BLOCKED, PlanPathResponse.GOAL_BLOCKED))
 
 
 class RosLog:

@@ -29,6 +29,7 @@ hedge quantile for the state is planned locally (routing `slow`): the cloud coul
 (breaker.py): after repeated cloud failures or a heartbeat that says the link is down or too slow, requests
 are planned locally without touching the link until the link is healthy again.
 """
+import dataclasses
 import itertools
 import math
 import os
@@ -62,6 +63,7 @@ class _Request:
         self.delivered_result: Optional[SideResult] = None
         self.started = set()
         self.results = {}
+        self.checks_refusal = False   # the local planner runs to check the cloud's refusal
 
 
 class OffloadRouter:
@@ -254,8 +256,9 @@ class OffloadRouter:
                 finally:
                     lane.end(call_id)
                 result.started_after_s = started_after_s
-        if side == CLOUD and not result.cancelled and req.outcome.state is not None:
-            self.breaker.record_call(not result.link_failed, result.seconds)
+        if side == CLOUD and not result.cancelled and req.outcome.state is not None \
+                and not (result.status in self.statuses.refusals and LOCAL not in req.started):
+            self.breaker.record_call(not result.link_failed, result.seconds)   # a refusal: when the local verdict is in
         self._settle(req, side, result, request)
 
     def _cancel(self, side: int, call_ids) -> None:
@@ -273,8 +276,16 @@ class OffloadRouter:
     def _settle(self, req: _Request, side: int, result: SideResult, request) -> None:
         """Record one side's result; deliver the first good path; when no side is left running, finish."""
         fallback = False
+        refusal = None
         with req.lock:
             req.results[side] = result
+            if side == LOCAL and req.checks_refusal:
+                refusal = req.results[CLOUD]
+                if result.status == self.statuses.ok and not result.cancelled:
+                    # A path where the cloud said there is none: the cloud's answer was wrong, a cloud failure.
+                    req.results[CLOUD] = dataclasses.replace(refusal, status=self.statuses.cloud_error,
+                                                             raised=f"the cloud's refusal (status {refusal.status}) "
+                                                                    f"contradicted: the local planner found a path")
             good = result.status == self.statuses.ok and result.note is None and not result.cancelled
             abandon = False
             if good and not req.delivered.is_set():
@@ -286,6 +297,10 @@ class OffloadRouter:
             if all_done and not req.delivered.is_set():
                 if LOCAL not in req.started and self.statuses.cloud_failed(result.status):
                     fallback = True           # the cloud failed: the robot still gets its path
+                elif LOCAL not in req.started and result.status in self.statuses.refusals:
+                    # The cloud alone says there is no path: a robot always gets a path when one exists, so the
+                    # local planner checks before the refusal is final (a lying cloud said NO_PATH to reachable goals).
+                    fallback = req.checks_refusal = True
                 elif LOCAL in req.results:
                     self._deliver(req, LOCAL, req.results[LOCAL])
                 else:
@@ -293,6 +308,8 @@ class OffloadRouter:
             finish = all_done and not fallback
         if abandon:
             self._cancel(LOCAL, self._lanes[LOCAL].calls_of(req))
+        if refusal is not None and req.outcome.state is not None:
+            self.breaker.record_call(req.results[CLOUD] is refusal, refusal.seconds)
         if fallback:
             self._start(req, (LOCAL,), request)
         elif finish:

@@ -24,6 +24,8 @@ class Statuses:
     cloud_error: int
     stale_map: Optional[int] = None   # a path only on an older map; None: delivered as OK with a note
     cancelled: Optional[int] = None   # a call the router cancelled (None: the sides cannot be cancelled)
+    refusals: tuple = ()              # a planner's verdicts that the request has no path (NO_PATH, START/GOAL_BLOCKED):
+                                      # from the cloud alone, checked by the local planner before they are final
 
     def cloud_failed(self, status: int) -> bool:
         """The cloud could not answer; the request itself may be fine, so plan it locally."""
