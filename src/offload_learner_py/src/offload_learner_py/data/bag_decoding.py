@@ -47,6 +47,53 @@ def _compile(layout):
 
 
 _LENGTH = struct.Struct("<I")
+# Our messages flatten to a few dozen primitive fields. A definition nesting L levels of F fields flattens to
+# F ** L ("billion laughs": 237 lines flattened to 1e8 fields and 10 GiB), so a definition's flattened size is
+# counted, each type once, before any decoder or type store is built from it.
+MAX_FLATTENED_FIELDS = 4096
+_BUILTIN_SIZES = {"builtin_interfaces/msg/Time": 2, "builtin_interfaces/msg/Duration": 2}
+
+
+def flattened_fields(types: Dict[str, tuple], root: str) -> int:
+    """Primitive fields of `root` once its nested types (and fixed-size arrays) are flattened, from the parsed
+    definition `types` (rosbags' name -> (constants, fields)). Raises ValueError above MAX_FLATTENED_FIELDS,
+    on a type that contains itself, and on a variable-length array of a type without fields (decoding one
+    element costs no bytes of the message, so a 4-byte length would make billions)."""
+    sizes: Dict[str, int] = dict(_BUILTIN_SIZES)
+    open_types = set()
+
+    def size_of(name: str) -> int:
+        if name in sizes:
+            return sizes[name]
+        if name in open_types:
+            raise ValueError(f"the definition of {root}: {name} contains itself")
+        if name not in types:
+            return 1   # undefined: building the type store refuses it
+        open_types.add(name)
+        total = 0
+        for _, (kind, spec) in types[name][1]:
+            total += field_size(kind, spec)
+            if total > MAX_FLATTENED_FIELDS:
+                raise ValueError(f"the definition of {root} flattens to more than {MAX_FLATTENED_FIELDS} fields "
+                                 f"(cap; {name} alone)")
+        open_types.discard(name)
+        sizes[name] = total
+        return total
+
+    def field_size(kind, spec) -> int:
+        if kind.name == "BASE":
+            return 1
+        if kind.name == "NAME":
+            return size_of(spec)
+        (element_kind, element_spec), length = spec
+        element = field_size(element_kind, element_spec)
+        if kind.name == "SEQUENCE":
+            if element == 0:
+                raise ValueError(f"the definition of {root} has a variable-length array of a type without fields")
+            return element
+        return max(element, 1) * length   # an element without fields still costs a step to decode
+
+    return size_of(root)
 
 
 class Decoder:
@@ -59,7 +106,9 @@ class Decoder:
 
         self.msgtype = connection.msgtype
         self.store = get_typestore(Stores.EMPTY)
-        self.store.register(get_types_from_msg(connection.msgdef, connection.msgtype))
+        types = get_types_from_msg(connection.msgdef, connection.msgtype)
+        flattened_fields(types, connection.msgtype)
+        self.store.register(types)
         present = {name for name, _ in self.store.fielddefs[connection.msgtype][1]}
         missing = [name for name, default in defaults.items() if default is None and name not in present]
         if missing:
