@@ -1,8 +1,9 @@
 """The rosbag v2.0 file format, without ROS and with nothing of the learner's in it (the learner's messages
 are `bag_decoding` and `records`): an index-less front-to-back scan of a bag's records (what `rosbag
-reindex` does, for a `.bag.active` a crash left behind) and the messages of an indexed bag's chunks, each
-chunk decompressed with a bound taken from its own header and a hard cap, so a decompression bomb costs
-at most MAX_CHUNK_BYTES. `report` is the bag's BagReport (notes, damaged chunks, how it was read)."""
+reindex` does, for a `.bag.active` a crash left behind) and the messages of an indexed bag's chunks (the
+index read and checked by `bag_index`), each chunk decompressed with a bound taken from its own header and
+a hard cap, so a decompression bomb costs at most MAX_CHUNK_BYTES. `report` is the bag's BagReport (notes,
+damaged chunks, how it was read)."""
 import bz2
 import os
 import struct
@@ -149,7 +150,7 @@ def scan_unindexed(path: str, report, why: str = "") -> Iterator[Tuple[Connectio
                     report.note(f"damaged connection record at offset {offset}")
             offset = data_start + data_size
     report.indexed = False
-    report.recovered_note = (f"not indexed (a .bag.active left by a stopped recorder, or a cut-off or damaged "
+    report.recovered_note = (f"not indexed (a .bag.active left by a stopped recorder, or a cut-off, damaged or absurd "
                              f"index{why}): read record by record, {complete_chunks} complete chunks"
                              + (", and the records completed in a cut-off last chunk" if partial else "")
                              + f"; `rosbag reindex {path}` makes it an ordinary bag"
@@ -173,37 +174,29 @@ def decompress_chunk(compression: str, data: bytes, fields: Dict[str, bytes]) ->
     return inner
 
 
-def indexed_messages(reader, wanted: List, report) -> Iterator[Tuple[Connection, int, memoryview]]:
-    """Messages of the wanted connections, chunk by chunk in file order; chunks that hold none of
-    them (maps, paths) are never read. One decompressed chunk in memory at a time."""
-    converted = {c.id: Connection(c.id, c.topic, c.msgtype, c.msgdef.data, c.digest) for c in wanted}
-    for info in sorted(reader.chunk_infos, key=lambda info: info.pos):
-        if not any(connection_id in converted for connection_id in info.connection_counts):
-            continue
-        chunk = reader.chunks[info.pos]
-        if chunk.datasize > MAX_CHUNK_BYTES:
-            report.damaged_chunks += 1
-            report.note(f"chunk at offset {info.pos}: {chunk.datasize} bytes, over the {MAX_CHUNK_BYTES}-byte cap")
-            continue
-        try:
-            # The chunk record's own header names its compression and uncompressed size (never trust rosbags'
-            # unbounded decompressor with them).
-            reader.bio.seek(info.pos)
-            (header_size,) = struct.unpack("<I", reader.bio.read(4))
-            if header_size > 1 << 16:
-                raise ValueError(f"a chunk header of {header_size} bytes")
-            fields = _header_fields(reader.bio.read(header_size))
-            compression = fields.get("compression", b"none").decode("ascii", "replace")
-            reader.bio.seek(chunk.datapos)
-            data = reader.bio.read(chunk.datasize)
-            if len(data) != chunk.datasize:
-                raise ValueError(f"the chunk at offset {info.pos} is cut off")
-            inner = decompress_chunk(compression, data, fields)
-        except Exception as error:   # lz4, bz2 raise their own types on damaged data
-            report.damaged_chunks += 1
-            report.note(f"chunk at offset {info.pos} does not decompress: {type(error).__name__}: {error}")
-            continue
-        yield from _chunk_messages(inner, converted, None)
+def indexed_messages(path: str, chunks: List, wanted: Dict[int, Connection],
+                     report) -> Iterator[Tuple[Connection, int, memoryview]]:
+    """Messages of the wanted connections in the chunks `bag_index.read_index` found holding them (a checked
+    index: each chunk named once, inside the file), in file order. One decompressed chunk in memory at a time."""
+    with open(path, "rb") as source:
+        for chunk in chunks:
+            if chunk.data_size > MAX_CHUNK_BYTES:
+                report.damaged_chunks += 1
+                report.note(f"chunk at offset {chunk.pos}: {chunk.data_size} bytes, over the "
+                            f"{MAX_CHUNK_BYTES}-byte cap")
+                continue
+            try:
+                # The chunk record's own header names its compression and uncompressed size.
+                source.seek(chunk.data_pos)
+                data = source.read(chunk.data_size)
+                if len(data) != chunk.data_size:
+                    raise ValueError(f"the chunk at offset {chunk.pos} is cut off")
+                inner = decompress_chunk(chunk.compression, data, chunk.fields)
+            except Exception as error:   # lz4, bz2 raise their own types on damaged data
+                report.damaged_chunks += 1
+                report.note(f"chunk at offset {chunk.pos} does not decompress: {type(error).__name__}: {error}")
+                continue
+            yield from _chunk_messages(inner, wanted, None)
 
 
 def _chunk_messages(buffer: bytes, connections: Dict[int, Connection], found: Optional[Dict[int, Connection]]):

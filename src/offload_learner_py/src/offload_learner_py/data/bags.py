@@ -1,13 +1,13 @@
 """ROS 1 bags to the learner's records and the one transition table, without ROS.
 
-Reads OffloadDecision and OffloadOutcome messages with the `rosbags` library, decoding each bag with
-the message definitions stored in that bag (so a bag written with an older version of the messages
-still reads), and pairs them by request id into a `records.RequestLog`; `records.transition_table`
+Reads OffloadDecision and OffloadOutcome messages (the index read and checked by `bag_index`, the chunks
+by `bag_format`), decoding each bag with the message definitions stored in that bag (`bag_decoding`, so a
+bag written with an older version of the messages still reads), and pairs them by request id into a `records.RequestLog`; `records.transition_table`
 turns that into TransitionTable rows. What real bags hold is tolerated and counted: other topics
 (ignored, never decoded), decisions without an outcome (dropped), outcomes without a decision,
 duplicate request ids, invalid values, and steps with one latency only (kept in the log for
 off-policy evaluation, not in the table, since eq. 10 needs both). An unindexed bag (a `.bag.active`
-left by a crashed `rosbag record`, or a bag whose index was cut off) is read record by record, as
+left by a crashed `rosbag record`, or a bag whose index is cut off or absurd) is read record by record, as
 `rosbag reindex` would, up to its last complete record. A file that cannot be read at all gets an
 error naming it; the other bags are still read. Many bags are read in parallel processes.
 """
@@ -16,7 +16,7 @@ import math
 import os
 from concurrent.futures import ProcessPoolExecutor
 from concurrent.futures.process import BrokenProcessPool
-from dataclasses import asdict, dataclass, field
+from dataclasses import dataclass
 from typing import Dict, List, Optional, Sequence, Tuple
 
 import numpy as np
@@ -24,9 +24,11 @@ import numpy as np
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.data.bag_decoding import Decoder
 from offload_learner_py.data.bag_format import indexed_messages, scan_unindexed
+from offload_learner_py.data.bag_index import IndexRefused, read_index
+from offload_learner_py.data.bag_report import BagReport, ReadReport
 from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.data.records import DECISION_DEFAULTS, OUTCOME_DEFAULTS, Pairing, PairingCounts, \
-    RequestLog, transition_table
+from offload_learner_py.data.records import DECISION_DEFAULTS, OUTCOME_DEFAULTS, Pairing, RequestLog, \
+    transition_table
 
 DECISION_TYPE = "offload_msgs/msg/OffloadDecision"
 OUTCOME_TYPE = "offload_msgs/msg/OffloadOutcome"
@@ -48,83 +50,6 @@ CONFIG_DEFAULTS = {"policy": "", "mode": "", "learn": False, "explore": False, "
 
 class BagReadError(ValueError):
     """A bag that cannot be read; the message names the file."""
-
-
-@dataclass
-class BagReport(PairingCounts):
-    """What one bag held and what became of it (the pairing counts, and the reading's own)."""
-    path: str = ""
-    ok: bool = True
-    error: str = ""
-    indexed: bool = True
-    recovered_note: str = ""          # how an unindexed or cut-off bag was read
-    topics: Dict[str, int] = field(default_factory=dict)   # messages per topic that was read
-    ignored_topics: Dict[str, int] = field(default_factory=dict)
-    undecodable: int = 0              # messages that do not decode with their own definition
-    damaged_chunks: int = 0           # chunks that do not decompress (their messages are lost)
-    definitions: Dict[str, str] = field(default_factory=dict)   # message type -> md5 of the bag's definition
-    configs: List[dict] = field(default_factory=list)   # the learner's latched settings, one per session
-
-
-@dataclass
-class ReadReport:
-    bags: List[BagReport]
-    duplicates_across_bags: int = 0   # identical requests found in two bags (kept once)
-    id_collisions: int = 0            # same request id, different content, in two bags (both kept)
-
-    @property
-    def failed(self) -> List[BagReport]:
-        return [bag for bag in self.bags if not bag.ok]
-
-    def total(self, name: str) -> int:
-        return sum(getattr(bag, name) for bag in self.bags)
-
-    def recorded(self, name: str) -> list:
-        """The distinct values of one LearnerConfig field over every session in the bags."""
-        values = []
-        for bag in self.bags:
-            for config in bag.configs:
-                if config.get(name) not in values:
-                    values.append(config.get(name))
-        return values
-
-    def to_dict(self) -> dict:
-        return {"bags": [asdict(bag) for bag in self.bags], "duplicates_across_bags": self.duplicates_across_bags,
-                "id_collisions": self.id_collisions}
-
-    def format(self) -> str:
-        lines = []
-        for bag in self.bags:
-            if not bag.ok:
-                lines.append(f"FAILED {bag.error}")
-                continue
-            lines.append(f"{bag.path}: {bag.decisions} decisions, {bag.outcomes} outcomes -> {bag.requests} "
-                         f"requests ({bag.rewarded_steps} with both latencies, {bag.one_latency_steps} with one)")
-            if not bag.indexed:
-                lines.append(f"  {bag.recovered_note}")
-            skipped = [f"{count} {what}" for count, what in (
-                (bag.dropped_no_outcome, "decisions without outcome dropped"),
-                (bag.orphan_outcomes, "outcomes without decision dropped"),
-                (bag.duplicate_decisions, "duplicate decisions dropped"),
-                (bag.duplicate_outcomes, "duplicate outcomes dropped"),
-                (bag.invalid, "invalid requests dropped"),
-                (bag.undecodable, "undecodable messages dropped"),
-                (bag.damaged_chunks, "damaged chunks skipped")) if count]
-            if skipped:
-                lines.append("  skipped: " + ", ".join(skipped))
-            for example in bag.invalid_examples:
-                lines.append(f"    e.g. {example}")
-            if bag.ignored_topics:
-                lines.append("  ignored topics: " + ", ".join(f"{topic} ({count})" for topic, count in
-                                                           sorted(bag.ignored_topics.items())))
-        read = [bag for bag in self.bags if bag.ok]
-        lines.append(f"read {len(read)}/{len(self.bags)} bags: {self.total('requests')} requests, "
-                     f"{self.total('rewarded_steps')} transitions with both latencies, "
-                     f"{self.total('one_latency_steps')} with one latency")
-        if self.duplicates_across_bags or self.id_collisions:
-            lines.append(f"across bags: {self.duplicates_across_bags} duplicate requests kept once, "
-                         f"{self.id_collisions} request ids reused with different content (both kept)")
-        return "\n".join(lines)
 
 
 @dataclass
@@ -177,55 +102,45 @@ def read_bag(path: str, weights: CostWeights = CostWeights()) -> Tuple[Dict[str,
 
 
 def _read_bag(path: str, report: BagReport, weights: CostWeights) -> Dict[str, np.ndarray]:
-    from rosbags.rosbag1 import Reader, ReaderError
-
     if not os.path.isfile(path):
         raise BagReadError(f"{path}: no such bag file")
     with open(path, "rb") as source:
         if source.read(13) != b"#ROSBAG V2.0\n":
             raise BagReadError(f"{path}: not a ROS 1 bag (version 2.0 magic line missing)")
-    reader = Reader(path)
     try:
-        reader.open()
-    except Exception as error:  # rosbags raises ReaderError, AssertionError, struct.error on a bad index
-        # No index (index_pos 0), or one cut off or damaged: read the bag record by record instead.
-        if getattr(reader, "bio", None) is not None:   # rosbags closes only on its own ReaderError
-            reader.bio.close()
-        why = "" if isinstance(error, ReaderError) and "not indexed" in str(error) else \
-            f" ({type(error).__name__}: {error})"
+        index = read_index(path, _is_ours)
+    except IndexRefused as error:
+        # No index (index_pos 0), or one cut off, damaged or absurd: read the bag record by record instead.
+        why = "" if str(error) == "not indexed" else f" ({error})"
         return _pair(_filtered(scan_unindexed(path, report, why), report), report, weights, path)
-    try:
-        wanted = _select(reader.connections, report)
-        return _pair(indexed_messages(reader, wanted, report) if wanted else iter(()), report, weights, path)
-    finally:
-        reader.close()
+    wanted = {}
+    ignored: Dict[str, int] = {}
+    for connection in index.connections.values():
+        if _is_ours(connection.msgtype):
+            wanted[connection.id] = connection
+        else:
+            ignored[connection.topic] = ignored.get(connection.topic, 0) + index.msgcounts[connection.id]
+    report.list_topics("ignored_topics", ignored)
+    return _pair(indexed_messages(path, index.chunks, wanted, report), report, weights, path)
 
 
 def _is_ours(msgtype: str) -> bool:
     return msgtype in (DECISION_TYPE, OUTCOME_TYPE, CONFIG_TYPE)
 
 
-def _select(connections, report: BagReport) -> List:
-    wanted = []
-    for connection in connections:
-        if _is_ours(connection.msgtype):
-            wanted.append(connection)
-        else:
-            report.ignored_topics[connection.topic] = report.ignored_topics.get(connection.topic, 0) + \
-                connection.msgcount
-    return wanted
-
-
 def _filtered(messages, report: BagReport):
+    ignored: Dict[str, int] = {}
     for connection, time_ns, raw in messages:
         if _is_ours(connection.msgtype):
             yield connection, time_ns, raw
         else:
-            report.ignored_topics[connection.topic] = report.ignored_topics.get(connection.topic, 0) + 1
+            ignored[connection.topic] = ignored.get(connection.topic, 0) + 1
+    report.list_topics("ignored_topics", ignored)
 
 
 def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[str, np.ndarray]:
     decoders: Dict[Tuple[str, str, str], Decoder] = {}
+    topics: Dict[str, int] = {}
     pairing = Pairing(report, weights)
     for connection, time_ns, raw in messages:
         key = (connection.msgtype, connection.md5sum, connection.msgdef)
@@ -253,14 +168,15 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
             report.undecodable += 1
             report.note(f"undecodable {connection.msgtype}: {type(error).__name__}: {error}")
             continue
-        report.topics[connection.topic] = report.topics.get(connection.topic, 0) + 1
+        topics[connection.topic] = topics.get(connection.topic, 0) + 1
         if connection.msgtype == CONFIG_TYPE:
-            report.configs.append(values)
+            report.add_config(values)
             continue
         if connection.msgtype == DECISION_TYPE:
             pairing.decision(values, stamp or time_ns)
         else:
             pairing.outcome(values)
+    report.list_topics("topics", topics)
     return pairing.log().columns
 
 
