@@ -109,6 +109,16 @@ def test_a_bag_written_with_older_message_definitions_still_reads(tmp_path):
         # no reward in the old outcome: eq. 10 from the two latencies, with the one reward function
         assert table.reward[row] == pytest.approx(reward(decision["action"], outcome["local_s"], outcome["cloud_s"]))
     assert np.all(np.isnan(data.log["q_local"])) and np.all(data.log["probe"] == 1)
+    assert list(data.log["model_version"]) == [""] * 25     # no model version in the old definition
+
+
+def test_the_model_version_that_decided_reads_back_from_the_bag(tmp_path):
+    requests = make_requests(6)
+    versions = ["", "a" * 64, "b" * 64, "b" * 64, "", "c" * 64]
+    for (decision, _), version in zip(requests, versions):
+        decision["model_version"] = version
+    data = bags.read_bags([write(tmp_path / "versions.bag", requests)])
+    assert data.report.bags[0].ok and list(data.log["model_version"]) == versions
 
 
 def test_a_definition_without_a_required_field_is_an_error_naming_the_file_and_field(tmp_path):

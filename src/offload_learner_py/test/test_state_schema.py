@@ -122,11 +122,12 @@ def test_the_decision_message_has_every_field_as_float64_and_the_learner_fills_t
     assert {name: types.get(name) for name in STATE_FIELDS} == {name: "float64" for name in STATE_FIELDS}
     monkeypatch.setattr(learner_io, "stamped", lambda msg: msg)   # no ROS clock in a unit test
     state = State(**{name: value + 0.125 for name, value in _good_state().items()})
-    routing = SimpleNamespace(state=state, decision=SimpleNamespace(action=1, propensity=0.9, q_local=0.1, q_cloud=0.2),
+    routing = SimpleNamespace(state=state, decision=SimpleNamespace(action=1, propensity=0.9, q_local=0.1, q_cloud=0.2,
+                                                                     model_version="f" * 64),
                               request_id=7, probe=False, mode="deployed", action=1, breaker="closed", deadline_s=0.5)
     msg = learner_io.decision_msg(routing, "dqn", 3)
     assert {name: getattr(msg, name) for name in STATE_FIELDS} == state.as_dict()
-    assert (msg.request_id, msg.action, msg.policy) == (7, 1, "dqn")
+    assert (msg.request_id, msg.action, msg.policy, msg.model_version) == (7, 1, "dqn", "f" * 64)
 
 
 def test_normalisation_log_scales_the_fields_the_schema_hints_and_records_the_fields():

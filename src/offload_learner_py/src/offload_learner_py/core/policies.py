@@ -23,11 +23,14 @@ from offload_learner_py.data.dataset import TransitionTable
 
 @dataclass(frozen=True)
 class Decision:
-    """One online decision: the action, the probability the policy had of taking it, its Q-values."""
+    """One online decision: the action, the probability the policy had of taking it, its Q-values, and the
+    version of the model file that decided ("" for a model that is not from a file: a robot learning itself,
+    a fixed policy)."""
     action: int
     propensity: float
     q_local: float = float("nan")
     q_cloud: float = float("nan")
+    model_version: str = ""
 
 
 class Policy(ABC):

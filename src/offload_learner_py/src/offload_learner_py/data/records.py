@@ -26,7 +26,7 @@ MIN_PROPENSITY = 1e-3       # importance weights stay at most 1000
 DECISION_DEFAULTS = {"request_id": None, **{f.name: f.missing for f in STATE_SCHEMA},
                      "action": None, "action_propensity": None, "q_local": math.nan, "q_cloud": math.nan,
                      "policy": "", "model_steps": 0, "probe": NO_VALUE, "mode": "", "routed": NO_VALUE, "breaker": "",
-                     "deadline_s": math.nan}
+                     "deadline_s": math.nan, "model_version": ""}
 OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH_DELIVERED,
                     "local_measured": NO_VALUE, "local_s": None, "local_status": 0, "cloud_measured": NO_VALUE,
                     "cloud_s": None, "cloud_status": 0, "cloud_timeout": False, "reward_valid": NO_VALUE,
@@ -36,7 +36,7 @@ OUTCOME_DEFAULTS = {"request_id": None, "action": NO_VALUE, "delivered": NO_PATH
                     "link_bytes_received": 0}
 DECISION_FIELDS = tuple(DECISION_DEFAULTS)
 OUTCOME_FIELDS = tuple(OUTCOME_DEFAULTS)
-_TEXT = ("policy", "mode", "breaker")
+_TEXT = ("policy", "mode", "breaker", "model_version")
 _FLOAT = (*STATE_FIELDS, "action_propensity", "q_local", "q_cloud", "reward", "loss")
 
 

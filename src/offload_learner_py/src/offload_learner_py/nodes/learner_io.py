@@ -162,7 +162,7 @@ def decision_msg(routing, policy: str, model_steps: int) -> OffloadDecision:
         request_id=routing.request_id, **state.as_dict(), action=decision.action, action_propensity=decision.propensity,
         q_local=decision.q_local, q_cloud=decision.q_cloud, policy=policy, model_steps=model_steps,
         probe=routing.probe, mode=routing.mode, routed=routing.action, breaker=routing.breaker,
-        deadline_s=routing.deadline_s))
+        deadline_s=routing.deadline_s, model_version=decision.model_version))
 
 
 def outcome_msg(outcome) -> OffloadOutcome:
