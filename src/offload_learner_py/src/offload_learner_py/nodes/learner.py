@@ -21,9 +21,9 @@ from offload_learner_py.core.state import State, input_size
 from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
     StaleMapCheck, account, config_msg, decision_msg, exit_fatal, outcome_msg, path_of, rejection, stamped, stats_msg, \
     wait_for_recorder
+from offload_learner_py.nodes.learner_fleet import NodeFleet
 from offload_learner_py.nodes.learner_params import read_learner_parameters
 from offload_learner_py.online.cpu import make_cpu_sampler
-from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.router import OffloadRouter
 from offload_cloud.gc_pauses import freeze_startup_heap
 
@@ -37,8 +37,10 @@ class LearnerNode:
         # One thread: fastest for this small network, leaves the robot's other cores to the planner, and keeps the
         # learner's CPU per request (its thread's time) whole.
         torch.set_num_threads(node.torch_threads)
-        self.learner = OnlineLearner.resume(session, STATUSES, RosLog, weights=config.weights,
-                                            cloud_timeout_s=config.cloud_timeout_s, latency_model=config.latency_model)
+        # With ~fleet_endpoint (deployed DQN) the robot decides with the fleet learner's versions and never trains.
+        self.fleet = NodeFleet(settings.fleet, settings.guard, config.mode, session.policy, session.model, RosLog)
+        self.learner = self.fleet.learner(session, RosLog, statuses=STATUSES, weights=config.weights,
+                                          cloud_timeout_s=config.cloud_timeout_s, latency_model=config.latency_model)
         self.cpu = make_cpu_sampler(node.cpu_cores, node.cpu_cgroup)
         # With a cgroup budget (nanosecond counters) u_t covers the time since the last request ended,
         # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
@@ -136,7 +138,9 @@ class LearnerNode:
         return GetPlanResponse(plan=response.path if response.status == PlanPathResponse.OK else Path())
 
     def publish_decision(self, routing):
-        self.decision_pub.publish(decision_msg(routing, self.learner.config.policy, self.learner.policy.steps))
+        msg = decision_msg(routing, self.learner.config.policy, self.learner.policy.steps)
+        self.fleet.decision(msg)
+        self.decision_pub.publish(msg)
 
     def on_outcome(self, outcome):
         if self.cpu_window_from_outcome:
@@ -146,16 +150,19 @@ class LearnerNode:
                 rospy.logwarn_throttle(10, "cannot read the robot's CPU budget: %s", error)
         if outcome.state is None:
             return   # not a decision: nothing to pair it with (the planner's status told the caller why)
-        self.outcome_pub.publish(outcome_msg(outcome))
+        msg = outcome_msg(outcome)
+        self.fleet.outcome(outcome, msg)   # the guard's sample and the row for the fleet learner
+        self.outcome_pub.publish(msg)
         # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one.
         for action, side in ((LOCAL, outcome.local), (CLOUD, outcome.cloud)):
             self.path_pubs[action].publish(path_of(side))
-        self.stats_pub.publish(stats_msg(self.learner))   # the learner counted it and saved when due
+        self.stats_pub.publish(self.fleet.fill_stats(stats_msg(self.learner)))   # the learner counted it and saved when due
 
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
         self.learner.close()
+        self.fleet.close()
         for side in self.sides:
             side.close()
 

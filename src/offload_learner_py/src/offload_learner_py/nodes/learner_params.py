@@ -1,5 +1,6 @@
 """The offload_learner node's parameters: each one a field of SessionConfig, RouterConfig, BreakerConfig,
-CostWeights or the node's own LearnerNodeConfig, whose default is the parameter's. launch/config/learner.yaml
+CostWeights, FleetConfig (`~fleet_*`), GuardConfig (`~guard_*`) or the node's own LearnerNodeConfig, whose default
+is the parameter's. launch/config/learner.yaml
 holds only what a deployment overrides; the README's table is checked against PARAMETERS."""
 import math
 from dataclasses import dataclass, field
@@ -8,6 +9,8 @@ from typing import NamedTuple
 from offload_learner_py.core.reward import CostWeights
 from offload_learner_py.nodes import params
 from offload_learner_py.online.breaker import BreakerConfig
+from offload_learner_py.online.fleet_link import FleetConfig
+from offload_learner_py.online.model_guard import GuardConfig
 from offload_learner_py.online.router_types import RouterConfig
 from offload_learner_py.online.session import SessionConfig, dqn_settings
 
@@ -52,6 +55,9 @@ PARAMETERS = {
     "breaker_slow_call_s": (BreakerConfig, "slow_call_s"),
     "alpha": (CostWeights, "alpha"),
     **{spec: (LearnerNodeConfig, spec) for spec in LearnerNodeConfig.__dataclass_fields__},
+    # Fleet mode (deployed DQN with a fleet learner): the robot decides, the cloud learns.
+    **{f"fleet_{spec}": (FleetConfig, spec) for spec in FleetConfig.__dataclass_fields__},
+    **{f"guard_{spec}": (GuardConfig, spec) for spec in GuardConfig.__dataclass_fields__},
 }
 
 
@@ -59,6 +65,8 @@ class LearnerParameters(NamedTuple):
     session: SessionConfig
     router: RouterConfig
     node: LearnerNodeConfig
+    fleet: FleetConfig
+    guard: GuardConfig
 
 
 def read_learner_parameters(get: params.Getter) -> LearnerParameters:
@@ -71,4 +79,6 @@ def read_learner_parameters(get: params.Getter) -> LearnerParameters:
     router = RouterConfig(**params.for_class(values, PARAMETERS, RouterConfig), seed=values["seed"],
                           weights=CostWeights(alpha, 1.0 - alpha),
                           breaker=BreakerConfig(**params.for_class(values, PARAMETERS, BreakerConfig)))
-    return LearnerParameters(SessionConfig(**session), router, node)
+    return LearnerParameters(SessionConfig(**session), router, node,
+                             FleetConfig(**params.for_class(values, PARAMETERS, FleetConfig)),
+                             GuardConfig(**params.for_class(values, PARAMETERS, GuardConfig)))
