@@ -173,7 +173,8 @@ from offload_learner_py.nodes import learner_io  # noqa: E402
 
 learner_io.OffloadDecision = lambda **fields: SimpleNamespace(**fields)   # the real one has no `rate`
 learner_io.stamped = lambda msg: msg
-routing = SimpleNamespace(state=state, decision=SimpleNamespace(action=1, propensity=0.9, q_local=0.1, q_cloud=0.2),
+routing = SimpleNamespace(state=state, decision=SimpleNamespace(action=1, propensity=0.9, q_local=0.1, q_cloud=0.2,
+                                                                 model_version=""),
                           request_id=7, probe=False, mode="deployed", action=1, breaker="closed", deadline_s=math.nan)
 msg = learner_io.decision_msg(routing, "dqn", 3)
 assert {name: getattr(msg, name) for name in ORDER} == state.as_dict()
