@@ -137,6 +137,30 @@ def test_an_outage_keeps_rows_up_to_the_bound_and_sends_them_when_the_learner_re
     assert robot.stats() == {**robot.stats(), "fleet_rows_sent": 8, "fleet_rows_dropped": 3, "fleet_rows_pending": 0}
 
 
+def test_rows_kept_through_an_outage_are_the_node_s_rows_encoded_again_when_resent():
+    """The node's encode serializes messages: what goes back into the buffer after a failed send is the messages,
+    not their bytes (bytes encoded again would be unencodable, dropped after every outage)."""
+    fake = FakeLearner()
+    fake.down.set()
+
+    def encode(row):
+        decision, outcome = row
+        return decision["id"].to_bytes(2, "big"), outcome["id"].to_bytes(2, "big")
+
+    robot = make_fleet_robot(FleetConfig(endpoint="tcp://x:1", insecure=True, period_s=0.05, send_every_s=0.01,
+                                         batch_rows=4, buffer_rows=8, timeout_s=0.1), GuardConfig(requests=0),
+                             client_factory=lambda: fake, errors=ERRORS, definitions={"d": "def"}, md5={"d": "md5"},
+                             encode=encode)
+    for i in range(6):
+        robot.link.enqueue(({"id": i}, {"id": i}))
+    wait_for(lambda: robot.link.send_failures >= 2)
+    fake.down.clear()
+    wait_for(lambda: len(fake.rows) == 6)
+    robot.close()
+    assert fake.rows == [(i.to_bytes(2, "big"),) * 2 for i in range(6)]
+    assert robot.stats()["fleet_rows_dropped"] == 0 and robot.link.unencodable == 0
+
+
 def test_busy_keeps_rows_and_refused_batches_and_unencodable_rows_are_counted_as_dropped():
     fake = FakeLearner()
     fake.busy = True

@@ -181,10 +181,11 @@ class FleetLink:
         end = None if deadline_s is None else self.clock() + deadline_s
         while len(self.buffer) and (end is None or self.clock() < end):
             batch = self.buffer.take(self.config.batch_rows)
-            rows = []
+            kept, rows = [], []   # the buffer's rows (encoded again when resent) and their bytes
             for row in batch:
                 try:
                     rows.append(self.encode(row))
+                    kept.append(row)
                 except Exception as error:
                     self.unencodable += 1
                     self.log.error("a row could not be encoded for the fleet learner: %s", error)
@@ -193,7 +194,7 @@ class FleetLink:
             try:
                 accepted, refused = self._client.send_rows(self.definitions, self.md5, rows)
             except (self.timeout_error, self.busy_error) as error:
-                self.buffer.put_back(rows)
+                self.buffer.put_back(kept)
                 self.send_failures += 1
                 if not self._link_down:
                     self.log.warning("fleet learner %s cannot take rows now (%s): %d kept, sent when it returns",
