@@ -17,6 +17,13 @@ from typing import Dict, List, Optional, Sequence, Tuple
 
 from offload_cloud.learner.rows import PoolBag, check_rows, typed
 
+# What a batch may add on disk beyond its rows' bytes (ROS 1 bag records): per message its record header and index
+# entry; per batch a chunk's header, its connection records and index records; and, when it opens a bag, the bag's
+# 4 KiB header record, plus the index a sealed bag gets (its connections again). An upper bound, so the budget holds
+# on disk and not only in row bytes (a bag of 20 rows of 234 bytes is 12.8 KiB).
+MESSAGE_OVERHEAD = 64
+BATCH_OVERHEAD = 1024
+BAG_OVERHEAD = 4096 + 1024
 SEED_ROBOT = "_seed"   # a learning run's bag given with --seed-bag; no key name starts with "_"
 _NAME = re.compile(r"^[A-Za-z0-9_][A-Za-z0-9_.-]{0,63}$")
 
@@ -81,6 +88,9 @@ class ExperiencePool:
             raise ValueError(f"robot name {robot!r}")
         counts = self.counts.setdefault(robot, KeyCounts())
         size = sum(len(d) + len(o) for d, o in rows)
+        connections = sum(len(str(text)) + 256 for text in definitions.values()) if isinstance(definitions, dict) \
+            else 0
+        growth = size + 2 * MESSAGE_OVERHEAD * len(rows) + BATCH_OVERHEAD + BAG_OVERHEAD + 3 * connections
         rows_bucket, bytes_bucket = self._buckets.setdefault(robot, (
             _Bucket(self.limits.rows_per_s, self.limits.rows_burst),
             _Bucket(self.limits.bytes_per_s, self.limits.bytes_burst)))
@@ -89,7 +99,7 @@ class ExperiencePool:
             return f"over the rate of {self.limits.rows_per_s:g} rows/s or {self.limits.bytes_per_s:g} B/s for " \
                    f"{robot}", 0, 0
         with self._lock:
-            if not self._make_room(robot, size):
+            if not self._make_room(robot, growth):
                 counts.busy += 1
                 return "the pool's disk budget is full", 0, 0
             types = typed(definitions, md5)
