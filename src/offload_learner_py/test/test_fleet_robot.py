@@ -296,7 +296,11 @@ def test_swaps_under_load_every_decision_names_the_version_that_decided_it():
     thread = threading.Thread(target=swapper)
     thread.start()
     try:
-        decisions = [policy.decide(STATE) for _ in range(3000)]
+        # At least 3000 decisions, and on until both versions decided some: on a loaded machine the swapper's
+        # thread may not get the GIL during the first 3000 (a 5 ms switch interval), which tests nothing.
+        decisions, deadline = [], time.monotonic() + 30.0
+        while len(decisions) < 3000 or (len({d.model_version for d in decisions}) < 2 and time.monotonic() < deadline):
+            decisions.append(policy.decide(STATE))
     finally:
         stop.set()
         thread.join()
