@@ -37,6 +37,7 @@ from offload_learner_py.online.router_types import Outcome, Statuses
 from offload_learner_py.online.session import SessionConfig, make_policy
 
 LOG = logging.getLogger("offload_learner_py.online.learning")
+MAX_SAVE_BACKOFF = 64   # a failing checkpoint save is tried at most this many checkpoint periods apart
 
 
 def latency_features(state: State) -> Tuple[float, float, float]:
@@ -67,6 +68,7 @@ class OnlineLearner:
         self._recent = deque(maxlen=config.stats_window)  # (loss or nan, correct or nan)
         self._delivered_ms = deque(maxlen=config.stats_window)
         self._learned_since_checkpoint = 0
+        self._save_backoff = 1   # checkpoint periods between tries: doubled by each failed save
 
     @classmethod
     def resume(cls, config: SessionConfig, statuses: Statuses, log: logging.Logger = LOG,
@@ -169,7 +171,8 @@ class OnlineLearner:
             self.count += 1
             count = self.count
             self._learned_since_checkpoint += bool(outcome.learned)
-            due = self.config.checkpoint_every > 0 and self._learned_since_checkpoint >= self.config.checkpoint_every
+            due = self.config.checkpoint_every > 0 and \
+                self._learned_since_checkpoint >= self.config.checkpoint_every * self._save_backoff
         if due:
             self.save()
         if self.config.progress_every > 0 and count % self.config.progress_every == 0:
@@ -191,20 +194,27 @@ class OnlineLearner:
                 "recent_accuracy": mean(1), "checkpoint_failures": self.checkpoint_failures}
 
     def save(self) -> bool:
-        """Write the checkpoint; a failure (a full disk, a diverged network) is logged at error level every
-        time, counted in stats(), and the next learned request tries again."""
+        """Write the checkpoint; a failure (a full disk, a diverged network) is logged at error level, counted in
+        stats(), and tried again after twice as many learned requests each time (up to MAX_SAVE_BACKOFF times
+        checkpoint_every): retried on every request, a full disk cost 130 ms of CPU and an error line per
+        request (#31). A success goes back to every checkpoint_every."""
         if not self.config.checkpoint or self.agent is None or not self.policy.learns:
             return False
         try:
             with self.policy.lock:
                 save_checkpoint(self.agent, self.config.checkpoint)
         except (OSError, ValueError) as error:
-            self.checkpoint_failures += 1
-            self.log.error("checkpoint %s not written (%d failures so far): %s", self.config.checkpoint,
-                           self.checkpoint_failures, error)
+            with self._lock:
+                self.checkpoint_failures += 1
+                self._learned_since_checkpoint = 0
+                self._save_backoff = min(2 * self._save_backoff, MAX_SAVE_BACKOFF)
+                retry = self.config.checkpoint_every * self._save_backoff
+            self.log.error("checkpoint %s not written (%d failures so far; next try in %d learned requests): %s",
+                           self.config.checkpoint, self.checkpoint_failures, retry, error)
             return False
         with self._lock:
             self._learned_since_checkpoint = 0
+            self._save_backoff = 1
         self.log.debug("checkpoint %s at %d steps", self.config.checkpoint, self.agent.steps)
         return True
 
