@@ -6,7 +6,6 @@ from dataclasses import dataclass
 
 import rospy
 import zmq
-from geometry_msgs.msg import PoseStamped
 from nav_msgs.msg import OccupancyGrid, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
 from offload_msgs.msg import LinkLatency, PlanTiming
@@ -16,6 +15,7 @@ from rospy.numpy_msg import numpy_msg
 from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
 from offload_cloud.gc_pauses import freeze_startup_heap
 from offload_learner_py.nodes import params
+from offload_learner_py.nodes.path_wire import WirePath, WirePlanPathResponse, pose_count
 from offload_planner_cpp import options_table, validate_options
 
 # A parameter's Python type by the type of its row in the core's options table.
@@ -25,14 +25,6 @@ PARAMETER_TYPES = {"bool": bool, "int": int, "float": float, "algorithm": str}
 def stamped_pose(msg) -> StampedPose:
     p, q = msg.pose.position, msg.pose.orientation
     return StampedPose(msg.header.frame_id, p.x, p.y, p.z, (q.x, q.y, q.z, q.w))
-
-
-def pose_stamped(header, row) -> PoseStamped:
-    """A PoseStamped from one (x, y, z, qx, qy, qz, qw) row of the core's path poses."""
-    pose = PoseStamped(header=header)
-    p, q = pose.pose.position, pose.pose.orientation
-    p.x, p.y, p.z, q.x, q.y, q.z, q.w = row
-    return pose
 
 
 @dataclass(frozen=True)
@@ -143,22 +135,21 @@ class CloudBridgeNode:
         started = rospy.get_time()
         cpu_started = time.thread_time()   # this service thread's CPU: the robot's cost of offloading
         result = self.bridge.plan(stamped_pose(req.start), stamped_pose(req.goal), req.tolerance)
-        res = PlanPathResponse(status=int(result.status), message=result.message,
-                               planning_time_s=result.planning_time_s, expansions=result.expansions,
-                               cost_m=result.cost_m, bytes_sent=result.bytes_sent,
-                               bytes_received=result.bytes_received)
+        # the path written in one numpy pass (path_wire), not a genpy PoseStamped per pose
+        res = WirePlanPathResponse(status=int(result.status), message=result.message,
+                                   planning_time_s=result.planning_time_s, expansions=result.expansions,
+                                   cost_m=result.cost_m, bytes_sent=result.bytes_sent,
+                                   bytes_received=result.bytes_received)
         if result.map_stamp is not None:
             res.map_stamp = result.map_stamp
         if res.status == PlanPathResponse.OK:
-            res.path.header.frame_id = result.frame_id
-            res.path.header.stamp = rospy.Time.now()
-            res.path.poses = [pose_stamped(res.path.header, row) for row in result.poses.tolist()]
+            res.path = WirePath.from_poses(result.frame_id, rospy.Time.now(), result.poses)
         res.cpu_s = time.thread_time() - cpu_started
         if result.link_round_trip_s is not None:
             self.publish_latency(LinkLatency.REQUEST, result.reachable, result.link_round_trip_s)
         timing = PlanTiming(planner=self.planner_name, status=res.status, planning_time_s=res.planning_time_s,
                             service_time_s=rospy.get_time() - started, expansions=res.expansions,
-                            path_cells=len(res.path.poses), cost_m=res.cost_m, map_stamp=res.map_stamp)
+                            path_cells=pose_count(res.path), cost_m=res.cost_m, map_stamp=res.map_stamp)
         timing.header.stamp = rospy.Time.now()
         self.timing_pub.publish(timing)
         if res.status == PlanPathResponse.OK:

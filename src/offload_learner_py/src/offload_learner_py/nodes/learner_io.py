@@ -12,8 +12,9 @@ from geometry_msgs.msg import PoseStamped
 from std_msgs.msg import UInt64
 from nav_msgs.msg import Path
 from offload_msgs.msg import LearnerConfig, OffloadDecision, OffloadOutcome, TrainingStats
-from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+from offload_msgs.srv import PlanPathRequest, PlanPathResponse
 
+from offload_learner_py.nodes.path_wire import WirePlanPath
 from offload_learner_py.online.request_check import check_request
 from offload_learner_py.online.router_types import Statuses
 
@@ -31,7 +32,8 @@ class RosLog:
 
 class PlannerProxy:
     """Persistent connections to one planner's ~plan, one per call in flight (the router calls the cloud side
-    concurrently), each reopened after any failure."""
+    concurrently), each reopened after any failure. Responses keep their paths serialized (path_wire): the node
+    passes them on and never reads a pose."""
 
     def __init__(self, service: str):
         self.service = service
@@ -42,7 +44,7 @@ class PlannerProxy:
         with self._lock:
             proxy = self._idle.pop() if self._idle else None
         if proxy is None:
-            proxy = rospy.ServiceProxy(self.service, PlanPath, persistent=True)
+            proxy = rospy.ServiceProxy(self.service, WirePlanPath, persistent=True)
         # A copy: both sides of a probe get the same request object, each with its own cancel_id.
         mine = PlanPathRequest(start=request.start, goal=request.goal, tolerance=request.tolerance, cancel_id=call_id)
         try:
