@@ -40,18 +40,23 @@ def truth(u: np.ndarray):
     return np.where(u >= 0.5, 0.04, 0.2), np.full(len(u), 0.1)
 
 
-def requests(n: int, seed: int = 0, start_id: int = 1, epsilon: float = 0.5, probe: bool = True):
-    """(decision, outcome) dicts of n requests by a uniform random logger (propensity 0.5)."""
+def requests(n: int, seed: int = 0, start_id: int = 1, epsilon: float = 0.5, probe: bool = True,
+             greedy_local_probe_every: int = 0):
+    """(decision, outcome) dicts of n requests by a uniform random logger (propensity 0.5); with
+    greedy_local_probe_every k, by a deployed robot that always plans locally (propensity 1) and probes every
+    k-th request."""
     rng = np.random.default_rng(seed)
     u = rng.uniform(0.0, 1.0, n)
     local_s, cloud_s = truth(u)
     local_s, cloud_s = local_s * rng.uniform(0.9, 1.1, n), cloud_s * rng.uniform(0.9, 1.1, n)
-    action = rng.integers(0, 2, n)
+    action = np.zeros(n, dtype=np.int64) if greedy_local_probe_every else rng.integers(0, 2, n)
+    propensity = 1.0 if greedy_local_probe_every else 0.5
     out = []
     for i in range(n):
+        probed = i % greedy_local_probe_every == 0 if greedy_local_probe_every else probe
         r = reward(int(action[i]), float(local_s[i]), float(cloud_s[i]), CostWeights())
         out.append(probe_request(start_id + i, 1.0, float(u[i]), 0.03, float(local_s[i]), float(cloud_s[i]),
-                                 int(action[i]), 0.5, float(r), probe=probe))
+                                 int(action[i]), propensity, float(r), probe=probed))
     return out
 
 

@@ -16,7 +16,7 @@ from offload_cloud.learner.gate import gate
 from offload_cloud.learner.pool import PoolLimits
 from offload_cloud.learner.service import FleetLearner, LearnerConfig
 from offload_cloud.learner.store import ModelStore
-from offload_cloud.learner.training import TrainingConfig
+from offload_cloud.learner.training import TrainingConfig, published_by
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.model_file import agent_model_bytes, load_model, model_version
@@ -141,6 +141,30 @@ def test_a_trained_version_is_published_only_past_the_gate(learner, monkeypatch)
     assert refused["parent"] == version and not refused["published"]
     assert client.current_version(version) == (version, size)
     assert [e["published"] for e in service.store.history("trained")] == [True, False]
+
+
+def test_a_robot_whose_rows_cannot_judge_abstains_and_the_ones_that_can_decide(learner):
+    """A deployed robot that always planned locally and probed 1 request in 20 cannot say what a candidate that
+    offloads half its requests would cost it (n/a): it abstains, and the robot whose rows explore both sides
+    decides. Before, its n/a vetoed every version for the whole fleet."""
+    service, _ = learner()
+    assert service.pool.add("explorer", DEFS, MD5, h.rows(300, seed=4))[1] == 300
+    assert service.pool.add("greedy", DEFS, MD5, h.rows(300, seed=5, start_id=2000, greedy_local_probe_every=20))[1]
+    entry = service.train_once()
+    greedy, explorer = entry["gate"]["greedy"], entry["gate"]["explorer"]
+    assert not greedy["judged"] and greedy["disagree"] > 0 and greedy["reason"]
+    assert explorer["judged"] and explorer["accepted"]
+    assert entry["published"] and service.store.state()["current"] == entry["version"]
+
+
+def test_a_version_passes_only_when_a_robot_judged_it_and_none_that_judged_refused():
+    judged = {"judged": True, "accepted": True}
+    refused = {"judged": True, "accepted": False}
+    abstained = {"judged": False, "accepted": False}
+    assert published_by({"a": judged, "b": abstained})
+    assert not published_by({"a": judged, "b": refused, "c": abstained})
+    assert not published_by({"a": abstained, "b": abstained})
+    assert not published_by({})
 
 
 def test_pins_rollbacks_and_never_a_rolled_back_version(learner, tmp_path, capsys):

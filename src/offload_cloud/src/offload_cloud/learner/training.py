@@ -7,7 +7,8 @@ attempted: a robot's pool directory is bounded by its disk share, and it is read
 1 - holdout of requests train (the rows with both latencies: the transition table), the rest judge (every logged
 request, probe or not: off-policy evaluation). A robot with fewer than `min_robot_rows` requests does not
 contribute. When no version is in use yet, the candidate is judged against what each robot logged: its greedy
-action from the Q-values it recorded, else the action it took."""
+action from the Q-values it recorded, else the action it took. A robot whose rows cannot judge the candidate
+abstains (published_by)."""
 import logging
 import math
 import time
@@ -98,17 +99,18 @@ def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConf
     data = agent_model_bytes(result.agent)
     version = model_version(data)
     reference = warm_agent(current_data, dqn) if current_data else None
-    figures, passed = {}, True
+    figures = {}
     for robot, (steps, logged) in judged.items():
         new = result.agent.greedy_actions(steps.states)
         old = reference.greedy_actions(steps.states) if reference else logged
         if old is None:   # rows left out by LoggedSteps (nothing known of them): judge on the taken side
             old = steps.action
         ok, difference = gate(steps, new, old, config.margin_s)
-        passed &= ok
-        figures[robot] = {"accepted": ok, "rows": len(steps), "difference_s": _finite(difference.value),
-                          "low_s": _finite(difference.low), "high_s": _finite(difference.high),
-                          "disagree": int(np.sum(new != old))}
+        figures[robot] = {"accepted": ok, "judged": difference.available, "rows": len(steps),
+                          "difference_s": _finite(difference.value), "low_s": _finite(difference.low),
+                          "high_s": _finite(difference.high), "disagree": int(np.sum(new != old)),
+                          "reason": difference.reason}
+    passed = published_by(figures)
     entry = {"version": version, "parent": current, "rows": used, "gate": figures, "gate_passed": passed,
              "gradient_steps": steps_count, "train_s": round(time.monotonic() - started, 3)}
     if version == current:
@@ -117,6 +119,16 @@ def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConf
     LOG.info("training round: %d rows from %d robots, %d steps in %.2f s, candidate %s %s", len(table), len(used),
              steps_count, entry["train_s"], version[:12], "published" if entry["published"] else "refused by the gate")
     return entry
+
+
+def published_by(figures: Dict[str, dict]) -> bool:
+    """Whether a candidate passes the gate: every robot whose rows can judge it (an estimate, not "n/a") says it
+    is not worse, and at least one can. A robot whose rows cannot (a deployed robot logs few probes, and a
+    greedy logger never takes the side a changed decision needs) abstains rather than vetoes: else one such
+    robot in the fleet would keep every version from every robot. Where it abstained, its own guard judges the
+    version live (online/model_guard.py) and rolls it back when it is worse beyond noise."""
+    judging = [figure for figure in figures.values() if figure["judged"]]
+    return bool(judging) and all(figure["accepted"] for figure in judging)
 
 
 def _finite(value: float) -> Optional[float]:
