@@ -17,7 +17,8 @@ MAPS = os.path.join(os.path.dirname(__file__), "..", "..", "offload_planner_cpp"
 
 
 def options(**overrides):
-    return SimpleNamespace(**{"steps": 10, "map": "", "model": "", **overrides})
+    return SimpleNamespace(**{"steps": 10, "map": "", "model": "", "fleet": False, "fleet_seed_bag": "",
+                              "policy": "dqn", "mode": "learning", **overrides})
 
 
 def test_options_are_checked_before_anything_starts(tmp_path):
@@ -31,6 +32,12 @@ def test_options_are_checked_before_anything_starts(tmp_path):
     problem = demo.check_options(options(map=str(missing_image)))
     assert problem.startswith(f"MAP {missing_image}") and "\n" not in problem
     assert "no such file" in demo.check_options(options(model=str(tmp_path / "none.pt")))
+    # the fleet learner serves the deployed DQN only, and its seed bag must be there
+    assert demo.check_options(options(fleet=True, mode="deployed")) == ""
+    assert "--policy dqn --mode deployed" in demo.check_options(options(fleet=True, mode="learning"))
+    assert "--policy dqn --mode deployed" in demo.check_options(options(fleet=True, mode="deployed", policy="local"))
+    assert "no such file" in demo.check_options(options(fleet=True, mode="deployed",
+                                                        fleet_seed_bag=str(tmp_path / "none.bag")))
 
 
 def test_budgets_of_dead_drivers_are_removed_and_live_ones_kept(tmp_path, monkeypatch):

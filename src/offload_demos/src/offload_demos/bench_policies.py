@@ -10,8 +10,10 @@ every run. (Paced by the answers instead, a slower policy met later, other parts
 - local, cloud: always plan on the robot / always offload (deployed, no probes);
 - hedge: both sides on every request, the caller gets the first good path (learning mode, frozen policy);
 - threshold: offload above the paper's input-size threshold;
-- dqn: the DQN deployed (at the learner's default probe rate), warm-started from a learning run's checkpoint on
-  the same map, learning on from every request;
+- dqn: the DQN deployed as it ships (at the learner's default probe rate): the robot decides and never trains, a
+  fleet learner on the cloud side (offload-cloud-learner) pools its rows, trains and publishes model versions that
+  reach the robot as they would in the field. Both start from a learning run on the same map: the robot from its
+  checkpoint, the fleet learner from its bag (a first version trained from it before the requests begin);
 - dqn_hedge: the same with the deadline hedge.
 
 It reports, per policy, latency as the caller saw it (mean, p50, p95, p99), robot planning CPU-seconds and
@@ -42,8 +44,8 @@ RUNS = {
     "cloud": ["--policy", "cloud", "--mode", "deployed", "--probe-rate", "0"],
     "hedge": ["--policy", "local", "--mode", "learning", "--learn", "false"],
     "threshold": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],
-    "dqn": ["--policy", "dqn", "--mode", "deployed"],
-    "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--hedge"],
+    "dqn": ["--policy", "dqn", "--mode", "deployed", "--fleet"],
+    "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--hedge", "--fleet"],
 }
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
           "bridge_cpu_s_per_request", "learner_cpu_s_per_request", "robot_total_cpu_s_per_request",
@@ -77,6 +79,8 @@ def main(argv=None) -> int:
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--policies", default=",".join(POLICIES), help="comma list of " + ",".join(POLICIES))
     parser.add_argument("--checkpoint", default="", help="DQN checkpoint to deploy (default: a learning run first)")
+    parser.add_argument("--seed-bag", default="", help="with --checkpoint: the bag the fleet learner starts from "
+                                                        "(default: the learning run's; none with --checkpoint)")
     parser.add_argument("--learning-steps", type=bounded_int("--learning-steps", 10, 100000), default=300)
     parser.add_argument("--outage-policies", default="dqn_hedge",
                         help="policies run again with the link down for --outage-s mid-run ('' to skip)")
@@ -109,16 +113,17 @@ def main(argv=None) -> int:
     scenario = ["--link", args.link, "--goal-rate-hz", f"{args.goal_rate_hz:g}", "--start-lead-s",
                 f"{args.start_lead_s:g}"] + (["--plan-unknown"] if args.plan_unknown else [])
     checkpoint = os.path.abspath(args.checkpoint) if args.checkpoint else ""
+    seed_bag = os.path.abspath(args.seed_bag) if args.seed_bag else ""
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
         learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
                             ["--policy", "dqn", "--mode", "learning", *scenario])
-        checkpoint = str(learning / "checkpoint.pt")
+        checkpoint, seed_bag = str(learning / "checkpoint.pt"), seed_bag or str(learning / "offload.bag")
     results = {"map": map_yaml or "nav2_warehouse (bundled)", "map_name": pathlib.Path(map_yaml).stem or "warehouse",
                "link": args.link, "plan_unknown": args.plan_unknown,
-               "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint,
+               "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
                "goal_rate_hz": args.goal_rate_hz, "start_lead_s": args.start_lead_s, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
-    model = ["--model", checkpoint] if checkpoint else []
+    model = (["--model", checkpoint] if checkpoint else []) + (["--fleet-seed-bag", seed_bag] if seed_bag else [])
     total, began = args.repeats * len(policies) + len(outage), time.monotonic()
 
     def progress(done: int) -> str:

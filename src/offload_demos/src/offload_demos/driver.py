@@ -99,6 +99,10 @@ def check_options(args) -> str:
             return f"MAP {args.map}: {error}"
     if args.model and not os.path.isfile(args.model):
         return f"MODEL {args.model}: no such file"
+    if args.fleet and (args.policy != "dqn" or args.mode != "deployed"):
+        return "--fleet is the deployed DQN's: pass --policy dqn --mode deployed"
+    if args.fleet_seed_bag and not os.path.isfile(args.fleet_seed_bag):
+        return f"--fleet-seed-bag {args.fleet_seed_bag}: no such file"
     return ""
 
 
@@ -161,6 +165,12 @@ def main(argv=None) -> int:
     parser.add_argument("--hedge", action="store_true", help="deadline hedge (deployed)")
     parser.add_argument("--model", default="", help="checkpoint to start the DQN from")
     parser.add_argument("--learn", choices=("true", "false"))
+    parser.add_argument("--fleet", action="store_true",
+                        help="deployed DQN with a fleet learner on the cloud side: the robot decides, the cloud learns")
+    parser.add_argument("--fleet-seed-bag", default="", help="--fleet: a learning run's bag the fleet learner starts from")
+    parser.add_argument("--fleet-store", default="", help="--fleet: its store (default: the run directory's fleet/)")
+    parser.add_argument("--fleet-args", default="", help="--fleet: more offload-cloud-learner serve options")
+    parser.add_argument("--robot-key", default="", help="the robot's key under the demo's keys (its fleet name)")
     parser.add_argument("--wan-args", default="", help="extra WAN emulator options, e.g. '--outage 40:30'")
     parser.add_argument("--no-report", action="store_true", help="skip the HTML report (benchmarks)")
     parser.add_argument("--seed", type=int, help="the run's seed (default: offload_demo.launch's)")
@@ -219,6 +229,12 @@ def main(argv=None) -> int:
         launch_args.append(f"model:={os.path.abspath(args.model)}")
     if args.rtt_profile:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
+    if args.fleet:
+        launch_args += ["fleet:=true", f"fleet_port:={free_port()}", f"fleet_args:={args.fleet_args}"]
+        launch_args += [f"{name}:={os.path.abspath(value)}" for name, value in (
+            ("fleet_seed_bag", args.fleet_seed_bag), ("fleet_store", args.fleet_store)) if value]
+    if args.robot_key:
+        launch_args.append(f"robot_key:={args.robot_key}")
     if args.plan_unknown:
         launch_args.append("unknown_is_obstacle:=false")
     env = dict(os.environ, ROS_MASTER_URI=f"http://127.0.0.1:{master_port}", ROS_HOME=ros_home,

@@ -1,6 +1,6 @@
 """The demo's non-ROS processes started by roslaunch (which appends __name:= and __log:= arguments
-that their own command lines would reject): the cloud server with demo keys made on first run, the WAN
-emulator, and the robot workload."""
+that their own command lines would reject): the cloud server and the fleet learner with demo keys made on first
+run, the WAN emulator, and the robot workload."""
 import math
 import multiprocessing
 import sys
@@ -39,11 +39,23 @@ def cloud_server_main():
     --keys-dir DIR/server added after generating DIR on first run."""
     from offload_cloud import server_cli
 
-    argv = rospy.myargv(sys.argv)[1:]
+    sys.exit(server_cli.main(_with_demo_keys(rospy.myargv(sys.argv)[1:])))
+
+
+def _with_demo_keys(argv):
+    """A leading `--demo-keys DIR` becomes `--keys-dir DIR/server`, DIR generated on first run."""
     if argv[:1] == ["--demo-keys"] and len(argv) >= 2:
         root = ensure_demo_keys(argv[1])
         argv = argv[2:] + ["--keys-dir", str(root / "server")]
-    sys.exit(server_cli.main(argv))
+    return argv
+
+
+def fleet_learner_main():
+    """demo_fleet_learner [--demo-keys DIR] LEARNER_ARGS...: `offload-cloud-learner serve` (offload_cloud.learner.cli)
+    with --keys-dir DIR/server, the demo's keys (the cloud server's), made on first run."""
+    from offload_cloud.learner import cli
+
+    sys.exit(cli.main(["serve", *_with_demo_keys(rospy.myargv(sys.argv)[1:])]))
 
 
 def wan_emulator_main():
