@@ -66,37 +66,51 @@ def test_a_bad_models_cost_is_its_requests_over_the_oracle_until_the_rollback():
     assert fleet_metrics.rollback_index(versions, "other") is None
 
 
-def synthetic_run(path, learns_after, n=120, seed=0, probe_every=1):
+def synthetic_run(path, learns_after, n=120, seed=0, probe_every=1, bad=()):
     """n requests whose local side is 0.05 s and cloud 0.2 s; a robot that offloads until `learns_after`, then
-    plans locally; every probe_every-th request measures both sides."""
+    plans locally; every probe_every-th request measures both sides. Requests in range `bad` are decided by the
+    model version "bad" (always the cloud), the others by "good"."""
     rng = np.random.default_rng(seed)
     requests = []
     for i in range(n):
         local_s, cloud_s = 0.05 + 0.001 * rng.random(), 0.2
-        action = CLOUD if i < learns_after else LOCAL
+        action = CLOUD if i < learns_after or i in bad else LOCAL
         decision, outcome = probe_request(5000 + i, 1.0, 0.5, 0.05, local_s, cloud_s, action, 1.0,
                                           reward(action, local_s, cloud_s), probe=i % probe_every == 0)
+        decision["model_version"] = "bad" if i in bad else "good"
         outcome["delivered_s"] = local_s if action == LOCAL else cloud_s
         requests.append((decision, outcome))
     write(path / "offload.bag", requests)
     return path
 
 
+class FakePush:
+    def __init__(self, store_dir, at):
+        self.store_dir, self.version, self.error = store_dir, "bad", ""
+
+
 def test_the_bench_loops_over_robots_and_arms_and_reports(tmp_path, monkeypatch, capsys):
-    learns_after = {"oracle": 0, "alone": 80, "fleet": 20}
-    calls = []
+    learns_after = {"oracle": 0, "alone": 80, "fleet": 20, "bad_model": 0}
+    calls, keyed = [], []
 
     def fake_run(launch, runs_dir, steps, seed, map_yaml, extra, progress=""):
         arm = runs_dir.name
         calls.append((runs_dir.parent.name, arm, map_yaml, extra))
         run = runs_dir / "20260101-000000"
         run.mkdir(parents=True)
-        return synthetic_run(run, learns_after[arm], probe_every=1 if arm == "oracle" else 20)
+        return synthetic_run(run, learns_after[arm], probe_every=1 if arm == "oracle" else 20,
+                             bad=range(40, 52) if arm == "bad_model" else ())
     monkeypatch.setattr(bench, "run_demo", fake_run)
     monkeypatch.setattr(bench, "fleet_missing", lambda: "")
-    monkeypatch.setitem(bench.ARMS, "fleet", bench.ARMS["alone"])      # the loop's, not the robot's fleet mode
+    monkeypatch.setattr(bench, "ensure_demo_robots", lambda root, names: keyed.extend(names))
+    monkeypatch.setattr(bench, "DelayedPush", FakePush)
     assert bench.main(["--runs-dir", str(tmp_path), "--steps", "120", "--first", "100", "--window", "20"]) == 0
-    assert len(calls) == 3 * len(bench.ROBOTS)
+    assert len(calls) == 3 * len(bench.ROBOTS) + 1 and keyed == [robot.name for robot in bench.ROBOTS]
+    # each run as its own robot; the fleet runs share one store; the bad model goes to the first robot's fleet run
+    fleet_runs = [call for call in calls if call[1] in ("fleet", "bad_model")]
+    assert all("--fleet" in call[3] and call[3][call[3].index("--robot-key") + 1] == call[0] for call in fleet_runs)
+    assert len({call[3][call[3].index("--fleet-store") + 1] for call in fleet_runs}) == 1
+    assert calls[-1][:2] == ("turtlebot-edge", "bad_model")
     assert {call[0] for call in calls} == {robot.name for robot in bench.ROBOTS}
     husky = [call for call in calls if call[0] == "husky-wan" and call[1] == "alone"][0]
     assert husky[3][husky[3].index("--budget-cores") + 1] == "0.25" and "wan" in husky[3]
@@ -110,8 +124,13 @@ def test_the_bench_loops_over_robots_and_arms_and_reports(tmp_path, monkeypatch,
     assert robot["arms"]["alone"]["first"]["requests"] == 100
     assert robot["arms"]["alone"]["first"]["mean_s"] == pytest.approx((80 * 0.2 + 20 * 0.0505) / 100, abs=1e-3)
     assert results["fleet_fewer_requests"] == len(bench.ROBOTS)
+    # the bad model decided requests 40-51 (0.2 s each against the oracle's 0.05) and was rolled back at 52
+    bad = results["bad_model"]
+    assert bad["robot"] == "turtlebot-edge" and bad["requests_to_rollback"] == 12 and bad["rolled_back"]
+    assert bad["excess_s_per_request"] == pytest.approx(0.2 - 0.0505, abs=0.001)
     out = capsys.readouterr().out
     assert "fleet fewer requests to 5 % than alone: 4 of 4 robots" in out
+    assert "turtlebot-edge: 12 requests to rollback" in out
 
 
 def test_without_the_fleet_pieces_the_fleet_arm_says_why(tmp_path, monkeypatch, capsys):

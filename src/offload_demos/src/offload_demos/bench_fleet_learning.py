@@ -30,7 +30,10 @@ import numpy as np
 
 from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos import fleet_metrics
+from offload_cloud.learner.store import ModelStore
 from offload_demos.bench_policies import run_demo
+from offload_demos.fleet_bad_model import DelayedPush
+from offload_demos.keys import ensure_demo_robots
 from offload_learner_py.data.bags import read_bags
 
 ROOT = pathlib.Path(__file__).resolve().parents[4]     # the workspace (src/offload_demos/src/offload_demos/..)
@@ -53,17 +56,22 @@ ROBOTS = (
     RobotConfig("willow-wan", "../shared/data/maps/ros/willow_garage_2010/willow-2010-02-18-0.10.yaml", "wan", 1.0,
                 14),
 )
+# The fleet learner trains often enough that a robot's run sees several rounds (a fielded one: every 200 rows or
+# 5 minutes) and the robots ask for the current version every 5 s (fielded: 30 s).
+FLEET_LEARNER = "--train-every-rows 50 --train-every-s 20 --min-robot-rows 20"
 ARMS = {
     "oracle": ["--policy", "local", "--mode", "learning", "--learn", "false"],
     "alone": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05"],
-    "fleet": None,       # the robot's fleet mode: see fleet_missing()
+    # the store (--fleet-store) is the bench's one fleet learner store, added per run
+    "fleet": ["--policy", "dqn", "--mode", "deployed", "--probe-rate", "0.05", "--fleet", "--fleet-period-s", "5",
+              "--fleet-args", FLEET_LEARNER],
 }
 
 
 def fleet_missing(root: pathlib.Path = ROOT) -> str:
     """Why the fleet arm cannot run on this checkout ("" when it can): the fleet learner service
     (offload_cloud.learner) and the robot's fleet mode (robot.launch's fleet_endpoint) must both be there."""
-    missing = [] if ARMS["fleet"] else ["the bench's fleet arm is not wired yet (it waits for the robot's fleet mode)"]
+    missing = []
     if importlib.util.find_spec("offload_cloud.learner") is None:
         missing.append("no fleet learner service (offload_cloud.learner)")
     robot_launch = root / "launch" / "robot.launch"
@@ -98,6 +106,23 @@ def robot_figures(runs: Dict[str, pathlib.Path], first: int, tolerance: float, w
         if arm != "oracle":
             figures["arms"][arm] = arm_figures(run_dir, oracle, first, tolerance, window)
     return figures
+
+
+def bad_model_figures(runs, robot: Optional[RobotConfig], push: Optional[DelayedPush], store: pathlib.Path,
+                      missing: str) -> Dict:
+    """What the bad model cost `robot` and how soon its guard rolled it back, from its bad_model run's bag and its
+    oracle run (the version pushed: the push's, or on --analyse the store's fleet pin)."""
+    if robot is None or "bad_model" not in runs[robot.name]:
+        return {"skipped": "not run: " + (missing or "no bad-model robot among the robots run")}
+    version = push.version if push else ModelStore(str(store)).state().get("current", "")
+    if not version:
+        return {"skipped": f"the push failed: {push.error if push else 'no version in the store'}"}
+    arrays = load_run(runs[robot.name]["bad_model"])
+    oracle = fleet_metrics.request_oracle([load_run(runs[robot.name]["oracle"])] if "oracle" in runs[robot.name]
+                                          else [arrays], len(arrays["delivered_s"]))
+    rolled_back_at = fleet_metrics.rollback_index(arrays["model_version"], version)
+    return {"robot": robot.name, "version": version, **fleet_metrics.bad_model_cost(
+        arrays["model_version"], version, arrays["delivered_s"], oracle, rolled_back_at)}
 
 
 def format_table(results: Dict) -> str:
@@ -153,6 +178,10 @@ def main(argv=None) -> int:
     parser.add_argument("--tolerance", type=bounded_float("--tolerance", 0.0, 1.0), default=0.05)
     parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0), default=4.0)
     parser.add_argument("--start-lead-s", type=bounded_float("--start-lead-s", 0.0, 600.0), default=20.0)
+    parser.add_argument("--bad-model-robot", default=ROBOTS[0].name,
+                        help="the robot (one where local wins) the bad model is pushed to ('' to skip)")
+    parser.add_argument("--bad-model-after-s", type=bounded_float("--bad-model-after-s", 0.0, 3600.0), default=40.0,
+                        help="seconds after the requests begin")
     parser.add_argument("--runs-dir", default="runs")
     parser.add_argument("--analyse", metavar="BENCH_DIR", help="figures of an earlier bench directory, no run")
     args = parser.parse_args(argv)
@@ -167,9 +196,17 @@ def main(argv=None) -> int:
     missing = fleet_missing()
     results = {"steps": args.steps, "first": args.first, "window": args.window, "tolerance": args.tolerance,
                "goal_rate_hz": args.goal_rate_hz, "robots": {}, "fleet_missing": missing}
+    bad_robot = next((robot for robot in robots if robot.name == args.bad_model_robot), None) \
+        if "fleet" in arms and not missing else None
     plan = [(robot, arm) for robot in robots for arm in arms if not (arm == "fleet" and missing)]
+    plan += [(bad_robot, "bad_model")] if bad_robot else []
     began = time.monotonic()
     runs: Dict[str, Dict[str, pathlib.Path]] = {robot.name: {} for robot in robots}
+    store = out / "fleet-store"      # the one fleet learner's, every robot's fleet runs one after another
+    if not args.analyse:
+        ensure_demo_robots(pathlib.Path(os.environ.get("ROS_HOME", pathlib.Path.home() / ".ros")) / "offload_demo_keys",
+                           [robot.name for robot in robots])
+    push = None
     for done, (robot, arm) in enumerate(plan):
         where = out / robot.name / arm
         if args.analyse:
@@ -178,8 +215,13 @@ def main(argv=None) -> int:
                 runs[robot.name][arm] = found[-1]
             continue
         left = f", about {(time.monotonic() - began) / done * (len(plan) - done) / 60:.0f} min left" if done else ""
-        extra = ARMS[arm] + ["--link", robot.link, "--budget-cores", f"{robot.budget_cores:g}", "--goal-rate-hz",
-                             f"{args.goal_rate_hz:g}", "--start-lead-s", f"{args.start_lead_s:g}"]
+        extra = ARMS["fleet" if arm == "bad_model" else arm] + [
+            "--link", robot.link, "--budget-cores", f"{robot.budget_cores:g}", "--goal-rate-hz",
+            f"{args.goal_rate_hz:g}", "--start-lead-s", f"{args.start_lead_s:g}", "--robot-key", robot.name]
+        if arm in ("fleet", "bad_model"):
+            extra += ["--fleet-store", str(store)]
+        if arm == "bad_model":   # the launch takes a few seconds more than the lead: pushed a little late at worst
+            push = DelayedPush(str(store), time.monotonic() + args.start_lead_s + args.bad_model_after_s)
         runs[robot.name][arm] = run_demo(args.launch, where, args.steps, robot.seed, str((ROOT / robot.map).resolve()),
                                          extra, f"{robot.name} {arm}, {done + 1}/{len(plan)}{left}")
     for robot in robots:
@@ -190,7 +232,7 @@ def main(argv=None) -> int:
             entry["skipped"]["fleet"] = f"not run: {missing}"
         results["robots"][robot.name] = entry
     results["fleet_fewer_requests"] = fleet_fewer(results) if "fleet" in arms and not missing else None
-    results["bad_model"] = {"skipped": "not run: " + (missing or "the robot's rollback guard is not wired here yet")}
+    results["bad_model"] = bad_model_figures(runs, bad_robot, push, store, missing)
     with open(out / "results.json", "w") as stream:
         json.dump(results, stream, indent=2)
     print()

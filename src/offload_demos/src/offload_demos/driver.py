@@ -170,6 +170,8 @@ def main(argv=None) -> int:
     parser.add_argument("--fleet-seed-bag", default="", help="--fleet: a learning run's bag the fleet learner starts from")
     parser.add_argument("--fleet-store", default="", help="--fleet: its store (default: the run directory's fleet/)")
     parser.add_argument("--fleet-args", default="", help="--fleet: more offload-cloud-learner serve options")
+    parser.add_argument("--fleet-period-s", type=bounded_float("--fleet-period-s", 0.1, 86400.0),
+                        help="--fleet: how often the robot asks for the current model version")
     parser.add_argument("--robot-key", default="", help="the robot's key under the demo's keys (its fleet name)")
     parser.add_argument("--wan-args", default="", help="extra WAN emulator options, e.g. '--outage 40:30'")
     parser.add_argument("--no-report", action="store_true", help="skip the HTML report (benchmarks)")
@@ -231,6 +233,8 @@ def main(argv=None) -> int:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
     if args.fleet:
         launch_args += ["fleet:=true", f"fleet_port:={free_port()}", f"fleet_args:={args.fleet_args}"]
+        if args.fleet_period_s:
+            launch_args.append(f"fleet_period_s:={args.fleet_period_s:g}")
         launch_args += [f"{name}:={os.path.abspath(value)}" for name, value in (
             ("fleet_seed_bag", args.fleet_seed_bag), ("fleet_store", args.fleet_store)) if value]
     if args.robot_key:

@@ -110,4 +110,4 @@ def run_arrays(log) -> Dict[str, np.ndarray]:
     both = pick("outcome_reward_valid").astype(bool)
     return {"delivered_s": pick("outcome_delivered_s").astype(np.float64), "local_s": local_s, "cloud_s": cloud_s,
             "both_measured": both & np.isfinite(local_s) & np.isfinite(cloud_s),
-            "stamp_ns": pick("stamp_ns").astype(np.int64)}
+            "stamp_ns": pick("stamp_ns").astype(np.int64), "model_version": pick("model_version").astype(str)}

@@ -29,3 +29,13 @@ def ensure_demo_keys(keys_root) -> pathlib.Path:
         if staging.exists():
             shutil.rmtree(staging)
     return keys_root
+
+
+def ensure_demo_robots(keys_root, names) -> pathlib.Path:
+    """The demo's keys (ensure_demo_keys) with a client key for each of `names` too (robots that differ, each
+    with its own name to the cloud server and the fleet learner), added unless already there."""
+    keys_root = ensure_demo_keys(keys_root)
+    missing = [name for name in names if not (keys_root / name / keys.CLIENT_SECRET).is_file()]
+    if missing:
+        keys.generate(keys_root, missing, add_to=keys_root / "server")
+    return keys_root

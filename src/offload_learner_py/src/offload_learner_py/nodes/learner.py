@@ -22,6 +22,7 @@ from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, 
     StaleMapCheck, account, config_msg, decision_msg, exit_fatal, outcome_msg, path_of, rejection, stamped, stats_msg, \
     wait_for_recorder
 from offload_learner_py.nodes.learner_fleet import NodeFleet
+from offload_learner_py.nodes.path_wire import pose_count
 from offload_learner_py.nodes.learner_params import read_learner_parameters
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
@@ -61,6 +62,7 @@ class LearnerNode:
         self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
         self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
                           CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
+        self.path_empty = {LOCAL: False, CLOUD: False}
         self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
         self.config_pub = rospy.Publisher("~config", LearnerConfig, queue_size=1, latch=True)
         self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
@@ -153,9 +155,14 @@ class LearnerNode:
         msg = outcome_msg(outcome)
         self.fleet.outcome(outcome, msg)   # the guard's sample and the row for the fleet learner
         self.outcome_pub.publish(msg)
-        # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one.
+        # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one. An
+        # empty one already latched is not sent again (a deployed robot's other side, request after request).
         for action, side in ((LOCAL, outcome.local), (CLOUD, outcome.cloud)):
-            self.path_pubs[action].publish(path_of(side))
+            path = path_of(side)
+            empty = pose_count(path) == 0
+            if not (empty and self.path_empty[action]):
+                self.path_pubs[action].publish(path)
+            self.path_empty[action] = empty
         self.stats_pub.publish(self.fleet.fill_stats(stats_msg(self.learner)))   # the learner counted it and saved when due
 
     def shutdown(self):
