@@ -141,7 +141,8 @@ bench-online: build
 
 bench-offline: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_offline
-# cosmic-ray over the learner's reward, state and DQN modules and the cloud protocol (about 15 min),
+# cosmic-ray over the learner's reward, state and DQN modules, the cloud protocol and every module that decides,
+# routes, admits or evaluates (about an hour),
 # then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 5 min).
 mutate: build
 	@$(ROSENV) $(PY) tools/mutate_py.py; $(PY) tools/mutate_cpp.py

@@ -1,6 +1,9 @@
 #!/usr/bin/env python3
-"""Mutation testing of the learner's reward, state and DQN modules and of the cloud protocol, with
-cosmic-ray (pinned in requirements.txt). `make mutate` runs it.
+"""Mutation testing, with cosmic-ray (pinned in requirements.txt), of the learner's reward, state and DQN
+modules and the cloud protocol, and of every module that decides, routes, admits or evaluates: the policies,
+the router, the breaker, the fleet robot's model guard, the off-policy comparison that gates models, the
+server's admission and connection guard, and the fleet learner's gate. `make mutate` runs it all (about an
+hour on two cores); `tools/mutate_py.py router breaker` runs some.
 
 For each module: copy its package and the tests that cover it into build/mutate/<module>/ (the
 work tree is never mutated, so Ctrl-C or a crash cannot leave a mutant behind), let cosmic-ray list
@@ -74,6 +77,29 @@ TARGETS = {
                                                                           "round_trip_s") for seed in (23, 37))),
     "protocol": Target("protocol", CLOUD / "src" / "offload_cloud", "protocol.py",
                        ("test_cloud_protocol.py",), CLOUD / "test", test_support=("conftest.py",), budget_s=180),
+    # What decides, routes, admits and evaluates (#31): each with the tests that exercise it.
+    "policies": Target("policies", LEARNER / "src" / "offload_learner_py", "core/policies.py",
+                       ("test_policies.py",), LEARNER / "test", budget_s=300),
+    "router": Target("router", LEARNER / "src" / "offload_learner_py", "online/router.py",
+                     ("test_router.py", "test_router_modes.py", "test_router_cancel.py"), LEARNER / "test",
+                     test_support=("conftest.py", "routertools.py"), budget_s=420),
+    "breaker": Target("breaker", LEARNER / "src" / "offload_learner_py", "online/breaker.py",
+                      ("test_breaker.py", "test_router_modes.py"), LEARNER / "test",
+                      test_support=("conftest.py", "routertools.py"), budget_s=240),
+    "model_guard": Target("model_guard", LEARNER / "src" / "offload_learner_py", "online/model_guard.py",
+                          ("test_fleet_robot.py",), LEARNER / "test", budget_s=240),
+    "off_policy_combined": Target("off_policy_combined", LEARNER / "src" / "offload_learner_py",
+                                  "offline/off_policy_combined.py", ("test_off_policy_gate.py", "test_off_policy.py"),
+                                  LEARNER / "test", test_support=("conftest.py", "bagtools.py"), budget_s=420),
+    "admission": Target("admission", CLOUD / "src" / "offload_cloud", "admission.py",
+                        ("test_cloud_admission.py",), CLOUD / "test",
+                        test_support=("conftest.py", "cloud_test_helpers.py"), budget_s=300),
+    "connection_guard": Target("connection_guard", CLOUD / "src" / "offload_cloud", "connection_guard.py",
+                               ("test_cloud_admission.py", "test_cloud_connections.py"), CLOUD / "test",
+                               test_support=("conftest.py", "cloud_test_helpers.py"), budget_s=300),
+    "fleet_gate": Target("fleet_gate", CLOUD / "src" / "offload_cloud", "learner/training.py",
+                         ("test_fleet_learner.py",), CLOUD / "test",
+                         test_support=("conftest.py", "fleet_helpers.py"), budget_s=420),
 }
 
 
