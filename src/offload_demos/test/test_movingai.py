@@ -84,6 +84,29 @@ def test_optimal_lengths(map_file):
     assert np.isclose((steps == 1).sum() + np.sqrt(2) * (steps == 2).sum(), result.cost)
 
 
+@pytest.mark.parametrize("map_file", MAP_FILES, ids=lambda p: p.stem)
+def test_jump_point_search_and_auto_are_exact_on_every_query(map_file):
+    """algorithm jps and auto on every query of the file: the optimal length (the default's, which
+    test_optimal_lengths and the CLI check) and a legal path (no blocked cell, no cut corner) whose steps add
+    up to it; on the bucket spread also the default's own cost, query by query."""
+    grid = load_movingai_map(map_file).grid
+    every = load_scenarios(Path(str(map_file) + ".scen"))
+    for scenario in every:
+        for algorithm in ("jps", "auto"):
+            result = offload_planner_cpp.plan(grid, scenario.start, scenario.goal, algorithm=algorithm)
+            assert abs(result.cost - scenario.optimal_length) <= length_tolerance(scenario), (algorithm, scenario)
+            assert tuple(result.path[0]) == scenario.start and tuple(result.path[-1]) == scenario.goal
+            if len(result.path) > 1:
+                assert_legal_path(grid, result.path)
+            steps = np.abs(np.diff(result.path, axis=0)).sum(axis=1)
+            assert (steps == 1).sum() + np.sqrt(2) * (steps == 2).sum() == pytest.approx(result.cost, abs=1e-9)
+    for scenario in bucket_spread(every):
+        default = offload_planner_cpp.plan(grid, scenario.start, scenario.goal).cost
+        for algorithm in ("jps", "auto"):
+            cost = offload_planner_cpp.plan(grid, scenario.start, scenario.goal, algorithm=algorithm).cost
+            assert cost == pytest.approx(default, rel=1e-12, abs=1e-12), (algorithm, scenario)
+
+
 def test_tolerance_follows_printed_precision():
     exact = Scenario(0, "m", (0, 0), (1, 1), 1000.0, decimals=8)
     rough = Scenario(0, "m", (0, 0), (1, 1), 1000.0, decimals=4)
@@ -113,3 +136,6 @@ def test_cli_reports_mismatches(tmp_path):
     bad = run("bad.scen")
     assert bad.returncode == 1
     assert "1 queries checked, 1 mismatches" in bad.stdout
+    jumps = subprocess.run([sys.executable, "-m", "offload_demos.movingai", str(tmp_path / "tiny.map"),
+                            str(tmp_path / "ok.scen"), "--algorithm", "jps"], capture_output=True, text=True)
+    assert jumps.returncode == 0 and "1 queries checked, 0 mismatches" in jumps.stdout, jumps.stdout + jumps.stderr

@@ -126,6 +126,9 @@ void defineOptions(py::module_& m) {
           if (!problem.empty()) throw py::value_error(problem);
           spec.set(parameters, number);
         }
+        // Each value is acceptable alone; the rule between two of them (jps needs cost_factor 0) remains.
+        const std::string pair = offload_planner::optionsProblem(parameters.options);
+        if (!pair.empty()) throw py::value_error(pair);
         py::dict out;
         for (const OptionSpec& spec : offload_planner::optionsTable()) {
           out[spec.name] = pythonValue(spec, spec.get(parameters));

@@ -57,7 +57,9 @@ std::vector<OptionSpec> buildTable() {
        "inflation: the decay of the inflated cost with distance", nullptr, 0,
        OFFLOAD_REAL(options.inflation_decay)},
       {"algorithm", T::kAlgorithm, kCells, true, double(static_cast<int>(o.algorithm)), 0, kAlgorithmCount - 1,
-       false, "", "dijkstra: the full wave; astar: the octile heuristic, the same costs, fewer cells settled",
+       false, "",
+       "dijkstra: the full wave; astar: the octile heuristic; jps: jump point search (cost_factor 0 only); auto: "
+       "the fastest exact one for the plan. Every one returns dijkstra's costs",
        nullptr, 0,
        [](const PlannerParameters& p) { return static_cast<double>(static_cast<int>(p.options.algorithm)); },
        [](PlannerParameters& p, double v) { p.options.algorithm = static_cast<Algorithm>(static_cast<int>(v)); }},
@@ -99,6 +101,15 @@ std::string firstProblem(const PlannerParameters& parameters, Select select) {
     if (!select(spec)) continue;
     std::string why = optionProblem(spec, spec.get(parameters));
     if (!why.empty()) return why;
+  }
+  return "";
+}
+
+// The one rule between two options.
+std::string pairProblem(const PlannerOptions& options) {
+  if (options.algorithm == Algorithm::kJps && options.cost_factor != 0.0) {
+    return "algorithm jps is exact only where every passable cell costs the same: cost_factor must be 0, got " +
+           numberText(options.cost_factor);
   }
   return "";
 }
@@ -155,11 +166,14 @@ std::string optionProblem(const OptionSpec& spec, double value) {
 std::string optionsProblem(const PlannerOptions& options) {
   PlannerParameters parameters;
   parameters.options = options;
-  return firstProblem(parameters, [](const OptionSpec& spec) { return spec.scope == OptionScope::kCells; });
+  const std::string problem =
+      firstProblem(parameters, [](const OptionSpec& spec) { return spec.scope == OptionScope::kCells; });
+  return problem.empty() ? pairProblem(options) : problem;
 }
 
 std::string parametersProblem(const PlannerParameters& parameters) {
-  return firstProblem(parameters, [](const OptionSpec& spec) { return spec.node_parameter; });
+  const std::string problem = firstProblem(parameters, [](const OptionSpec& spec) { return spec.node_parameter; });
+  return problem.empty() ? pairProblem(parameters.options) : problem;
 }
 
 const char* algorithmName(Algorithm algorithm) {

@@ -47,7 +47,7 @@ const std::vector<Expected>& expectedTable() {
       {"robot_radius_cells", T::kReal, C, false, 0, 0, 10000, false, "cells", "", 0},
       {"inflation_radius_cells", T::kReal, C, false, 0, 0, 10000, false, "cells", "", 0},
       {"inflation_decay", T::kReal, C, false, 0.5, 0, kInf, false, "1/cell", "", 0},
-      {"algorithm", T::kAlgorithm, C, true, 0, 0, 1, false, "", "", 0},
+      {"algorithm", T::kAlgorithm, C, true, 0, 0, 3, false, "", "", 0},
       {"any_angle", T::kBool, C, true, 0, 0, 1, false, "", "", 0},
       {"robot_radius", T::kReal, M, true, 0, 0, kInf, false, "m", "robot_radius_cells", -1},
       {"inflation_radius", T::kReal, M, true, 0, 0, kInf, false, "m", "inflation_radius_cells", -1},
@@ -141,20 +141,22 @@ TEST(PlannerOptionsTable, EveryBoundIsCheckedWithOneWording) {
   EXPECT_EQ(optionProblem(*findOption("cost_factor"), kNaN), "cost_factor must be a finite number >= 0, got nan");
   EXPECT_EQ(optionProblem(*findOption("robot_radius_cells"), 10000.5),
             "robot_radius_cells must be a finite number in 0..10000, got 10000.5");
-  EXPECT_EQ(optionProblem(*findOption("algorithm"), 2), "algorithm must be one of dijkstra, astar, got 2");
+  EXPECT_EQ(optionProblem(*findOption("algorithm"), 4), "algorithm must be one of dijkstra, astar, jps, auto, got 4");
 }
 
 TEST(PlannerOptionsTable, AlgorithmNamesAreTheEnumsInOrder) {
-  ASSERT_EQ(kAlgorithmCount, 2);
+  ASSERT_EQ(kAlgorithmCount, 4);
   EXPECT_STREQ(kAlgorithmNames[0], "dijkstra");
   EXPECT_STREQ(kAlgorithmNames[1], "astar");
-  for (Algorithm a : {Algorithm::kDijkstra, Algorithm::kAStar}) {
+  EXPECT_STREQ(kAlgorithmNames[2], "jps");
+  EXPECT_STREQ(kAlgorithmNames[3], "auto");
+  for (Algorithm a : {Algorithm::kDijkstra, Algorithm::kAStar, Algorithm::kJps, Algorithm::kAuto}) {
     Algorithm back = a == Algorithm::kDijkstra ? Algorithm::kAStar : Algorithm::kDijkstra;
     EXPECT_EQ(algorithmOf(algorithmName(a), &back), "");
     EXPECT_EQ(back, a);
   }
   Algorithm untouched = Algorithm::kAStar;
-  EXPECT_EQ(algorithmOf("bfs", &untouched), "algorithm must be one of dijkstra, astar, got \"bfs\"");
+  EXPECT_EQ(algorithmOf("bfs", &untouched), "algorithm must be one of dijkstra, astar, jps, auto, got \"bfs\"");
   EXPECT_EQ(algorithmOf("Dijkstra", &untouched).empty(), false) << "names are case sensitive";
   EXPECT_EQ(untouched, Algorithm::kAStar);
 }
@@ -173,7 +175,7 @@ TEST(PlannerOptionsTable, PlanRefusesWhatTheTableRefusesWithItsMessage) {
   EXPECT_EQ(planWith(bad).message, "inflation_decay must be a finite number >= 0, got -inf");
   bad = PlannerOptions();
   bad.algorithm = static_cast<Algorithm>(7);
-  EXPECT_EQ(planWith(bad).message, "algorithm must be one of dijkstra, astar, got 7");
+  EXPECT_EQ(planWith(bad).message, "algorithm must be one of dijkstra, astar, jps, auto, got 7");
   // The first problem in table order.
   bad = PlannerOptions();
   bad.neutral_cost = 0.0;
@@ -187,6 +189,24 @@ TEST(PlannerOptionsTable, PlanRefusesWhatTheTableRefusesWithItsMessage) {
   edge.inflation_decay = 0.0;
   edge.algorithm = Algorithm::kAStar;
   EXPECT_EQ(planWith(edge).status, PlanStatus::kOk) << planWith(edge).message;
+}
+
+TEST(PlannerOptionsTable, JumpPointSearchIsRefusedWhereCellsCostDifferently) {
+  PlannerOptions jps;
+  jps.algorithm = Algorithm::kJps;
+  EXPECT_EQ(planWith(jps).status, PlanStatus::kOk) << planWith(jps).message;
+  jps.cost_factor = 3.0;
+  const std::string why =
+      "algorithm jps is exact only where every passable cell costs the same: cost_factor must be 0, got 3";
+  EXPECT_EQ(optionsProblem(jps), why);
+  EXPECT_EQ(planWith(jps).status, PlanStatus::kInvalidRequest);
+  EXPECT_EQ(planWith(jps).message, why);
+  PlannerParameters node;
+  node.options = jps;
+  EXPECT_EQ(parametersProblem(node), why);
+  // auto chooses per plan, so it takes any cost model.
+  jps.algorithm = Algorithm::kAuto;
+  EXPECT_EQ(planWith(jps).status, PlanStatus::kOk) << planWith(jps).message;
 }
 
 TEST(PlannerOptionsTable, NodeParametersAreCheckedInMetresWithoutTheCellBound) {

@@ -231,7 +231,7 @@ EXPECTED_TABLE = {
     "robot_radius_cells": ("float", "cells", False, 0.0, 0, 10000, False, "cells", None, 0),
     "inflation_radius_cells": ("float", "cells", False, 0.0, 0, 10000, False, "cells", None, 0),
     "inflation_decay": ("float", "cells", False, 0.5, 0, INF, False, "1/cell", None, 0),
-    "algorithm": ("algorithm", "cells", True, "dijkstra", 0, 1, False, "", None, 0),
+    "algorithm": ("algorithm", "cells", True, "dijkstra", 0, 3, False, "", None, 0),
     "any_angle": ("bool", "cells", True, False, 0, 1, False, "", None, 0),
     "robot_radius": ("float", "metres", True, 0.0, 0, INF, False, "m", "robot_radius_cells", -1),
     "inflation_radius": ("float", "metres", True, 0.0, 0, INF, False, "m", "inflation_radius_cells", -1),
@@ -248,8 +248,8 @@ def test_the_options_table_holds_every_option_with_its_default_and_bounds():
         assert tuple(row[field] for field in FIELDS) == EXPECTED_TABLE[row["name"]], row["name"]
         assert type(row["default"]) is type(EXPECTED_TABLE[row["name"]][3]), row["name"]
         assert row["meaning"] and row["rule"], row["name"]
-    assert offload_planner_cpp.ALGORITHM_NAMES == ("dijkstra", "astar")
-    assert table[[row["name"] for row in table].index("algorithm")]["choices"] == ("dijkstra", "astar")
+    assert offload_planner_cpp.ALGORITHM_NAMES == ("dijkstra", "astar", "jps", "auto")
+    assert table[[row["name"] for row in table].index("algorithm")]["choices"] == ("dijkstra", "astar", "jps", "auto")
     assert offload_planner_cpp.OPTION_DEFAULTS == {name: spec[3] for name, spec in EXPECTED_TABLE.items()}
 
 
@@ -317,15 +317,21 @@ def test_validate_options_checks_names_types_and_algorithms():
     values = validate(lethal_threshold=101, algorithm="astar", any_angle=True, robot_radius=1000.0)
     assert values["lethal_threshold"] == 101 and values["algorithm"] == "astar" and values["any_angle"] is True
     assert values["robot_radius"] == 1000.0, "metres have no upper bound: the cells are per map"
-    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, got "bfs"$'):
+    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, jps, auto, got "bfs"$'):
         validate(algorithm="bfs")
-    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, got "bfs"$'):
+    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, jps, auto, got "bfs"$'):
         plan_raw(np.zeros((4, 4), np.int8), (0, 0), (3, 3), algorithm="bfs")
     for name, value in (("algorithm", 1), ("any_angle", "yes"), ("neutral_cost", "5"), ("lethal_threshold", True)):
         with pytest.raises(ValueError, match=f"^{name} must be .*, got {re.escape(repr(value))}$"):
             validate(**{name: value})
     with pytest.raises(TypeError, match="unknown planner option 'bogus'"):
         validate(bogus=1)
+    jps_weighted = r"^algorithm jps is exact only where every passable cell costs the same: cost_factor must be 0, got 3$"
+    with pytest.raises(ValueError, match=jps_weighted):
+        validate(algorithm="jps", cost_factor=3.0)
+    assert plan_raw(np.zeros((4, 4), np.int8), (0, 0), (3, 3), algorithm="jps", cost_factor=3.0)["message"] == \
+        jps_weighted[1:-1]
+    assert validate(algorithm="auto", cost_factor=3.0)["algorithm"] == "auto"
     for function in (offload_planner_cpp.free_cells, inflate):
         with pytest.raises(ValueError, match=r"^lethal_threshold must be an integer in 1\.\.101, got 0$"):
             function(np.zeros((4, 4), np.int8), *((1.0, 2.0) if function is inflate else ()), lethal_threshold=0)
@@ -354,7 +360,9 @@ def test_the_protocol_takes_the_algorithm_codes_and_defaults_from_the_core():
     assert dataclasses.asdict(PlanOptions()) == {field.name: defaults[field.name]
                                                  for field in dataclasses.fields(PlanOptions)}
     for code, name in enumerate(offload_planner_cpp.ALGORITHM_NAMES):
-        body = protocol.encode_plan(1, b"h" * 16, START, GOAL, PlanOptions(algorithm=name, cost_factor=1.0))[1]
+        # jps plans at uniform cost only: its algorithm alone differs from the defaults.
+        changed = PlanOptions(algorithm=name, cost_factor=0.0 if name == "jps" else 1.0)
+        body = protocol.encode_plan(1, b"h" * 16, START, GOAL, changed)[1]
         assert body[protocol.PLAN_BODY.size] == code
-    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, got "bfs"$'):
+    with pytest.raises(ValueError, match=r'^algorithm must be one of dijkstra, astar, jps, auto, got "bfs"$'):
         protocol.encode_plan(1, b"h" * 16, START, GOAL, PlanOptions(algorithm="bfs"))

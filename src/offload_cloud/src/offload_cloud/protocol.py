@@ -10,7 +10,7 @@ Plan request (kind PLAN), after the envelope:
              goal tolerance (float64 cells), lethal threshold (int16), flags (u8: unknown_is_obstacle,
              stop_at_goal, any_angle), then, only when a planner option differs from its default, the
              struct PLANNER_TAIL: algorithm (u8: its index in the core's ALGORITHM_NAMES, 0 dijkstra,
-             1 astar), cost_factor, neutral_cost,
+             1 astar, 2 jps, 3 auto), cost_factor, neutral_cost,
              robot_radius_cells, inflation_radius_cells, inflation_decay (float64 each). Added within
              version 2: a server that predates the tail answers BAD_REQUEST about the body's size, and a
              request with default options is byte for byte what it was.

@@ -1,6 +1,6 @@
 """Check the planner against a MovingAI scenario file's optimal lengths.
 
-    python -m offload_demos.movingai MAP SCEN [--limit N]
+    python -m offload_demos.movingai MAP SCEN [--limit N] [--algorithm NAME]
 
 Prints one line: queries checked, mismatches, max absolute error. Exits 1 on any mismatch."""
 import argparse
@@ -10,7 +10,7 @@ from typing import Sequence
 
 import numpy as np
 
-from offload_planner_cpp import plan
+from offload_planner_cpp import ALGORITHM_NAMES, OPTION_DEFAULTS, plan
 from offload_planner_cpp.maps import Scenario, length_tolerance, load_movingai_map, load_scenarios
 
 
@@ -31,10 +31,11 @@ def spread(scenarios: Sequence[Scenario], limit: int) -> Sequence[Scenario]:
     return [scenarios[i] for i in picks]
 
 
-def check(grid: np.ndarray, scenarios: Sequence[Scenario]) -> CheckSummary:
+def check(grid: np.ndarray, scenarios: Sequence[Scenario], **options) -> CheckSummary:
+    """Plans every scenario with `options` (plan()'s keywords, e.g. algorithm="jps")."""
     summary = CheckSummary(0, 0, 0.0, 0, 0.0)
     for scenario in scenarios:
-        result = plan(grid, scenario.start, scenario.goal)
+        result = plan(grid, scenario.start, scenario.goal, **options)
         error = abs(result.cost - scenario.optimal_length)
         summary.checked += 1
         summary.mismatches += error > length_tolerance(scenario)
@@ -49,10 +50,12 @@ def main(argv=None) -> int:
     parser.add_argument("map", help="MovingAI .map file")
     parser.add_argument("scen", help="MovingAI .map.scen file")
     parser.add_argument("--limit", type=int, default=0, help="check N queries spread over the file (0: all)")
+    parser.add_argument("--algorithm", default=OPTION_DEFAULTS["algorithm"], choices=ALGORITHM_NAMES,
+                        help="the planner's algorithm (default: the planner's default)")
     args = parser.parse_args(argv)
     occupancy = load_movingai_map(args.map)
     scenarios = spread(load_scenarios(args.scen), args.limit)
-    summary = check(occupancy.grid, scenarios)
+    summary = check(occupancy.grid, scenarios, algorithm=args.algorithm)
     print(f"{occupancy.name}: {summary.checked} queries checked, {summary.mismatches} mismatches, "
           f"max abs error {summary.max_abs_error:.3g}, {summary.expansions / max(summary.seconds, 1e-9) / 1e6:.1f} "
           f"M expansions/s")

@@ -23,6 +23,7 @@
 #include <string>
 #include <vector>
 
+#include "offload_planner_cpp/jump_point_search.h"
 #include "offload_planner_cpp/plan_status.h"
 #include "offload_planner_cpp/planner_options.h"
 
@@ -149,6 +150,8 @@ class DijkstraPlanner {
   // Calls visit(j, length) for every legal 8-connected move out of cell i = (x, y), in a fixed order.
   template <class Visit>
   void forEachMove(int i, int x, int y, Visit visit) const;
+  // The search kAuto runs for a plan from cell `from` to cell `target` (set per call: weighted_).
+  Algorithm chooseAlgorithm(const PlannerOptions& options, int from, int target) const;
   // The free cell nearest to `goal` within `radius` cells (settled by the last search if
   // `settled_only`), ties to the first in row order; -1 if there is none.
   int nearestWithin(Cell goal, double radius, bool settled_only) const;
@@ -214,6 +217,7 @@ class DijkstraPlanner {
   std::vector<std::pair<double, int>> heap_;
   std::vector<int> parent_;            // Theta*: each settled cell's parent
   std::vector<std::int8_t> inflated_;  // the grid after inflation, when asked for
+  JumpPointSearch jump_;
 };
 
 }  // namespace offload_planner

@@ -19,10 +19,12 @@
 namespace offload_planner {
 
 // The value of an algorithm is its index in kAlgorithmNames (and the wire protocol's algorithm code).
-enum class Algorithm : std::uint8_t { kDijkstra = 0, kAStar = 1 };
-constexpr const char* kAlgorithmNames[] = {"dijkstra", "astar"};
+// kJps, jump point search, is exact only where every passable cell costs the same (cost_factor 0); kAuto
+// picks, per plan, the fastest exact search the plan allows (see dijkstra.h).
+enum class Algorithm : std::uint8_t { kDijkstra = 0, kAStar = 1, kJps = 2, kAuto = 3 };
+constexpr const char* kAlgorithmNames[] = {"dijkstra", "astar", "jps", "auto"};
 constexpr int kAlgorithmCount = static_cast<int>(sizeof(kAlgorithmNames) / sizeof(kAlgorithmNames[0]));
-static_assert(static_cast<int>(Algorithm::kAStar) == kAlgorithmCount - 1, "one name per Algorithm, in order");
+static_assert(static_cast<int>(Algorithm::kAuto) == kAlgorithmCount - 1, "one name per Algorithm, in order");
 
 // The options of one plan. The defaults written here are the table's defaults.
 struct PlannerOptions {
@@ -39,7 +41,8 @@ struct PlannerOptions {
   // a caller that already has its path (from the other side) frees the CPU for the next request. Not an
   // option of the table: a run-time handle.
   const std::atomic<bool>* cancel = nullptr;
-  // kAStar settles only the cells the octile heuristic cannot rule out; same costs as kDijkstra.
+  // kAStar settles only the cells the octile heuristic cannot rule out; kJps expands only jump points
+  // (uniform cost only); kAuto picks per plan. Every one returns kDijkstra's costs.
   Algorithm algorithm = Algorithm::kDijkstra;
   // Return the corners of a path whose segments may run at any angle (see dijkstra.h).
   bool any_angle = false;
@@ -108,7 +111,8 @@ std::string optionProblem(const OptionSpec& spec, double value);
 std::string optionProblem(const OptionSpec& spec, const std::string& got);
 // The rule of `spec` as the problem states it, e.g. "an integer in 1..101", "a finite number > 0".
 std::string optionRule(const OptionSpec& spec);
-// The first problem of a plan's options (kCells rows), "" when there is none. plan() refuses such a
+// The first problem of a plan's options (kCells rows, then the one rule between two of them: jps needs
+// cost_factor 0), "" when there is none. plan() refuses such a
 // request with INVALID_REQUEST.
 std::string optionsProblem(const PlannerOptions& options);
 // The first problem of a node's configuration (the rows that are node parameters), "" when none.
