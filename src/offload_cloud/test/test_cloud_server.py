@@ -130,10 +130,10 @@ HOSTILE_TOLERANCES = [float("nan"), float("inf"), -float("inf"), -1.0, -0.0, 0.0
 INT32_EDGES = [0, 1, 29, 30, -1, 2**31 - 1, -2**31]
 
 
-def expected_reply_id(message):
+def expected_reply_id(message, max_frames):
     """The request id the server's reply to `message` (sent by a DEALER) carries, or None when the protocol
-    drops it unanswered (more frames than any valid message)."""
-    if len(message) > 9:                            # identity + more than max_frames + 1 frames: dropped
+    drops it unanswered (more frames than any valid message: `max_frames`, and a REQ-style delimiter)."""
+    if len(message) > max_frames + 1:               # identity + more than max_frames + 1 frames: dropped
         return None
     payload = message[1:] if len(message) >= 2 and message[0] == b"" else message   # REQ-style delimiter
     return protocol.request_id_of(payload[0])
@@ -173,8 +173,10 @@ def test_fuzz_every_answerable_message_gets_exactly_one_reply(server, key_dirs, 
         if choice == 6:   # hostile map metadata, in an upload or with a plan
             metadata = rng.choice(HOSTILE_METADATA)
             cells = valid[3] if rng.random() < 0.7 else rng.randbytes(rng.randrange(2000))
-            if rng.random() < 0.5:
-                return [protocol.envelope(Kind.UPLOAD, rng.getrandbits(64)), metadata, cells]
+            if rng.random() < 0.5:   # an upload's cells in one to three frames, split anywhere
+                cuts = sorted(rng.randrange(len(cells) + 1) for _ in range(rng.randrange(3)))
+                pieces = [cells[a:b] for a, b in zip([0] + cuts, cuts + [len(cells)])]
+                return [protocol.envelope(Kind.UPLOAD, rng.getrandbits(64)), metadata, *pieces]
             return [protocol.envelope(Kind.PLAN, rng.getrandbits(64)), valid[1], metadata, cells]
         # hostile plan body on the cached map: tolerance, cells, lethal threshold, flags
         body = protocol.PLAN_BODY.pack(digest if rng.random() < 0.8 else rng.randbytes(16),
@@ -206,7 +208,7 @@ def test_fuzz_every_answerable_message_gets_exactly_one_reply(server, key_dirs, 
         for k in range(3000):
             message = garbage()
             sockets[k % 4].send_multipart(message)
-            request_id = expected_reply_id(message)
+            request_id = expected_reply_id(message, server.config.max_frames)
             if request_id is not None:
                 expected[k % 4][request_id] += 1
             if k % 200 == 199:   # drain so the server's replies never pile up
@@ -244,10 +246,15 @@ def test_huge_goal_tolerance_is_answered_in_time(client):
 
 
 def test_oversized_message_is_refused_and_server_survives(server, key_dirs, client):
-    big = np.zeros((1100, 1000), np.int8)   # 1.1 MB frame over the 1 MiB cap
-    with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=1.0, retries=0) as sender:
-        with pytest.raises(CloudTimeout):   # libzmq drops the connection: no reply at all
-            sender.plan(big, (0, 0), (5, 5))
+    big = np.zeros((1100, 1000), np.int8)   # 1.1 MB over the 1 MiB cap, sent in frames of at most 1 MiB
+    with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=5.0, retries=0) as sender:
+        reply = sender.plan(big, (0, 0), (5, 5)).reply
+        assert reply.status == Status.TOO_LARGE and "--max-message-mib" in reply.message, reply
+    # A frame over the cap makes libzmq drop the connection: no reply at all (test_cloud_frames.py).
+    with pytest.raises(CloudTimeout):
+        with CloudClient(server.endpoint, keys_dir=str(key_dirs[1]), timeout_s=1.0, retries=0) as sender:
+            sender.request(lambda request_id: [protocol.envelope(Kind.UPLOAD, request_id), protocol.map_metadata(big),
+                                               big.tobytes()])
     # Frames each under the cap but together over it are refused with a reply.
     context = zmq.Context()
     socket = curve_socket(context, key_dirs[1], server.endpoint)

@@ -61,7 +61,7 @@ def test_many_tiny_maps_keep_server_rss_within_twice_the_cache_cap(key_root):
 
 
 def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_path):
-    frames, frame_bytes = (24, 50 * MIB - 4096) if FULL else (200, MIB - 4096)
+    frames, frame_bytes = (1200, MIB) if FULL else (200, MIB - 4096)   # frames up to the frame bound (1 MiB)
     max_message_mib = 64 if FULL else 1
     port = free_port()
     process = spawn_server(port, key_root / "server", log_path=tmp_path / "server.log",
@@ -77,7 +77,7 @@ def test_message_of_many_frames_is_cut_at_the_connection_bound(key_root, tmp_pat
             attacker = curve_dealer(context, key_root / "robot2", endpoint)
             attacker.send_multipart(protocol.encode_ping(0))   # says whose it is: the per-connection bound holds it
             assert attacker.poll(5000) and attacker.recv_multipart()
-            big = bytes(frame_bytes)   # each frame under the max message size, together far over it
+            big = bytes(frame_bytes)   # each frame within the frame bound, together far over the max message
             attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [big] * frames, copy=False)
             answered = attacker.poll(30000 if FULL else 4000)
             grown = rss.stop()
@@ -106,10 +106,10 @@ def test_a_first_message_over_the_first_message_bound_is_cut_and_the_client_ping
         with CloudClient(endpoint, keys_dir=str(key_root / "robot"), timeout_s=5.0) as client:
             client.ping()
             rss.start()
-            # A connection that has not said whose it is sends 256 MiB as its first message (16 frames, each
-            # under the max message size): under the per-connection bound (321 MiB), far over a first message.
+            # A connection that has not said whose it is sends 256 MiB as its first message (256 frames, each
+            # within the frame bound): under the per-connection bound (321 MiB), far over a first message.
             attacker = curve_dealer(context, key_root / "robot2", endpoint)
-            attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(16 * MIB)] * 16, copy=False)
+            attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(MIB)] * 256, copy=False)
             answered = attacker.poll(4000)
             grown = rss.stop()
             attacker.close(0)
@@ -183,7 +183,7 @@ def test_a_first_message_over_the_bound_is_cut_while_another_key_floods_the_brok
         time.sleep(1.0)
         rss.start()
         attacker = curve_dealer(context, key_root / "robot2", endpoint)
-        attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(16 * MIB)] * 16, copy=False)
+        attacker.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(MIB)] * 256, copy=False)
         attacker.poll(4000)
         grown = rss.stop()
         attacker.close(0)
@@ -253,7 +253,7 @@ def test_connections_yet_to_say_whose_they_are_are_bounded_together(key_root):
     stalled = [curve_dealer(context, key_root / "robot2", f"{LOOPBACK}:{proxy.port}") for _ in range(10)]
     try:
         for dealer in stalled:
-            dealer.send_multipart([protocol.envelope(Kind.UPLOAD, 1), bytes(4 * MIB)], copy=False)
+            dealer.send_multipart([protocol.envelope(Kind.UPLOAD, 1)] + [bytes(MIB)] * 4, copy=False)
         deadline = time.monotonic() + 10.0
         while len(server.guard.connections) < 6 and time.monotonic() < deadline:
             time.sleep(0.05)
@@ -444,6 +444,8 @@ def test_a_path_through_the_inflated_band_is_refused_when_the_request_inflates()
     (["--cache-mib", "-5", "--insecure"], "--cache-mib must be in"),
     (["--workers", "0", "--insecure"], "--workers must be in"),
     (["--max-queued-mib", "8", "--insecure"], "must be >= --max-message-mib"),
+    (["--max-frame-mib", "0", "--insecure"], "--max-frame-mib must be in"),
+    (["--max-frame-mib", "65", "--insecure"], "--max-frame-mib (65) must be <= --max-message-mib (64)"),
     (["--max-wait-s", "nan", "--insecure"], "--max-wait-s must be in"),
     (["--max-wait-s", "0", "--insecure"], "--max-wait-s must be in"),
 ])

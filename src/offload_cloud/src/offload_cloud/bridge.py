@@ -212,8 +212,8 @@ class CloudBridge:
             if reply.status != Status.OK:
                 why = f"the cloud answered {reply.status.name}: {reply.message}"
         except CloudTimeout:
-            why = (f"no answer within {self.config.timeout_s:g} s: the map may exceed the server's "
-                   f"--max-message-mib (libzmq then drops the connection), or the cloud is down")
+            why = (f"no answer within {self.config.timeout_s:g} s: the cloud is down, or it predates maps in "
+                   f"frames of 1 MiB and drops a map of more than a few frames unanswered")
         except Exception as error:   # never let the upload thread die silently
             why = f"{type(error).__name__}: {error}"
         short_hash = snapshot.map_hash.hex()[:12]

@@ -5,7 +5,7 @@ from typing import Optional, Tuple
 
 import zmq
 
-from offload_cloud import curve_speed
+from offload_cloud import curve_speed, map_frames
 from offload_cloud.auth import Authenticator, RateLimitedLog, curve_server
 from offload_cloud.server_config import ServerConfig
 
@@ -14,7 +14,9 @@ def robot_socket(context: zmq.Context, config: ServerConfig) -> zmq.Socket:
     """A ROUTER with the message size, high-water mark and keepalive of `config`, not yet bound."""
     frontend = context.socket(zmq.ROUTER)
     frontend.linger = 0
-    frontend.setsockopt(zmq.MAXMSGSIZE, config.max_message_bytes)
+    # libzmq bounds each frame, not a message: the broker refuses a message over the max size (TOO_LARGE). A frame
+    # over the bound makes libzmq drop the connection: an I/O thread decrypts a frame whole (map_frames.py).
+    frontend.setsockopt(zmq.MAXMSGSIZE, config.max_frame_bytes + map_frames.FRAME_SLACK_BYTES)
     # Incoming messages wait in libzmq until read (per connection); a small high-water mark bounds that
     # memory: at most the queued bytes budget's worth of maximum-size messages, and 2 x max_queued.
     frontend.rcvhwm = config.receive_hwm

@@ -48,9 +48,10 @@ class Planning:
                         grid.nbytes)
 
     def _upload(self, request_id: int, frames, client: str) -> Reply:
-        if len(frames) != 2:
-            raise ProtocolError(Status.BAD_REQUEST, f"upload needs 2 frames after the envelope, got {len(frames)}")
-        map_hash, grid = protocol.decode_map(frames[0].buffer, frames[1].buffer, self.max_cells)
+        if len(frames) < 2:
+            raise ProtocolError(Status.BAD_REQUEST, f"upload needs a metadata frame and the map's cell frames after "
+                                                    f"the envelope, got {len(frames)} frames")
+        map_hash, grid = protocol.decode_map(frames[0].buffer, [frame.buffer for frame in frames[1:]], self.max_cells)
         self._store(map_hash, grid, client)
         return Reply(request_id, Status.OK, map_hash.hex())
 

@@ -14,9 +14,12 @@ Plan request (kind PLAN), after the envelope:
              robot_radius_cells, inflation_radius_cells, inflation_decay (float64 each). Added within
              version 2: a server that predates the tail answers BAD_REQUEST about the body's size, and a
              request with default options is byte for byte what it was.
-    frames 2, 3 (only when uploading the map): JSON metadata {"width", "height", "dtype": "int8"} and
-             the raw C-order int8 buffer, never pickle. The hash is map_hash() of exactly these two.
-Upload only (kind UPLOAD): frames 1, 2 are the metadata and buffer; the reply acknowledges the hash.
+    frames 2, 3.. (only when uploading the map): JSON metadata {"width", "height", "dtype": "int8"} and
+             the raw C-order int8 buffer, never pickle, in frames of at most map_frames.FRAME_MAX_BYTES (1 MiB;
+             map_frames.py says why). The hash is map_hash() of the metadata and the whole buffer. Added within
+             version 2: a server that predates it answers BAD_REQUEST or drops a map of more than one frame,
+             and a server of this release cuts a connection that sends a frame over its --max-frame-mib.
+Upload only (kind UPLOAD): frames 1, 2.. are the metadata and buffer; the reply acknowledges the hash.
 Ping (kind PING): the envelope alone.
 Stats (kind STATS): the envelope alone; the reply is a REPLY with status OK whose message frame is the
 server's counters as one flat-ish JSON object (encode_stats_reply / decode_stats). Added within version 2:
@@ -51,6 +54,7 @@ import numpy as np
 
 from offload_planner_cpp import options_table
 from offload_planner_cpp._core import ALGORITHM_NAMES, PlanStatus, validate_options
+from offload_cloud import map_frames
 
 MAGIC = b"OFPL"
 # 2: planner outcomes carry the PlanPath codes (version 1 had its own numbering).
@@ -250,7 +254,7 @@ def encode_blob_reply(request_id: int, data: bytes) -> list:
 
 
 def encode_upload(request_id: int, grid: np.ndarray) -> list:
-    return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), _buffer_of(grid)]
+    return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), *map_frames.split(_buffer_of(grid))]
 
 
 def algorithm_code(name: str) -> int:
@@ -262,7 +266,8 @@ def algorithm_code(name: str) -> int:
 
 def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: Sequence[int],
                 options: PlanOptions = PlanOptions(), grid: Optional[np.ndarray] = None) -> list:
-    """Frames of a plan request; with `grid` the map travels too (its buffer is sent without a copy)."""
+    """Frames of a plan request; with `grid` the map travels too (its buffer, in frames of at most 1 MiB, is sent
+    without a copy)."""
     flags = (FLAG_UNKNOWN_IS_OBSTACLE if options.unknown_is_obstacle else 0) | \
             (FLAG_STOP_AT_GOAL if options.stop_at_goal else 0) | (FLAG_ANY_ANGLE if options.any_angle else 0)
     body = PLAN_BODY.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]),
@@ -271,7 +276,7 @@ def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: S
         body += PLANNER_TAIL.pack(algorithm_code(options.algorithm), *options._tail())
     frames = [envelope(Kind.PLAN, request_id), body]
     if grid is not None:
-        frames += [map_metadata(grid), _buffer_of(grid)]
+        frames += [map_metadata(grid), *map_frames.split(_buffer_of(grid))]
     return frames
 
 
@@ -306,8 +311,9 @@ def request_id_of(frame) -> int:
     return ENVELOPE.unpack(frame)[3] if len(frame) == ENVELOPE.size else 0
 
 
-def decode_map(metadata_frame, data_frame, max_cells: int) -> Tuple[bytes, np.ndarray]:
-    """Hash and grid (a view of the received buffer, no copy) of an uploaded map."""
+def decode_map(metadata_frame, data_frames, max_cells: int) -> Tuple[bytes, np.ndarray]:
+    """Hash and grid of an uploaded map whose cells came in `data_frames` (one frame or a sequence of them): a
+    view of a single frame (no copy), else the frames joined."""
     metadata = bytes(metadata_frame)
     if len(metadata) > MAX_METADATA_BYTES:
         raise ProtocolError(Status.BAD_REQUEST, "map metadata frame too long")
@@ -326,19 +332,21 @@ def decode_map(metadata_frame, data_frame, max_cells: int) -> Tuple[bytes, np.nd
         raise ProtocolError(Status.BAD_REQUEST, f"map of {width} x {height} cells is not accepted")
     if width * height > max_cells:
         raise ProtocolError(Status.TOO_LARGE, f"map of {width} x {height} cells exceeds {max_cells} cells")
-    data = memoryview(data_frame)
-    if data.nbytes != width * height:
+    data_frames = [data_frames] if isinstance(data_frames, (bytes, bytearray, memoryview)) else data_frames
+    nbytes = map_frames.total_bytes(data_frames)
+    if nbytes != width * height:
         raise ProtocolError(Status.BAD_REQUEST,
-                            f"map data has {data.nbytes} bytes but {width} x {height} = {width * height} were declared")
+                            f"map data has {nbytes} bytes but {width} x {height} = {width * height} were declared")
+    data = map_frames.join(data_frames)   # after the size checks: at most max_cells bytes
     grid = np.frombuffer(data, dtype=np.int8).reshape(height, width)
     return map_hash(metadata, data), grid
 
 
 def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
     """A plan request from the frames after the envelope; ProtocolError when malformed or inconsistent."""
-    if len(frames) not in (1, 3):
-        raise ProtocolError(Status.BAD_REQUEST,
-                            f"plan request needs 1 body frame (+2 map frames), got {len(frames)} frames")
+    if len(frames) == 2 or not frames:
+        raise ProtocolError(Status.BAD_REQUEST, f"plan request needs 1 body frame (+ a metadata frame and the map's "
+                                                f"cell frames), got {len(frames)} frames")
     body = bytes(frames[0])
     if len(body) not in (PLAN_BODY.size, PLAN_BODY.size + PLANNER_TAIL.size):
         raise ProtocolError(Status.BAD_REQUEST, f"plan body is {len(body)} bytes, expected {PLAN_BODY.size} "
@@ -359,8 +367,8 @@ def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
                           stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL), any_angle=bool(flags & FLAG_ANY_ANGLE),
                           **tail)
     grid = None
-    if len(frames) == 3:
-        uploaded, grid = decode_map(frames[1], frames[2], max_cells)
+    if len(frames) >= 3:
+        uploaded, grid = decode_map(frames[1], frames[2:], max_cells)
         if uploaded != digest:
             raise ProtocolError(Status.BAD_REQUEST, "map hash does not match the uploaded map")
     return PlanRequest(request_id, digest, (sx, sy), (gx, gy), options, grid)

@@ -27,7 +27,7 @@ class Request:
 
 def plan_hash(kind: Kind, payload) -> Optional[bytes]:
     """The map hash a plan names (for one that carries its map, the worker checks the claim), else None."""
-    if kind != Kind.PLAN or len(payload) not in (2, 4) or len(payload[1]) != protocol.PLAN_BODY.size:
+    if kind != Kind.PLAN or len(payload) == 3 or len(payload) < 2 or len(payload[1]) != protocol.PLAN_BODY.size:
         return None
     return bytes(payload[1].buffer[:protocol.HASH_SIZE])
 
@@ -42,7 +42,7 @@ class RequestQueue:
         self.admission.enqueued(request)
         wanted = plan_hash(request.kind, payload)
         if wanted is not None:
-            request.carries_map = len(payload) == 4
+            request.carries_map = len(payload) >= 4   # envelope, body, metadata and the cells' frames
             if wanted in self.cache:         # cached already: plan on the cached map, skip any upload
                 if request.carries_map:
                     self._strip_map(request)
@@ -104,7 +104,6 @@ class RequestQueue:
 
     def _strip_map(self, request: Request) -> None:
         """Turns a plan that carries a map the cache holds into a plan on the cached map."""
-        route_frames = len(request.frames) - 4
-        kept = request.frames[:route_frames + 2]
-        self.admission.resized(request, sum(len(frame) for frame in kept[route_frames:]))
+        kept = request.frames[:request.route_frames + 2]   # route, envelope and body
+        self.admission.resized(request, sum(len(frame) for frame in kept[request.route_frames:]))
         request.frames, request.uploads, request.carries_map = kept, None, False

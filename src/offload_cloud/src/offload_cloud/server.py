@@ -312,8 +312,8 @@ class CloudServer:
             client.requests += 1
             total = sum(len(frame) for frame in payload)
             if total > self.config.max_message_bytes:
-                raise ProtocolError(Status.TOO_LARGE, f"message of {total} bytes exceeds "
-                                                      f"{self.config.max_message_bytes}")
+                raise ProtocolError(Status.TOO_LARGE, f"message of {total} bytes exceeds the server's "
+                                                      f"--max-message-mib ({self.config.max_message_bytes} bytes)")
 
             def displace(victim, why: str) -> None:
                 queue.remove(victim)

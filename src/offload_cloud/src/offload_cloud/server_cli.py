@@ -27,8 +27,7 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="ZeroMQ endpoint to listen on; port 0 picks a free one (default tcp://0.0.0.0:5555)")
     parser.add_argument("--workers", type=bounded_int("--workers", 1, 256), default=2, help="planner threads (default 2)")
     parser.add_argument("--io-threads", type=bounded_int("--io-threads", 1, 64), default=2,
-                        help="libzmq I/O threads, where CURVE is decrypted: one client's large message then stalls "
-                             "only the clients on its thread (default 2)")
+                        help="libzmq I/O threads, where CURVE is decrypted a frame at a time (default 2)")
     parser.add_argument("--keys-dir", help="server keys dir from offload_cloud.keys (server.key_secret, clients/)")
     parser.add_argument("--insecure", action="store_true", help="plaintext, no client allowlist (tests, trusted LAN)")
     parser.add_argument("--cache-mib", type=bounded_int("--cache-mib", 0, 1 << 20), default=1024,
@@ -53,6 +52,11 @@ def parse_args(argv=None) -> argparse.Namespace:
                         help="largest first message of a connection, in MiB; clients of this release ping ahead of a "
                              "larger one. Raise it to --max-message-mib while robots from before the rule remain "
                              "(default 1)")
+    parser.add_argument("--max-frame-mib", type=bounded_int("--max-frame-mib", 1, 4096), default=1,
+                        help="largest frame in MiB; a larger one makes libzmq drop the connection (an I/O thread "
+                             "decrypts a frame whole, serving no other connection meanwhile). Clients of this release "
+                             "send a map in frames of 1 MiB; raise it to --max-message-mib while robots from before "
+                             "the rule remain (default 1)")
     parser.add_argument("--max-pending-unidentified-mib",
                         type=bounded_int("--max-pending-unidentified-mib", 1, 1 << 20), default=64,
                         help="bytes the connections yet to send their first message may hold together, in MiB; over "
@@ -82,6 +86,8 @@ def parse_args(argv=None) -> argparse.Namespace:
     if args.max_first_message_mib > args.max_message_mib:
         parser.error(f"--max-first-message-mib ({args.max_first_message_mib}) must be <= --max-message-mib "
                      f"({args.max_message_mib})")
+    if args.max_frame_mib > args.max_message_mib:
+        parser.error(f"--max-frame-mib ({args.max_frame_mib}) must be <= --max-message-mib ({args.max_message_mib})")
     if args.max_pending_unidentified_mib < args.max_first_message_mib:
         parser.error(f"--max-pending-unidentified-mib ({args.max_pending_unidentified_mib}) must be >= "
                      f"--max-first-message-mib ({args.max_first_message_mib})")
@@ -103,6 +109,7 @@ def main(argv=None) -> int:
             bind=args.bind, workers=args.workers, io_threads=args.io_threads, keys_dir=args.keys_dir,
             insecure=args.insecure,
             cache_bytes=args.cache_mib << 20, max_message_bytes=args.max_message_mib << 20,
+            max_frame_bytes=args.max_frame_mib << 20,
             max_queued=args.max_queued, max_queued_bytes=args.max_queued_mib << 20,
             max_pending_bytes=args.max_pending_mib << 20, max_pending_bytes_per_key=args.max_pending_per_key_mib << 20,
             max_connections_per_key=args.max_connections_per_key, max_connections=args.max_connections,

@@ -2,6 +2,7 @@
 from dataclasses import dataclass
 from typing import Optional
 
+from offload_cloud.map_frames import FRAME_MAX_BYTES
 from offload_cloud.protocol import FIRST_MESSAGE_MAX_BYTES
 
 
@@ -9,12 +10,14 @@ from offload_cloud.protocol import FIRST_MESSAGE_MAX_BYTES
 class ServerConfig:
     bind: str = "tcp://127.0.0.1:5555"
     workers: int = 2
-    io_threads: int = 2                   # libzmq I/O threads: CURVE is decrypted there, so with one a client's
-                                          # 64 MiB plan stalls everyone's pings for seconds
+    io_threads: int = 2                   # libzmq I/O threads: CURVE is decrypted there, a frame at a time
     keys_dir: Optional[str] = None        # CURVE keys and client allowlist; required unless insecure
     insecure: bool = False                # plaintext, no client authentication
     cache_bytes: int = 1 << 30            # map cache memory cap (cells + ENTRY_OVERHEAD_BYTES per map)
-    max_message_bytes: int = 64 << 20     # larger messages (or frames) are refused
+    max_message_bytes: int = 64 << 20     # larger messages are refused (TOO_LARGE)
+    max_frame_bytes: int = FRAME_MAX_BYTES   # a larger frame makes libzmq drop the connection: an I/O thread decrypts
+                                          # a frame whole, serving no other connection meanwhile (map_frames.py); up
+                                          # to max_message_bytes for robots from before clients split maps
     max_queued: int = 64                  # plan requests waiting for a worker; more get BUSY
     max_queued_bytes: int = 256 << 20     # and their bytes: a request that would exceed it gets BUSY
     max_pending_bytes: int = 1 << 30      # bytes all connections together may hold undelivered (messages
@@ -29,7 +32,6 @@ class ServerConfig:
                                           # apart); a peer gone without a FIN is dropped; 0: none
     handshake_timeout_s: float = 10.0     # a connection that has not completed its ZMTP/CURVE handshake by then is
                                           # closed (libzmq's own default: 30 s); 0: none
-    max_frames: int = 8                   # more frames than any valid message: dropped unread
     max_wait_s: float = 1.0               # longest a request may wait for a worker; then BUSY, not planned
     rate_per_client: float = 50.0         # plans (and uploads) per second a client may have while others
     burst_per_client: int = 100           # wait; and its bucket's size. rate 0: no rate limit
@@ -42,6 +44,12 @@ class ServerConfig:
         """Messages libzmq may hold unread per connection: the queued bytes budget's worth of maximum-size
         messages, at most 2 x max_queued, at least 2."""
         return max(2, min(2 * self.max_queued, self.max_queued_bytes // self.max_message_bytes))
+
+    @property
+    def max_frames(self) -> int:
+        """Frames of the longest valid message (a plan carrying a map of max_message_bytes cells in the clients'
+        frames); a message of more is dropped unread."""
+        return 3 + -(-self.max_message_bytes // FRAME_MAX_BYTES)
 
     def __post_init__(self):
         self.check()
@@ -67,6 +75,9 @@ class ServerConfig:
         if not FIRST_MESSAGE_MAX_BYTES <= self.max_first_message_bytes <= self.max_message_bytes:
             raise ValueError(f"the first message bound must be in {FIRST_MESSAGE_MAX_BYTES}..{self.max_message_bytes} "
                              f"bytes (the protocol's to the max message size), got {self.max_first_message_bytes}")
+        if not FRAME_MAX_BYTES <= self.max_frame_bytes <= self.max_message_bytes:
+            raise ValueError(f"the frame bound must be in {FRAME_MAX_BYTES}..{self.max_message_bytes} bytes (the "
+                             f"clients' frame size to the max message size), got {self.max_frame_bytes}")
         if self.max_pending_unidentified_bytes < self.max_first_message_bytes:
             raise ValueError("the unidentified connections' budget must be at least the first message bound")
         if not 0 <= self.handshake_timeout_s <= 3600:
