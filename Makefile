@@ -2,7 +2,7 @@
 # .venv, the catkin build) and skip what is already done.
 SHELL := /bin/bash
 .DEFAULT_GOAL := help
-.PHONY: help deps venv build test demo demo-options bench-policies bench-fleet-learning bench-planner bench-link bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
+.PHONY: help deps venv build test demo demo-options bench-policies bench-fleet-learning bench-planner bench-link bench-flood bench-decision bench-online bench-offline bench-fleet fuzz mutate clean
 
 ROOT := $(CURDIR)
 VENV := $(ROOT)/.venv
@@ -28,6 +28,7 @@ help:
 	@echo "make build          install Debian packages, .venv and build the catkin workspace"
 	@echo "make bench-planner  planner benchmark against scipy (prints measured figures)"
 	@echo "make bench-link     cloud link benchmark against raw pyzmq (prints measured figures)"
+	@echo "make bench-flood    one robot's pings while another key sends 64 MiB plans (CONNECTIONS=12)"
 	@echo "make bench-decision learner decision latency, p50/p99 per forward path"
 	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
 	@echo "make fuzz           coverage-guided fuzzing of the protocol, map loaders and bag reader (FUZZ_SECONDS each)"
@@ -79,6 +80,10 @@ bench-planner: build
 
 bench-link: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_link
+
+CONNECTIONS ?= 12
+bench-flood: build
+	@$(ROSENV) $(PY) -m offload_demos.bench_flood --connections $(CONNECTIONS)
 
 bench-fleet: build
 	@$(ROSENV) $(PY) -m offload_demos.fleet --robots 50 --servers 3 --requests 40 --kill-at-s 1.5 --baseline
