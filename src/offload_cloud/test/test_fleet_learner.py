@@ -143,7 +143,7 @@ def test_a_trained_version_is_published_only_past_the_gate(learner, monkeypatch)
     assert [e["published"] for e in service.store.history("trained")] == [True, False]
 
 
-def test_a_robot_whose_rows_cannot_judge_abstains_and_the_ones_that_can_decide(learner):
+def test_a_robot_whose_rows_cannot_judge_abstains_and_the_ones_that_can_decide(learner, capsys):
     """A deployed robot that always planned locally and probed 1 request in 20 cannot say what a candidate that
     offloads half its requests would cost it (n/a): it abstains, and the robot whose rows explore both sides
     decides. Before, its n/a vetoed every version for the whole fleet."""
@@ -155,6 +155,8 @@ def test_a_robot_whose_rows_cannot_judge_abstains_and_the_ones_that_can_decide(l
     assert not greedy["judged"] and greedy["disagree"] > 0 and greedy["reason"]
     assert explorer["judged"] and explorer["accepted"]
     assert entry["published"] and service.store.state()["current"] == entry["version"]
+    assert cli.main(["list", "--store", service.config.store]) == 0     # the operator sees who abstained
+    assert "explorer:ok greedy:n/a" in capsys.readouterr().out
 
 
 def test_a_version_passes_only_when_a_robot_judged_it_and_none_that_judged_refused():

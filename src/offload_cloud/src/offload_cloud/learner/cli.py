@@ -105,6 +105,13 @@ def serve(args) -> int:
     return 0
 
 
+def gate_word(figure: dict) -> str:
+    """A robot's verdict on a candidate: ok, no, or n/a when its rows could not judge it (it abstained)."""
+    if figure.get("accepted"):
+        return "ok"
+    return "n/a" if figure.get("judged") is False else "no"
+
+
 def main(argv=None) -> int:
     args = parse_args(argv)
     if args.command == "serve":
@@ -115,7 +122,7 @@ def main(argv=None) -> int:
     try:
         if args.command == "list":
             for entry in store.history("trained"):
-                gate = " ".join(f"{robot}:{'ok' if g['accepted'] else 'no'}" for robot, g in entry["gate"].items())
+                gate = " ".join(f"{robot}:{gate_word(g)}" for robot, g in entry["gate"].items())
                 print(f"{entry['version'][:16]} parent {entry['parent'][:16] or '-':16} "
                       f"{'published' if entry['published'] else 'refused  '} rows {sum(entry['rows'].values())} {gate}")
             return 0
