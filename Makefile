@@ -33,7 +33,7 @@ help:
 	@echo "make bench-fleet    50 robots against 3 cloud servers behind HAProxy, one killed mid-run"
 	@echo "make fuzz           coverage-guided fuzzing of the protocol, map loaders and bag reader (FUZZ_SECONDS each)"
 	@echo "make demo           the whole system on one machine, ~3 min (STEPS=, MAP=, LINK=wan|edge, UNKNOWN=free,"
-	@echo "                    POLICY=, MODE=, HEDGE=1, SEED=, RVIZ=1,"
+	@echo "                    POLICY=, MODE=, HEDGE=1, SEED=, RVIZ=1, FLEET=1 (with POLICY=dqn MODE=deployed),"
 	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, LINK=, STEPS=, SEED=, POLICIES=)"
@@ -125,6 +125,7 @@ demo: demo-options build
 		$(PY) -m offload_demos.driver --launch launch/offload_demo.launch --steps $(STEPS) \
 		$(if $(POLICY),--policy $(POLICY)) $(if $(SEED),--seed $(SEED)) $(if $(MODE),--mode $(MODE)) $(if $(MAP),--map $(MAP)) $(if $(RVIZ)$(HEADLESS),--rviz) \
 		$(if $(HEDGE),--hedge) $(if $(MODEL),--model $(MODEL)) $(if $(LINK),--link $(LINK)) \
+		$(if $(FLEET),--fleet $(if $(SEED_BAG),--fleet-seed-bag $(SEED_BAG))) \
 		$(if $(filter free,$(UNKNOWN)),--plan-unknown)
 
 # Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
