@@ -40,6 +40,7 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--requests", type=int, default=400, help="pairs of requests (default 400)")
     parser.add_argument("--seed", type=int, default=1)
+    parser.add_argument("--policy", default="dqn", help="the learner's policy (default a frozen DQN)")
     args = parser.parse_args(argv)
 
     import rospkg
@@ -68,7 +69,7 @@ def main(argv=None) -> int:
             subprocess.Popen([sys.executable, "-m", "offload_learner_py.nodes.cloud_bridge", "__name:=cloud_bridge",
                               f"_endpoint:={endpoint}", "_insecure:=true"], **quiet),
             subprocess.Popen([sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
-                              "_policy:=dqn", "_learn:=false", "_probe_rate:=0.0", "_cloud_service:=/planner/plan",
+                              f"_policy:={args.policy}", "_learn:=false", "_probe_rate:=0.0", "_cloud_service:=/planner/plan",
                               "_progress_every:=0"], **quiet),
         ]
         bag_dir = tempfile.mkdtemp(prefix="bench-online-")
