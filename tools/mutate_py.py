@@ -84,7 +84,7 @@ TARGETS = {
                      ("test_router.py", "test_router_modes.py", "test_router_cancel.py"), LEARNER / "test",
                      test_support=("conftest.py", "routertools.py"), budget_s=420),
     "breaker": Target("breaker", LEARNER / "src" / "offload_learner_py", "online/breaker.py",
-                      ("test_breaker.py", "test_router_modes.py"), LEARNER / "test",
+                      ("test_breaker.py", "test_breaker_edges.py", "test_router_modes.py"), LEARNER / "test",
                       test_support=("conftest.py", "routertools.py"), budget_s=240),
     "model_guard": Target("model_guard", LEARNER / "src" / "offload_learner_py", "online/model_guard.py",
                           ("test_fleet_robot.py",), LEARNER / "test", budget_s=240),
