@@ -87,10 +87,12 @@ TARGETS = {
                       ("test_breaker.py", "test_breaker_edges.py", "test_router_modes.py"), LEARNER / "test",
                       test_support=("conftest.py", "routertools.py"), budget_s=240),
     "model_guard": Target("model_guard", LEARNER / "src" / "offload_learner_py", "online/model_guard.py",
-                          ("test_fleet_robot.py",), LEARNER / "test", budget_s=240),
+                          ("test_fleet_robot.py",), LEARNER / "test", test_support=("conftest.py", "routertools.py"),
+                          budget_s=240),
     "off_policy_combined": Target("off_policy_combined", LEARNER / "src" / "offload_learner_py",
                                   "offline/off_policy_combined.py", ("test_off_policy_gate.py", "test_off_policy.py"),
-                                  LEARNER / "test", test_support=("conftest.py", "bagtools.py"), budget_s=420),
+                                  LEARNER / "test", test_support=("conftest.py", "bagtools.py", "ope_rows.py", "data"),
+                                  budget_s=420),
     "admission": Target("admission", CLOUD / "src" / "offload_cloud", "admission.py",
                         ("test_cloud_admission.py",), CLOUD / "test",
                         test_support=("conftest.py", "cloud_test_helpers.py"), budget_s=300),
@@ -153,8 +155,12 @@ def prepare_shard(target: Target, shard_dir: Path) -> None:
             sys.exit("mutate: the planner's compiled module is missing: run `make build` first")
         shutil.copy2(cores[0], package_copy)
     (shard_dir / "test").mkdir()
-    for name in target.tests + target.test_support:
-        shutil.copy2(target.test_dir / name, shard_dir / "test" / name)
+    for name in target.tests + target.test_support:   # a support entry may be a directory (test data)
+        source = target.test_dir / name
+        if source.is_dir():
+            shutil.copytree(source, shard_dir / "test" / name)
+        else:
+            shutil.copy2(source, shard_dir / "test" / name)
     # Its own pytest.ini, so the workspace's (found by walking up) is not used.
     (shard_dir / "pytest.ini").write_text("[pytest]\naddopts = -p no:cacheprovider -p mutate_order\n")
     (shard_dir / "mutate_order.py").write_text(ORDER_PLUGIN)
