@@ -94,7 +94,7 @@ TARGETS = {
                                   LEARNER / "test", test_support=("conftest.py", "bagtools.py", "ope_rows.py", "data"),
                                   budget_s=420),
     "admission": Target("admission", CLOUD / "src" / "offload_cloud", "admission.py",
-                        ("test_cloud_admission.py",), CLOUD / "test",
+                        ("test_cloud_admission.py", "test_cloud_admission_edges.py"), CLOUD / "test",
                         test_support=("conftest.py", "cloud_test_helpers.py"), budget_s=300),
     "connection_guard": Target("connection_guard", CLOUD / "src" / "offload_cloud", "connection_guard.py",
                                ("test_cloud_admission.py", "test_cloud_connections.py"), CLOUD / "test",
