@@ -100,7 +100,7 @@ TARGETS = {
                                ("test_cloud_admission.py", "test_cloud_connections.py"), CLOUD / "test",
                                test_support=("conftest.py", "cloud_test_helpers.py"), budget_s=300),
     "fleet_gate": Target("fleet_gate", CLOUD / "src" / "offload_cloud", "learner/training.py",
-                         ("test_fleet_learner.py",), CLOUD / "test",
+                         ("test_fleet_learner.py", "test_fleet_training.py"), CLOUD / "test",
                          test_support=("conftest.py", "fleet_helpers.py"), budget_s=420),
 }
 

@@ -1,0 +1,67 @@
+"""A fleet training round's choices that the service tests pass through without looking (found by `make mutate`
+over learner/training.py, #31: 46 of 79 mutants survived test_fleet_learner.py): a round warm-starts from the
+version in use, a robot with too few rows or no transition rows is left out without ending the round for the
+robots after it, a round needs two transition rows, and a candidate equal to the version in use is not
+published again."""
+import dataclasses
+
+import numpy as np
+
+import fleet_helpers as h
+from offload_cloud.learner.training import training_round
+from offload_learner_py.core.model_file import load_model
+from test_fleet_learner import DEFS, MD5, SMALL, learner  # noqa: F401 (the fixture)
+
+
+def weights(store, version):
+    fast, _ = load_model(store.get(version))
+    return np.concatenate([w.ravel() for w in fast.weights])
+
+
+def test_a_round_starts_from_the_version_in_use(learner):  # noqa: F811
+    service, _ = learner()
+    service.pool.add("robot1", DEFS, MD5, h.rows(300, seed=4))
+    first = service.train_once()
+    assert first["published"]
+    service.pool.add("robot1", DEFS, MD5, h.rows(50, seed=5, start_id=1000))
+    # one minibatch step: a warm-started network stays next to the one in use, a fresh one is elsewhere
+    second = training_round(service.pool, service.store, dataclasses.replace(SMALL, epochs=0.001))
+    assert second["parent"] == first["version"] and second["gradient_steps"] == 1
+    before, after = weights(service.store, first["version"]), service.store.get(second["version"])
+    fast, _ = load_model(after)
+    moved = np.abs(np.concatenate([w.ravel() for w in fast.weights]) - before).max()
+    assert moved < 0.05 * np.abs(before).max(), f"the candidate moved {moved} from the version in use"
+
+
+def test_robots_without_enough_rows_are_left_out_and_the_rest_still_count(learner):  # noqa: F811
+    service, _ = learner()
+    config = dataclasses.replace(SMALL, min_robot_rows=40)
+    service.pool.add("a-few", DEFS, MD5, h.rows(39, seed=1))                       # one row short: out
+    service.pool.add("b-no-transitions", DEFS, MD5, h.rows(100, seed=2, probe=False))  # no row with both sides
+    service.pool.add("c-exactly", DEFS, MD5, h.rows(40, seed=3, start_id=500))     # exactly enough: in
+    service.pool.add("d-many", DEFS, MD5, h.rows(200, seed=4, start_id=900))
+    entry = training_round(service.pool, service.store, config)
+    assert set(entry["rows"]) == {"c-exactly", "d-many"} and set(entry["gate"]) == {"c-exactly", "d-many"}
+
+
+def test_a_round_needs_two_transition_rows(learner):  # noqa: F811
+    service, _ = learner()
+    config = dataclasses.replace(SMALL, min_robot_rows=2, holdout=0.5)
+    service.pool.add("robot1", DEFS, MD5, h.rows(2, seed=6))      # one trains, one judges: one row is not enough
+    assert training_round(service.pool, service.store, config) is None
+    service.pool.add("robot1", DEFS, MD5, h.rows(2, seed=7, start_id=100))
+    assert training_round(service.pool, service.store, config) is not None
+
+
+def test_the_gate_entry_counts_the_requests_where_the_candidate_disagrees(learner):  # noqa: F811
+    service, _ = learner()
+    service.pool.add("robot1", DEFS, MD5, h.rows(300, seed=8))
+    entry = service.train_once()
+    figure = entry["gate"]["robot1"]
+    # the judged rows are the window's last 30 %; with no version in use the candidate is compared with the
+    # actions the robot took (no Q-values logged)
+    judged = [decision for decision, _ in h.requests(300, seed=8)][210:]
+    fast, _ = load_model(service.store.get(entry["version"]))
+    candidate = [fast.decide(d["input_size"], d["cpu_availability"], d["round_trip_s"])[0] for d in judged]
+    expected = sum(int(action != d["action"]) for action, d in zip(candidate, judged))
+    assert figure["rows"] == 90 and figure["disagree"] == expected and 0 < expected < 90
