@@ -65,3 +65,18 @@ def test_the_gate_entry_counts_the_requests_where_the_candidate_disagrees(learne
     candidate = [fast.decide(d["input_size"], d["cpu_availability"], d["round_trip_s"])[0] for d in judged]
     expected = sum(int(action != d["action"]) for action, d in zip(candidate, judged))
     assert figure["rows"] == 90 and figure["disagree"] == expected and 0 < expected < 90
+
+
+def test_without_a_version_in_use_a_candidate_is_judged_against_the_greedy_choice_logged_else_the_routed_side():
+    from offload_cloud.learner.training import logged_actions
+    from offload_learner_py.data.records import RequestLog
+
+    nan = float("nan")
+    log = RequestLog({"request_id": np.arange(4),
+                      "q_local": np.array([0.9, 0.1, nan, 0.5]), "q_cloud": np.array([0.1, 0.9, 0.3, nan]),
+                      "action": np.array([1, 0, 1, 1]), "routed": np.array([1, 0, 0, 0])})
+    # Q known: the greedy side (the larger Q); Q unknown: the side it was routed to, not the policy's action
+    assert list(logged_actions(log, np.arange(4))) == [0, 1, 0, 0]
+    del log.columns["routed"]
+    assert list(logged_actions(log, np.arange(4))) == [0, 1, 1, 1]   # an older bag: the action it took
+    assert list(logged_actions(log, np.array([2, 0]))) == [1, 0]
