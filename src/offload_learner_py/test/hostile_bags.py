@@ -20,8 +20,9 @@ def _record(fields, data: bytes = b"") -> bytes:
     return struct.pack("<I", len(header)) + header + struct.pack("<I", len(data)) + data
 
 
-def _records(blob: bytes, at: int):
-    """(offset, end, header fields) of each record from `at` on."""
+def bag_records(blob: bytes, at: int):
+    """(offset, header fields, data offset, data length) of each ROS 1 bag record from `at` on; a field is
+    (value, the value's file offset), so a test can patch it in place."""
     while at + 4 <= len(blob):
         (header_len,) = struct.unpack_from("<I", blob, at)
         header = blob[at + 4:at + 4 + header_len]
@@ -30,11 +31,10 @@ def _records(blob: bytes, at: int):
         while k < len(header):
             (n,) = struct.unpack_from("<I", header, k)
             name, _, value = header[k + 4:k + 4 + n].partition(b"=")
-            fields[name.decode()] = (value, at + 4 + k + 4 + len(name) + 1)   # value and its file offset
+            fields[name.decode()] = (value, at + 4 + k + 4 + len(name) + 1)
             k += 4 + n
-        end = at + 8 + header_len + data_len
-        yield at, end, fields
-        at = end
+        yield at, fields, at + 8 + header_len, data_len
+        at += 8 + header_len + data_len
 
 
 def _rewrite_index(path: str, extra_connections=b"", extra_connection_count=0, extra_chunk_infos=b"",
@@ -42,12 +42,13 @@ def _rewrite_index(path: str, extra_connections=b"", extra_connection_count=0, e
     """Append records to the bag's index section and raise the counts in its bag header to match;
     chunk_info_copies more copies of the first chunk-info record (all naming the first chunk)."""
     blob = bytearray(open(path, "rb").read())
-    header_at, _, header = next(_records(bytes(blob), 13))
+    header = next(bag_records(bytes(blob), 13))[1]
     assert header["op"][0] == b"\x03"
     (index_pos,) = struct.unpack_from("<Q", blob, header["index_pos"][1])
-    records = list(_records(bytes(blob), index_pos))
-    connections = b"".join(bytes(blob[at:end]) for at, end, fields in records if fields["op"][0] == b"\x07")
-    infos = [bytes(blob[at:end]) for at, end, fields in records if fields["op"][0] == b"\x06"]
+    records = [(fields["op"][0], bytes(blob[at:data_at + n])) for at, fields, data_at, n in
+               bag_records(bytes(blob), index_pos)]
+    connections = b"".join(record for op, record in records if op == b"\x07")
+    infos = [record for op, record in records if op == b"\x06"]
     index = connections + extra_connections + b"".join(infos) + infos[0] * chunk_info_copies + extra_chunk_infos
     (conn_count,) = struct.unpack_from("<I", blob, header["conn_count"][1])
     (chunk_count,) = struct.unpack_from("<I", blob, header["chunk_count"][1])
@@ -82,9 +83,9 @@ def connection_amplified(path, copies: int = 20_000, requests: int = 200, messag
             bag.write_raw("/noise", "std_msgs/msg/Empty", b"", time_ns + k)
     write(path, make_requests(requests), chunk_bytes=1 << 22, extra=noise)
     blob = open(path, "rb").read()
-    header = next(_records(blob, 13))[2]
+    header = next(bag_records(blob, 13))[1]
     (index_pos,) = struct.unpack_from("<Q", blob, header["index_pos"][1])
-    noise_record = next(fields for _, _, fields in _records(blob, index_pos)
+    noise_record = next(fields for _, fields, _, _ in bag_records(blob, index_pos)
                         if fields["op"][0] == b"\x07" and fields["topic"][0] == b"/noise")
     (conn_id,) = struct.unpack("<I", noise_record["conn"][0])
     one = _connection(conn_id, "/noise", "std_msgs/Empty", "", "d41d8cd98f00b204e9800998ecf8427e")

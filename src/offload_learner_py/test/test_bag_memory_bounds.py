@@ -10,27 +10,12 @@ import sys
 import pytest
 
 from bagtools import make_requests, write
+from hostile_bags import bag_records
 from offload_demos.bag_writer import DECISION_TOPIC, BagWriter, installed_definitions, typestore_for
 from offload_learner_py.data.bags import DECISION_TYPE
 
 PEAK_RSS_BOUND_MIB = 512
 GIB = 1 << 30
-
-
-def _records(blob: bytes, at: int):
-    """(offset, header fields, data offset, data length) of each record from `at` on."""
-    while at + 4 <= len(blob):
-        (header_len,) = struct.unpack_from("<I", blob, at)
-        header = blob[at + 4:at + 4 + header_len]
-        (data_len,) = struct.unpack_from("<I", blob, at + 4 + header_len)
-        fields, k = {}, 0
-        while k < len(header):
-            (n,) = struct.unpack_from("<I", header, k)
-            name, _, value = header[k + 4:k + 4 + n].partition(b"=")
-            fields[name.decode()] = (value, at + 4 + k + 4 + len(name) + 1)   # value and its file offset
-            k += 4 + n
-        yield at, fields, at + 8 + header_len, data_len
-        at += 8 + header_len + data_len
 
 
 def _inflating(codec: str) -> bytes:
@@ -49,7 +34,7 @@ def bomb_bag(path, codec: str) -> str:
     that size honestly, and the index moved to match: an index reader sees a well-formed bag."""
     write(path, make_requests(20), compression=codec, chunk_bytes=1 << 20)
     blob = bytearray(open(path, "rb").read())
-    records = list(_records(bytes(blob), 13))
+    records = list(bag_records(bytes(blob), 13))
     op = lambda fields: fields["op"][0][0]   # noqa: E731  (value, offset): the value's one byte
     bag_header = next(fields for _, fields, _, _ in records if op(fields) == 0x03)
     chunk_at, chunk, data_at, data_len = next(r for r in records if op(r[1]) == 0x05)
