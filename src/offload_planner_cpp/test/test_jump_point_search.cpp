@@ -6,12 +6,12 @@
 
 #include <atomic>
 #include <cmath>
-#include <queue>
 #include <random>
 #include <string>
 #include <vector>
 
 #include "offload_planner_cpp/dijkstra.h"
+#include "reference_search.h"
 
 using namespace offload_planner;
 
@@ -35,32 +35,10 @@ struct Grid {
   }
 };
 
-// Textbook Dijkstra with a binary heap, the same moves and corner rule, written without the core's code.
+// The oracle at uniform cost.
 double referenceCost(const Grid& g, Cell s, Cell t, const PlannerOptions& o) {
-  std::vector<double> dist(g.data.size(), INFINITY);
-  using Item = std::pair<double, int>;
-  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> heap;
-  dist[s.y * g.w + s.x] = 0;
-  heap.push({0, s.y * g.w + s.x});
-  while (!heap.empty()) {
-    auto [d, i] = heap.top();
-    heap.pop();
-    if (d > dist[i]) continue;
-    const int x = i % g.w, y = i / g.w;
-    for (int dy = -1; dy <= 1; ++dy) {
-      for (int dx = -1; dx <= 1; ++dx) {
-        if ((dx == 0 && dy == 0) || !g.free(x + dx, y + dy, o)) continue;
-        if (dx != 0 && dy != 0 && (!g.free(x + dx, y, o) || !g.free(x, y + dy, o))) continue;
-        const double nd = d + ((dx != 0 && dy != 0) ? kSqrt2 : 1.0);
-        const int j = (y + dy) * g.w + x + dx;
-        if (nd < dist[j]) {
-          dist[j] = nd;
-          heap.push({nd, j});
-        }
-      }
-    }
-  }
-  return dist[t.y * g.w + t.x];
+  return test::referenceCost(g.w, g.h, s, t, [&](int x, int y) { return g.free(x, y, o); },
+                             [](int, int) { return 1.0; });
 }
 
 // Runs from s to t by legal moves only (no blocked cell, no diagonal past a blocked corner), and its steps

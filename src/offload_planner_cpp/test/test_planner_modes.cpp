@@ -6,12 +6,12 @@
 #include <algorithm>
 #include <cstdio>
 #include <cmath>
-#include <queue>
 #include <random>
 #include <vector>
 
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/inflation.h"
+#include "reference_search.h"
 
 using namespace offload_planner;
 
@@ -36,30 +36,8 @@ struct RandomGrid {
 // Textbook weighted Dijkstra: a move between a and b costs its length times the mean of their weights.
 double referenceCost(const RandomGrid& g, Cell s, Cell t, double neutral, double factor) {
   auto weight = [&](int i) { return neutral + factor * std::max<int>(g.data[i], 0); };
-  std::vector<double> dist(g.data.size(), INFINITY);
-  using Item = std::pair<double, int>;
-  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> heap;
-  dist[s.y * g.w + s.x] = 0;
-  heap.push({0, s.y * g.w + s.x});
-  while (!heap.empty()) {
-    auto [d, i] = heap.top();
-    heap.pop();
-    if (d > dist[i]) continue;
-    const int x = i % g.w, y = i / g.w;
-    for (int dy = -1; dy <= 1; ++dy) {
-      for (int dx = -1; dx <= 1; ++dx) {
-        if ((dx == 0 && dy == 0) || !g.free(x + dx, y + dy)) continue;
-        if (dx != 0 && dy != 0 && (!g.free(x + dx, y) || !g.free(x, y + dy))) continue;
-        const int j = (y + dy) * g.w + x + dx;
-        const double nd = d + ((dx != 0 && dy != 0) ? kSqrt2 : 1.0) * 0.5 * (weight(i) + weight(j));
-        if (nd < dist[j]) {
-          dist[j] = nd;
-          heap.push({nd, j});
-        }
-      }
-    }
-  }
-  return dist[t.y * g.w + t.x];
+  return test::referenceCost(g.w, g.h, s, t, [&](int x, int y) { return g.free(x, y); },
+                             [&](int i, int j) { return 0.5 * (weight(i) + weight(j)); });
 }
 
 // Whether the closed unit square of cell (cx, cy) meets the segment between the centres of a and b
