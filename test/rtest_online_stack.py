@@ -38,11 +38,12 @@ def launch_file(name):
 
 def start_learner_node(checkpoint: str, *params: str) -> subprocess.Popen:
     """The learner node in learning mode with a small warm-up, checkpointing every 5 steps, waiting for the
-    recorder; `params` add or override private parameters (`_name:=value`). Returns once it serves."""
+    recorder, ~stats after every request; `params` add or override private parameters (`_name:=value`). Returns once it serves."""
     learner = subprocess.Popen(
         [sys.executable, "-m", "offload_learner_py.nodes.learner", "__name:=offload_learner",
          f"_checkpoint:={checkpoint}", "_checkpoint_every:=5", f"_cloud_timeout_s:={CLOUD_TIMEOUT_S}",
-         "_mode:=learning", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}", *params],
+         "_mode:=learning", "_wait_for_recorder_s:=30", "_dqn:={learning_starts: 8, train_frequency: 1}",
+         "_stats_period_s:=0", *params],   # ~stats after every request: the tests wait for them one by one
         stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     rospy.wait_for_service("/offload_learner/plan", timeout=90)
     return learner

@@ -18,7 +18,7 @@ from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
 from offload_learner_py.core.state import State, input_size
-from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
+from offload_learner_py.nodes.learner_io import STATUSES, Every, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
     StaleMapCheck, account, config_msg, decision_msg, exit_fatal, outcome_msg, path_of, rejection, stamped, stats_msg, \
     wait_for_recorder
 from offload_learner_py.nodes.learner_fleet import NodeFleet
@@ -60,6 +60,7 @@ class LearnerNode:
         self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
         self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
         self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
+        self.stats_due = Every(node.stats_period_s)
         self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
                           CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
         self.path_empty = {LOCAL: False, CLOUD: False}
@@ -163,12 +164,20 @@ class LearnerNode:
             if not (empty and self.path_empty[action]):
                 self.path_pubs[action].publish(path)
             self.path_empty[action] = empty
-        self.stats_pub.publish(self.fleet.fill_stats(stats_msg(self.learner)))   # the learner counted it and saved when due
+        if self.stats_due():   # the learner counted this request and saved when due
+            self.publish_stats()
+
+    def publish_stats(self):
+        self.stats_pub.publish(self.fleet.fill_stats(stats_msg(self.learner)))
 
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
         self.learner.close()
+        try:
+            self.publish_stats()   # the last counts, whatever the period left unsent
+        except rospy.ROSException as error:
+            rospy.logwarn("last ~stats not sent: %s", error)
         self.fleet.close()
         for side in self.sides:
             side.close()

@@ -81,6 +81,21 @@ def planner_proxy(service: str, cancel_topic: str) -> PlannerProxy:
     return CancellablePlannerProxy(service, cancel_topic) if cancel_topic else PlannerProxy(service)
 
 
+class Every:
+    """True at most once per `period_s` of `clock` (the first call is True); a period of 0: every call."""
+
+    def __init__(self, period_s: float, clock=time.monotonic):
+        self.period_s, self.clock = period_s, clock
+        self._last = -math.inf
+
+    def __call__(self) -> bool:
+        now = self.clock()
+        if now - self._last < self.period_s:
+            return False
+        self._last = now
+        return True
+
+
 def exit_fatal(error) -> None:
     """One FATAL line naming the cause, then exit status 1: never a node that runs half set up."""
     rospy.logfatal("%s", error)

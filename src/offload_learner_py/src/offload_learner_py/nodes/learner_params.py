@@ -39,6 +39,13 @@ class LearnerNodeConfig:
     start_x: float = math.nan
     start_y: float = math.nan
     base_frame: str = "base_link"
+    stats_period_s: float = 1.0
+    """~stats at most this often (s), after a request; 0: after every request. Each publish wakes the topic's
+    writer thread, a cost per request the robot pays for a message an operator reads once a second."""
+
+    def __post_init__(self):
+        if not (math.isfinite(self.stats_period_s) and self.stats_period_s >= 0):
+            raise ValueError(f"stats_period_s must be finite and >= 0, got {self.stats_period_s}")
 
 
 # ~name -> (dataclass, field). ~seed also seeds the router's probe draws (RouterConfig.seed, the same default).
