@@ -245,6 +245,12 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
       "cancel", 100, boost::bind(&PlannerNode::onCancel, this, boost::placeholders::_1), ros::VoidPtr(),
       &cancel_queue_);
   cancel_sub_ = pnh.subscribe(cancel_options);
+  diagnostics_.setHardwareID("none");
+  diagnostics_.add("planner", this, &PlannerNode::diagnose);
+  double diagnostic_period = 1.0;
+  pnh.param("diagnostic_period", diagnostic_period, diagnostic_period);
+  diagnostics_timer_ = nh.createTimer(ros::Duration(diagnostic_period > 0 ? diagnostic_period : 1.0),
+                                      [this](const ros::TimerEvent&) { diagnostics_.update(); });
   plan_srv_ = pnh.advertiseService("plan", &PlannerNode::onPlan, this);
   make_plan_srv_ = pnh.advertiseService("make_plan", &PlannerNode::onMakePlan, this);
   ROS_INFO("planner ready: %s%s, %s, lethal_threshold %d, unknown cells %s, inflation %.3g m + %.3g m, %d planning "
@@ -273,7 +279,13 @@ void PlannerNode::onMap(const nav_msgs::OccupancyGrid::ConstPtr& map) {
   std::string error;
   if (!handler_->setMap(map, &error)) {
     ROS_ERROR("rejected map on %s: %s; keeping the previous map", map_sub_.getTopic().c_str(), error.c_str());
+    std::lock_guard<std::mutex> lock(map_problem_mutex_);
+    map_problem_ = error;
     return;
+  }
+  {
+    std::lock_guard<std::mutex> lock(map_problem_mutex_);
+    map_problem_.clear();
   }
   ROS_INFO("map %u x %u at %.3f m/cell in frame '%s'", map->info.width, map->info.height, map->info.resolution,
            map->header.frame_id.c_str());
@@ -310,6 +322,12 @@ void PlannerNode::serve(const offload_msgs::PlanPath::Request& req, offload_msgs
   timing.cost_m = res->cost_m;
   timing.map_stamp = res->map_stamp;
   timing_pub_.publish(timing);
+  last_plan_ms_ = res->planning_time_s * 1e3;
+  if (res->status == offload_msgs::PlanPath::Response::OK) {
+    ++plans_ok_;
+  } else if (res->status != offload_msgs::PlanPath::Response::CANCELLED) {
+    ++plans_refused_;
+  }
   if (res->status == offload_msgs::PlanPath::Response::OK) {
     path_pub_.publish(res->path);
     ROS_DEBUG("planned %zu poses, %.2f m, in %.2f ms", res->path.poses.size(), res->cost_m,

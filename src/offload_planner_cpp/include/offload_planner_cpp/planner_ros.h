@@ -12,6 +12,7 @@
 #include <string>
 #include <unordered_map>
 
+#include <diagnostic_updater/diagnostic_updater.h>
 #include <nav_msgs/GetPlan.h>
 #include <nav_msgs/OccupancyGrid.h>
 #include <offload_msgs/PlanPath.h>
@@ -91,6 +92,8 @@ class PlannerNode {
   bool onPlan(offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response& res);
   bool onMakePlan(nav_msgs::GetPlan::Request& req, nav_msgs::GetPlan::Response& res);
   void serve(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res);
+  // /diagnostics: the map the node plans on (size, age, a refused newer one) and how its plans ended.
+  void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
 
   std::unique_ptr<PlanRequestHandler> handler_;
   std::string planner_name_;
@@ -104,6 +107,13 @@ class PlannerNode {
   ros::ServiceServer make_plan_srv_;
   ros::Publisher path_pub_;
   ros::Publisher timing_pub_;
+  diagnostic_updater::Updater diagnostics_;
+  ros::Timer diagnostics_timer_;
+  std::atomic<std::uint64_t> plans_ok_{0};
+  std::atomic<std::uint64_t> plans_refused_{0};   // answered with a status other than OK or CANCELLED
+  std::atomic<double> last_plan_ms_{-1.0};
+  std::mutex map_problem_mutex_;
+  std::string map_problem_;                       // why the last map was refused; empty once one is taken
 };
 
 }  // namespace offload_planner

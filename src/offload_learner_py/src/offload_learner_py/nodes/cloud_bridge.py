@@ -15,6 +15,8 @@ from rospy.numpy_msg import numpy_msg
 from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
 from offload_cloud.gc_pauses import freeze_startup_heap
 from offload_learner_py.nodes import params
+from offload_learner_py.nodes.diagnostics import NodeDiagnostics
+from offload_learner_py.online.health import LinkHealth
 from offload_learner_py.nodes.path_wire import WirePath, WirePlanPathResponse, pose_count
 from offload_planner_cpp import options_table, validate_options
 
@@ -93,6 +95,8 @@ class CloudBridgeNode:
                                         buff_size=1 << 26)
         self.plan_srv = rospy.Service("~plan", PlanPath, self.on_plan)
         self.make_plan_srv = rospy.Service("~make_plan", GetPlan, self.on_make_plan)
+        self.health = LinkHealth()
+        self.diagnostics = NodeDiagnostics("cloud link", self.health.status, hardware_id=config.endpoint)
         self._stopped = threading.Event()
         self._heartbeat = threading.Thread(target=self.heartbeat_loop, name="heartbeat", daemon=True)
         self._heartbeat.start()
@@ -103,6 +107,7 @@ class CloudBridgeNode:
 
     def shutdown(self) -> None:
         self._stopped.set()
+        self.diagnostics.close()
         self._heartbeat.join(5.0)
         self.bridge.close()
 
@@ -112,6 +117,10 @@ class CloudBridgeNode:
         why = self.bridge.set_map(msg.data, info.width, info.height, info.resolution, info.origin.position.x,
                                   info.origin.position.y, (q.x, q.y, q.z, q.w), msg.header.frame_id,
                                   msg.header.stamp)
+        self.health.map_refused = why or ""
+        if not why:
+            self.health.map_cells = info.width * info.height
+        self.diagnostics.changed()
         if why:
             rospy.logerr("rejected map on %s: %s; keeping the previous map", self.map_sub.resolved_name, why)
         else:
@@ -122,6 +131,8 @@ class CloudBridgeNode:
         while not self._stopped.wait(self.heartbeat_period_s) and not rospy.is_shutdown():
             reachable, round_trip_s = self.bridge.heartbeat()
             self.publish_latency(LinkLatency.HEARTBEAT, reachable, round_trip_s)
+            self.health.heartbeat(reachable, round_trip_s)
+            self.diagnostics.changed()
 
     def publish_latency(self, source: int, reachable: bool, round_trip_s: float) -> None:
         msg = LinkLatency(source=source, reachable=reachable, round_trip_s=round_trip_s)
@@ -152,6 +163,8 @@ class CloudBridgeNode:
                             path_cells=pose_count(res.path), cost_m=res.cost_m, map_stamp=res.map_stamp)
         timing.header.stamp = rospy.Time.now()
         self.timing_pub.publish(timing)
+        self.health.plan("timeout" if res.status == PlanPathResponse.CLOUD_TIMEOUT else
+                         "failed" if res.status == PlanPathResponse.CLOUD_ERROR else "ok")
         if res.status == PlanPathResponse.OK:
             self.path_pub.publish(res.path)
         else:
@@ -177,7 +190,7 @@ def main():
     Parameters (private): ~endpoint (required), PARAMETERS and NODE_PARAMETERS (each defaulting to its
     field's default) and the core's planner options; the package README's table lists them.
     Topics: subscribes map (nav_msgs/OccupancyGrid); publishes ~latency (offload_msgs/LinkLatency),
-    ~timing (offload_msgs/PlanTiming), ~path (nav_msgs/Path, latched).
+    ~timing (offload_msgs/PlanTiming), ~path (nav_msgs/Path, latched), /diagnostics (the link's status).
     Services: ~plan (offload_msgs/PlanPath), ~make_plan (nav_msgs/GetPlan).
     """
     rospy.init_node("cloud_bridge")

@@ -11,19 +11,17 @@ import torch
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
-from offload_msgs.msg import LearnerConfig, LinkLatency, OffloadDecision, OffloadOutcome, RequestRejected, \
-    TrainingStats
+from offload_msgs.msg import LinkLatency
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
-from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
 from offload_learner_py.core.state import State, input_size
-from offload_learner_py.nodes.learner_io import STATUSES, Every, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
-    StaleMapCheck, account, config_msg, decision_msg, exit_fatal, outcome_msg, path_of, rejection, stamped, stats_msg, \
-    wait_for_recorder
+from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
+    StaleMapCheck, account, exit_fatal, rejection, wait_for_recorder
 from offload_learner_py.nodes.learner_fleet import NodeFleet
-from offload_learner_py.nodes.path_wire import pose_count
+from offload_learner_py.nodes.learner_outputs import LearnerOutputs
 from offload_learner_py.nodes.learner_params import read_learner_parameters
+from offload_learner_py.online.breaker import LinkBreaker
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.router import OffloadRouter
 from offload_cloud.gc_pauses import freeze_startup_heap
@@ -34,7 +32,6 @@ class LearnerNode:
         settings = read_learner_parameters(lambda name, default: rospy.get_param("~" + name, default))
         node, session, config = settings.node, settings.session, settings.router
         self.router_config = config
-        seed, alpha = session.seed, config.weights.alpha
         # One thread: fastest for this small network, leaves the robot's other cores to the planner, and keeps the
         # learner's CPU per request (its thread's time) whole.
         torch.set_num_threads(node.torch_threads)
@@ -57,23 +54,14 @@ class LearnerNode:
         for side in self.sides:
             rospy.loginfo("waiting for %s", side.service)
             rospy.wait_for_service(side.service, timeout=wait_s)
-        self.decision_pub = rospy.Publisher("~decision", OffloadDecision, queue_size=100)
-        self.outcome_pub = rospy.Publisher("~outcome", OffloadOutcome, queue_size=100)
-        self.stats_pub = rospy.Publisher("~stats", TrainingStats, queue_size=10)
-        self.stats_due = Every(node.stats_period_s)
-        self.path_pubs = {LOCAL: rospy.Publisher("~path_local", Path, queue_size=1, latch=True),
-                          CLOUD: rospy.Publisher("~path_cloud", Path, queue_size=1, latch=True)}
-        self.path_empty = {LOCAL: False, CLOUD: False}
-        self.goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
-        self.config_pub = rospy.Publisher("~config", LearnerConfig, queue_size=1, latch=True)
-        self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
-        self.config_pub.publish(config_msg(config, self.learner, seed, alpha))
+        breaker = LinkBreaker(config.breaker)
+        self.outputs = LearnerOutputs(self.learner, self.fleet, breaker, config, session, node.stats_period_s)
         recorder = node.recorder_node
-        wait_for_recorder((self.decision_pub, self.outcome_pub), node.wait_for_recorder_s,
+        wait_for_recorder(self.outputs.recorded, node.wait_for_recorder_s,
                           rospy.names.resolve_name(recorder) if recorder else "")
         self.router = OffloadRouter(self.learner, *self.sides, STATUSES, config,
-                                    on_decision=self.publish_decision, on_outcome=self.on_outcome,
-                                    stale=StaleMapCheck(lambda: self.map_info), account=account)
+                                    on_decision=self.outputs.decision, on_outcome=self.on_outcome,
+                                    stale=StaleMapCheck(lambda: self.map_info), account=account, breaker=breaker)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = node.latency_topic
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
@@ -105,6 +93,7 @@ class LearnerNode:
         self.round_trip_s = msg.round_trip_s
         if msg.source == LinkLatency.HEARTBEAT:
             self.router.breaker.record_heartbeat(msg.reachable, msg.round_trip_s)
+            self.outputs.diagnostics.changed()   # a breaker that opened or closed: shown at once
 
     def build_state(self, request):
         """s_t, or None when it cannot be built (no map metadata yet, a pose that is not finite): such a
@@ -124,10 +113,10 @@ class LearnerNode:
         arrived = time.perf_counter()    # the router's clock: the caller's latency starts here
         refused = rejection(self.map_info, request)   # refused for its input: answered, never a decision
         if refused is not None:
-            self.rejected_pub.publish(stamped(RequestRejected(status=refused.status, message=refused.message)))
+            self.outputs.rejected(refused)
             rospy.logwarn_throttle(10.0, "request refused (status %d): %s", refused.status, refused.message)
             return PlanPathResponse(status=refused.status, message=refused.message)
-        self.goal_pub.publish(request.goal)
+        self.outputs.goal(request.goal)
         result = self.router.route(request, self.build_state(request), arrived)
         if result.response is None:
             return PlanPathResponse(status=result.status, message=result.raised)
@@ -140,11 +129,6 @@ class LearnerNode:
         response = self.serve(PlanPathRequest(start=request.start, goal=request.goal, tolerance=request.tolerance))
         return GetPlanResponse(plan=response.path if response.status == PlanPathResponse.OK else Path())
 
-    def publish_decision(self, routing):
-        msg = decision_msg(routing, self.learner.config.policy, self.learner.policy.steps)
-        self.fleet.decision(msg)
-        self.decision_pub.publish(msg)
-
     def on_outcome(self, outcome):
         if self.cpu_window_from_outcome:
             try:
@@ -153,31 +137,13 @@ class LearnerNode:
                 rospy.logwarn_throttle(10, "cannot read the robot's CPU budget: %s", error)
         if outcome.state is None:
             return   # not a decision: nothing to pair it with (the planner's status told the caller why)
-        msg = outcome_msg(outcome)
-        self.fleet.outcome(outcome, msg)   # the guard's sample and the row for the fleet learner
-        self.outcome_pub.publish(msg)
-        # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one. An
-        # empty one already latched is not sent again (a deployed robot's other side, request after request).
-        for action, side in ((LOCAL, outcome.local), (CLOUD, outcome.cloud)):
-            path = path_of(side)
-            empty = pose_count(path) == 0
-            if not (empty and self.path_empty[action]):
-                self.path_pubs[action].publish(path)
-            self.path_empty[action] = empty
-        if self.stats_due():   # the learner counted this request and saved when due
-            self.publish_stats()
-
-    def publish_stats(self):
-        self.stats_pub.publish(self.fleet.fill_stats(stats_msg(self.learner)))
+        self.outputs.outcome(outcome)
 
     def shutdown(self):
         if not self.router.wait_idle(10.0):
             rospy.logwarn("the last request did not finish within 10 s")
         self.learner.close()
-        try:
-            self.publish_stats()   # the last counts, whatever the period left unsent
-        except rospy.ROSException as error:
-            rospy.logwarn("last ~stats not sent: %s", error)
+        self.outputs.close()
         self.fleet.close()
         for side in self.sides:
             side.close()
