@@ -150,9 +150,10 @@ bench-offline: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_offline
 # cosmic-ray over the learner's reward, state and DQN modules, the cloud protocol and every module that decides,
 # routes, admits or evaluates (about an hour),
-# then the hand-written mutants of dijkstra.cpp (tools/cpp_mutants.yaml, about 5 min).
+# then the hand-written mutants of the Python modules (tools/py_mutants.yaml, about 2 min) and of dijkstra.cpp
+# (tools/cpp_mutants.yaml, about 5 min).
 mutate: build
-	@$(ROSENV) $(PY) tools/mutate_py.py; $(PY) tools/mutate_cpp.py
+	@$(ROSENV) $(PY) tools/mutate_py.py; $(PY) tools/mutate_hand_py.py; $(PY) tools/mutate_cpp.py
 
 clean:
 	rm -rf build devel .ros
