@@ -1,9 +1,8 @@
-// Any-angle paths (options.any_angle): Theta* over the grid (searchTheta), string pulling of a grid path
-// (pullTight), and the costs of straight segments they compare (segmentCost, pathCost); segmentClear for callers
+// Any-angle paths (options.any_angle): string pulling of the optimal cell path (pullTight), its corners slid
+// to cheaper cells (refineCorners), and the costs of straight segments they compare (segmentCost, pathCost); segmentClear for callers
 // that check a segment of their own (the binding's path_clear).
 #include "offload_planner_cpp/dijkstra.h"
 
-#include "best_first.h"
 #include "segment_walk.h"
 
 #include <algorithm>
@@ -35,67 +34,114 @@ double DijkstraPlanner::pathCost(const std::vector<Cell>& path) const {
   return cost;
 }
 
-bool DijkstraPlanner::searchTheta(int start, int target, const std::atomic<bool>* cancel, std::vector<Cell>* path) {
-  const int w = width_;
-  const std::size_t cells = static_cast<std::size_t>(w) * static_cast<std::size_t>(height_);
-  if (parent_.size() != cells) parent_.assign(cells, -1);
-  parent_[start] = start;   // parents are only read for settled cells
-  const Cell goal{target % w, target / w};
-  // Euclidean distance times the least weight: no segment costs less, so the heuristic is consistent.
-  auto euclid = [&](int i) { return min_weight_ * std::hypot(i % w - goal.x, i / w - goal.y); };
-  auto relax = [&](int i, double d, int j, double length) {
-    if (settled(j)) return false;
-    // Path 2 of Theta*: straight from i's parent when j is in its sight; else path 1, through i.
-    double best = d + moveCost(i, j, length);
-    int from = i;
-    const int up = parent_[i];
-    if (up != i) {
-      const double straight = distance(up) + segmentCost(up, j);
-      if (straight <= best) {
-        best = straight;
-        from = up;
-      }
-    }
-    if (!(best < dist_[j])) return false;
-    dist_[j] = best;
-    parent_[j] = from;
-    return true;
-  };
-  if (!bestFirst(start, target, true, cancel, 1024, euclid, relax)) return false;
-  path->clear();
-  for (int i = target;; i = parent_[i]) {
-    path->push_back({i % w, i / w});
-    if (i == start) break;
-  }
-  std::reverse(path->begin(), path->end());
-  return true;
-}
-
 void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
   const std::size_t n = path->size();
   if (n < 3) return;
   const int w = width_;
   auto index = [&](Cell c) { return c.y * w + c.x; };
-  // The cost of the path up to each corner, in the same model as a segment's (a move is half in each cell).
-  std::vector<double> prefix(n, 0.0);
-  for (std::size_t k = 1; k < n; ++k) prefix[k] = prefix[k - 1] + segmentCost(index((*path)[k - 1]), index((*path)[k]));
+  // The cost of the path up to each cell, in the same model as a segment's (a move is half in each cell);
+  // at uniform cost a segment in sight never costs more than the cells it replaces, and only sight is walked.
+  std::vector<double> prefix(weighted_ ? n : 0, 0.0);
+  for (std::size_t k = 1; k < prefix.size(); ++k) {
+    prefix[k] = prefix[k - 1] + segmentCost(index((*path)[k - 1]), index((*path)[k]));
+  }
   auto passableAt = [&](int i) { return passable(i); };
   std::vector<Cell> pulled{path->front()};
   std::size_t anchor = 0;
+  // Cell k may follow the anchor when it is in sight and the segment costs no more than the cells it replaces.
+  auto fits = [&](std::size_t k) {
+    if (!weighted_) return walkSegment((*path)[anchor], (*path)[k], w, passableAt, [](int, double) {});
+    const double cost = segmentCost(index((*path)[anchor]), index((*path)[k]));
+    return cost <= prefix[k] - prefix[anchor] + 1e-9 * prefix[k];
+  };
   while (anchor + 1 < n) {
-    std::size_t best = anchor + 1;
-    for (std::size_t k = anchor + 2; k < n; ++k) {
-      double cost = 0.0;
-      const bool visible = walkSegment((*path)[anchor], (*path)[k], w, passableAt,
-                                       [&](int i, double length) { cost += weighted_ ? length * weight(i) : length; });
-      if (!visible) break;
-      // The straight segment must not cost more than the cells it replaces (it never does at uniform cost).
-      if (cost <= prefix[k] - prefix[anchor] + 1e-9 * prefix[k]) best = k;
+    // Galloping, then bisection, for a far cell that fits: O(log run) lines of sight per corner, where trying
+    // every cell of a long straight run was quadratic in its length. Every corner taken is checked.
+    std::size_t good = anchor + 1;
+    std::size_t bad = n;
+    for (std::size_t step = 1; good + 1 < n; step *= 2) {
+      const std::size_t k = std::min(good + step, n - 1);
+      if (!fits(k)) {
+        bad = k;
+        break;
+      }
+      good = k;
     }
-    pulled.push_back((*path)[best]);
-    anchor = best;
+    while (bad < n && bad - good > 1) {
+      const std::size_t mid = good + (bad - good) / 2;
+      (fits(mid) ? good : bad) = mid;
+    }
+    pulled.push_back((*path)[good]);
+    anchor = good;
   }
   path->swap(pulled);
+}
+
+void DijkstraPlanner::refineCorners(std::vector<Cell>* path) const {
+  std::vector<Cell>& p = *path;
+  if (p.size() < 3) return;
+  const int w = width_;
+  auto index = [&](Cell c) { return c.y * w + c.x; };
+  auto passableAt = [&](int i) { return passable(i); };
+  auto length = [](Cell a, Cell b) { return std::hypot(a.x - b.x, a.y - b.y); };
+  auto cost = [&](Cell a, Cell b) {
+    if (weighted_) return segmentCost(index(a), index(b));
+    return walkSegment(a, b, w, passableAt, [](int, double) {}) ? length(a, b) : std::numeric_limits<double>::infinity();
+  };
+  // seg[k]: the cost of the segment from corner k to corner k + 1; dirty[k]: corner k may still improve.
+  std::vector<double> seg(p.size() - 1);
+  for (std::size_t k = 0; k + 1 < p.size(); ++k) seg[k] = cost(p[k], p[k + 1]);
+  std::vector<char> dirty(p.size(), 1);
+  // Every change lowers the cost by more than a rounding error, so this ends; the cap bounds the time.
+  for (int pass = 0, changed = 1; changed && pass < 64; ++pass) {
+    changed = 0;
+    for (std::size_t k = 1; k + 1 < p.size(); ++k) {
+      if (!dirty[k]) continue;
+      dirty[k] = 0;
+      const double now = seg[k - 1] + seg[k];
+      const double slack = 1e-12 * now;
+      // A corner whose neighbours see each other at no more cost goes.
+      const double direct = cost(p[k - 1], p[k + 1]);
+      if (direct <= now) {
+        p.erase(p.begin() + static_cast<std::ptrdiff_t>(k));
+        seg.erase(seg.begin() + static_cast<std::ptrdiff_t>(k));
+        dirty.erase(dirty.begin() + static_cast<std::ptrdiff_t>(k));
+        seg[k - 1] = direct;
+        dirty[k - 1] = dirty[k] = 1;
+        changed = 1;
+        --k;
+        continue;
+      }
+      // Else it moves to the neighbouring cell that lowers the cost most, if any: corners drift towards the
+      // obstacle corners they turn around, which cell-path corners only approximate.
+      double best = now - slack;
+      Cell to = p[k];
+      double to_in = 0.0, to_out = 0.0;
+      for (int dy = -1; dy <= 1; ++dy) {
+        for (int dx = -1; dx <= 1; ++dx) {
+          const Cell c{p[k].x + dx, p[k].y + dy};
+          if ((dx == 0 && dy == 0) || c.x < 0 || c.y < 0 || c.x >= w || c.y >= height_ || !passable(index(c))) continue;
+          // No segment costs less than its length times the least weight: most candidates end here unwalked.
+          if (!(min_weight_ * (length(p[k - 1], c) + length(c, p[k + 1])) < best)) continue;
+          const double in = cost(p[k - 1], c);
+          if (!(in < best)) continue;
+          const double out = cost(c, p[k + 1]);
+          if (in + out < best) {
+            best = in + out;
+            to = c;
+            to_in = in;
+            to_out = out;
+          }
+        }
+      }
+      if (to == p[k]) continue;
+      p[k] = to;
+      seg[k - 1] = to_in;
+      seg[k] = to_out;
+      dirty[k - 1] = dirty[k] = dirty[k + 1] = 1;
+      changed = 1;
+    }
+  }
 }
 
 }  // namespace offload_planner

@@ -1,5 +1,5 @@
-// The moves of a cell and the heap best-first search over them, shared by the heap searches (dijkstra.cpp:
-// weighted Dijkstra and A*) and Theta* (any_angle.cpp). Internal to the core: not installed; member templates
+// The moves of a cell and the heap best-first search over them, used by the heap searches (dijkstra.cpp:
+// weighted Dijkstra and A*). Internal to the core: not installed; member templates
 // defined here so each file that runs a search instantiates its own.
 #ifndef OFFLOAD_PLANNER_CPP_BEST_FIRST_H
 #define OFFLOAD_PLANNER_CPP_BEST_FIRST_H

@@ -5,7 +5,8 @@ measured figures. Every distance is cross-checked against scipy while measuring.
 1. 2000 x 2000 grid, 20% random obstacles (seeded), corner to corner.
 2. ROS maps (shared set, else the bundled ones), random free start/goal pairs.
 The modes sections first: every mode side by side (bench_planner_modes) and the point-to-point modes (astar,
-jps, auto) against the default per map (bench_planner_p2p).
+jps, auto) against the default per map (bench_planner_p2p), and any-angle against the default per map, time
+and length (bench_planner_any_angle).
 """
 import argparse
 import statistics
@@ -21,7 +22,7 @@ from offload_demos.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map
 
 from offload_demos import bench_planner_modes as planner_modes
-from offload_demos import bench_planner_p2p
+from offload_demos import bench_planner_any_angle, bench_planner_p2p
 from offload_demos.bench_planner_modes import median_of
 
 HERE = Path(__file__).resolve()
@@ -109,6 +110,7 @@ def main(argv=None):
     print("## Planner modes")
     planner_modes.run(3, args.figure, BUNDLED / "husky_playpen" / "playpen_map.yaml")
     bench_planner_p2p.run(random_sizes=(args.size, 2 * args.size))
+    bench_planner_any_angle.run(random_sizes=(args.size, 2 * args.size))
     if args.only_modes:
         return 0
     bench_random(args.size, args.runs)

@@ -10,7 +10,8 @@
 // length times the mean of w(a) and w(b), w = neutral_cost + cost_factor * occupancy, global_planner's
 // model), inflation of a raw map by a robot and an inflation radius (inflation.h), A* with the octile
 // heuristic (consistent, so its costs are Dijkstra's), and any-angle paths (the optimal cell path pulled
-// tight along lines of sight that cross no blocked cell or corner and never raise the path's cost). The
+// tight along lines of sight that cross no blocked cell or corner and never raise the path's cost, its
+// corners then slid to neighbouring cells while that lowers the cost). The
 // options, their defaults and bounds are planner_options.h's.
 #pragma once
 
@@ -141,7 +142,7 @@ class DijkstraPlanner {
   // meet_forward_ -> meet_backward_ and costs meeting_cost_.
   bool searchBidirectional(int start, int target, const std::atomic<bool>* cancel);
   bool searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
-  // Best-first search over heap_ (lazy deletion), shared by searchHeap and searchTheta: `estimate(j)` is the
+  // Best-first search over heap_ (lazy deletion), used by searchHeap: `estimate(j)` is the
   // heuristic, `relax(i, d, j, length)` offers j a cost through the settled cell i (at cost d) and returns
   // whether it improved dist_[j]. Checks `cancel` every `cancel_check` settled cells.
   template <class Estimate, class Relax>
@@ -158,11 +159,11 @@ class DijkstraPlanner {
   // Walks back from `goal` to the source of the distances `labels` along settled cells, each step to the
   // neighbour with the smallest distance; the path runs from that source to `goal`.
   void tracePath(int goal, std::vector<Cell>* path, const Labels& labels) const;
-  // Pulls `path` tight along lines of sight that never raise its cost.
+  // Pulls `path` tight along lines of sight that never raise its cost (corners are cells of the path).
   void pullTight(std::vector<Cell>* path) const;
-  // Theta* (any-angle A*: a cell's parent may be any cell in sight) from start to target; the corners of
-  // its path in *path, false when cancelled or the target was not reached.
-  bool searchTheta(int start, int target, const std::atomic<bool>* cancel, std::vector<Cell>* path);
+  // Moves each corner of a pulled path to a neighbouring cell while that lowers its cost, and drops corners
+  // whose neighbours see each other at no more cost (ends fixed).
+  void refineCorners(std::vector<Cell>* path) const;
   // Cost of the segment between two cells (length times the weights it crosses), or +inf when not in sight.
   double segmentCost(int from, int to) const;
   // Cost of a path of corners, segment by segment.
@@ -215,7 +216,6 @@ class DijkstraPlanner {
   int meet_backward_ = -1;
   bool start_component_settled_ = false;  // the last two-wave search's forward wave ran dry
   std::vector<std::pair<double, int>> heap_;
-  std::vector<int> parent_;            // Theta*: each settled cell's parent
   std::vector<std::int8_t> inflated_;  // the grid after inflation, when asked for
   JumpPointSearch jump_;
 };
