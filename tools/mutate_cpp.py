@@ -143,8 +143,8 @@ def main(argv=None) -> int:
         if killed:
             sys.exit(f"mutate_cpp: the tests fail on the unmutated source ({where}); no mutant can be judged")
         print(f"C++ mutants of {', '.join(sorted(sources))} ({len(mutants)} from {args.list.name}); tests: "
-              f"test_dijkstra, test_planner_ros, test_planner_options (gtest), test_bindings.py, "
-              f"test_request_contract.py", flush=True)
+              f"{', '.join(path.name for path in GTESTS)} (gtest), "
+              f"{', '.join(path.name for path in BINDING_TESTS)}", flush=True)
         for mutant in mutants:
             began = time.monotonic()
             source = sources[mutant.get("file", DEFAULT_FILE)]

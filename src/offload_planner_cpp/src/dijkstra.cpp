@@ -79,6 +79,7 @@ bool DijkstraPlanner::searchHeap(int start, int target, bool stop_at_target, con
 
 
 void DijkstraPlanner::tracePath(int goal, std::vector<Cell>* path, const Labels& labels) const {
+  if (labels.stride != 0) return traceWave(goal, path, labels);
   const int w = width_;
   path->clear();
   int i = goal;

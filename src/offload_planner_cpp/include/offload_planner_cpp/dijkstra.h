@@ -159,6 +159,8 @@ class DijkstraPlanner {
   // Walks back from `goal` to the source of the distances `labels` along settled cells, each step to the
   // neighbour with the smallest distance; the path runs from that source to `goal`.
   void tracePath(int goal, std::vector<Cell>* path, const Labels& labels) const;
+  // tracePath over a wave's labels (uniform cost), in its padded buffer.
+  void traceWave(int goal, std::vector<Cell>* path, const Labels& labels) const;
   // Pulls `path` tight along lines of sight that never raise its cost (corners are cells of the path).
   void pullTight(std::vector<Cell>* path) const;
   // Moves each corner of a pulled path to a neighbouring cell while that lowers its cost, and drops corners
