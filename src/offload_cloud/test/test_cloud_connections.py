@@ -153,9 +153,16 @@ class FakeFrame:
 class FakeFrontend:
     def __init__(self):
         self.sent = []
+        self._parts = []
 
     def send_multipart(self, frames, **kwargs):
         self.sent.append(protocol.decode_reply([bytes(getattr(frame, "bytes", frame)) for frame in frames[1:]]))
+
+    def send(self, frame, flags=0, **kwargs):   # the broker sends a reply frame by frame (zmq_frames.send_frames)
+        self._parts.append(frame)
+        if not flags & zmq.SNDMORE:
+            self.send_multipart(self._parts)
+            self._parts = []
 
 
 @pytest.fixture

@@ -29,6 +29,7 @@ from offload_planner_cpp import inflate, path_clear
 from offload_cloud import protocol
 from offload_cloud.keys import load_client_keys
 from offload_cloud.protocol import PlanOptions, ProtocolError, Reply, Status
+from offload_cloud.zmq_frames import NOBLOCK, recv_frames, send_frames
 
 
 class CloudTimeout(RuntimeError):
@@ -40,6 +41,7 @@ class CloudTimeout(RuntimeError):
 DEFAULT_MAX_REPLY_BYTES = 64 << 20
 _CURVE_FRAME_OVERHEAD_BYTES = 4096   # MAXMSGSIZE counts the encrypted frame: room for the CURVE box
 _SQRT2 = float(np.sqrt(2.0))
+_POLLIN = int(zmq.POLLIN)
 # A new socket's first message up to this size (a ping, a plan on a cached map) says whose the connection is
 # at once; a larger one (a map) goes after a ping, so its bytes already count against the key's bound.
 _TINY_FIRST_MESSAGE_BYTES = 1024
@@ -190,9 +192,9 @@ class CloudClient:
                     # message is larger, and counts a key's bytes from its first message on; libzmq may have
                     # reconnected the socket since); its pong is dropped below as a reply to another request.
                     hello = protocol.encode_ping(next(self._ids) & 0xFFFFFFFFFFFFFFFF)
-                    self._socket.send_multipart(hello, flags=zmq.NOBLOCK)
+                    send_frames(self._socket, hello, NOBLOCK)
                     size += sum(len(frame) for frame in hello)
-                self._socket.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+                send_frames(self._socket, frames, NOBLOCK)
             except zmq.Again:
                 self._reset()
                 continue
@@ -206,11 +208,11 @@ class CloudClient:
     def _await(self, request_id: int, deadline: float, decode=protocol.decode_reply):
         while True:
             wait_ms = int(max(0.0, deadline - time.monotonic()) * 1000) + 1
-            if not self._socket.poll(wait_ms, zmq.POLLIN):
+            if not zmq.zmq_poll([(self._socket, _POLLIN)], wait_ms):   # Socket.poll would build a Poller
                 if time.monotonic() >= deadline:
                     return None
                 continue
-            frames = self._socket.recv_multipart(copy=False)
+            frames = recv_frames(self._socket)
             self.bytes_received += sum(len(frame) for frame in frames)
             try:
                 reply = decode([frame.buffer for frame in frames])
@@ -308,19 +310,24 @@ def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Se
     height, width = grid.shape
     if not 1 <= len(path) <= grid.size:
         return f"path of {len(path)} cells on a map of {grid.size} cells"
-    xs, ys = path[:, 0].astype(np.int64), path[:, 1].astype(np.int64)
-    if xs.min() < 0 or ys.min() < 0 or xs.max() >= width or ys.max() >= height:
+    # Few whole-array passes, none along a row (a reduction over each (x, y) pair costs more than the path): the
+    # bridge pays this per cloud plan (#30's bridge CPU bar).
+    xs, ys = path[:, 0], path[:, 1]
+    if path.min() < 0 or xs.max() >= width or ys.max() >= height:
         return "path leaves the map"
-    if (int(xs[0]), int(ys[0])) != (int(start[0]), int(start[1])):
-        return f"path starts at ({xs[0]}, {ys[0]}), not at the start {tuple(start)}"
-    if (int(xs[-1]), int(ys[-1])) != tuple(int(v) for v in reply.goal):
-        return f"path ends at ({xs[-1]}, {ys[-1]}), not at the reached goal {reply.goal}"
+    first, last = path[0].tolist(), path[-1].tolist()
+    if first != [int(start[0]), int(start[1])]:
+        return f"path starts at ({first[0]}, {first[1]}), not at the start {tuple(start)}"
+    if last != [int(v) for v in reply.goal]:
+        return f"path ends at ({last[0]}, {last[1]}), not at the reached goal {reply.goal}"
     if math.hypot(reply.goal[0] - goal[0], reply.goal[1] - goal[1]) > options.goal_tolerance_cells + 1e-9:
         return f"reached goal {reply.goal} is farther than the tolerance from the goal {tuple(goal)}"
-    dx, dy = np.abs(np.diff(xs)), np.abs(np.diff(ys))
-    if options.any_angle and ((dx == 0) & (dy == 0)).any():
+    dx, dy = np.abs(np.diff(xs)), np.abs(np.diff(ys))   # inside the map: no int32 overflow
+    longer = np.maximum(dx, dy)
+    shortest, longest = (int(longer.min()), int(longer.max())) if len(longer) else (1, 1)
+    if options.any_angle and shortest == 0:
         return "any-angle path repeats a corner"
-    if not options.any_angle and ((dx > 1) | (dy > 1) | ((dx == 0) & (dy == 0))).any():
+    if not options.any_angle and (shortest != 1 or longest != 1):
         return "path is not a chain of 8-connected steps"
     # The planner's own rule on the path's cells only, in C++: O(path), never a pass over the whole map (a
     # free-cell mask of a 4 M-cell map cost the robot 8 ms per cloud plan). A step between 8-neighbours is
@@ -331,9 +338,9 @@ def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Se
         return f"segment {blocked} of the path crosses an obstacle or cuts its corner"
     if options.any_angle:
         length = float(np.hypot(dx, dy).sum())
-    else:
-        diagonal = (dx == 1) & (dy == 1)
-        length = float(np.count_nonzero(~diagonal) + _SQRT2 * np.count_nonzero(diagonal))
+    else:   # every step is 1 cell long in its longer axis; a diagonal one in the other axis too
+        diagonal = int(dx.sum()) + int(dy.sum()) - len(dx)
+        length = float(len(dx) - diagonal + _SQRT2 * diagonal)
     if not math.isfinite(reply.cost_cells) or abs(reply.cost_cells - length) > 1e-6 * max(1.0, length):
         return f"cost {reply.cost_cells!r} cells is not the path's length {length:.6g}"
     return ""

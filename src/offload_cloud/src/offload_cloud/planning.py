@@ -24,7 +24,7 @@ class Planning:
 
     def handle(self, payload, client: str) -> list:
         """Reply frames for a PLAN or UPLOAD message (envelope first) of `client`; never raises."""
-        request_id = protocol.request_id_of(payload[0].buffer)
+        request_id = None
         started = time.perf_counter()
         try:
             kind, request_id = protocol.decode_envelope(payload[0].buffer)
@@ -32,10 +32,12 @@ class Planning:
                 return protocol.encode_reply(self._upload(request_id, payload[1:], client))
             return protocol.encode_reply(self._plan(request_id, payload[1:], started, client))
         except ProtocolError as error:
+            request_id = protocol.request_id_of(payload[0].buffer) if request_id is None else request_id
             self.log_limited(logging.WARNING, ("request", error.status), "request %d: %s: %s", request_id,
                                   error.status.name, error)
             return protocol.encode_reply(Reply(request_id, error.status, str(error)))
         except Exception as error:   # a bug must cost one reply, never the server
+            request_id = protocol.request_id_of(payload[0].buffer) if request_id is None else request_id
             LOG.exception("request %d failed", request_id)
             return protocol.encode_reply(Reply(request_id, Status.SERVER_ERROR, f"server error: {error}"))
 
@@ -58,11 +60,11 @@ class Planning:
     def _plan(self, request_id: int, frames, started: float, client: str) -> Reply:
         request = protocol.decode_plan(request_id, [frame.buffer for frame in frames], self.max_cells)
         grid = request.grid
-        short_hash = request.map_hash.hex()[:12]
         if grid is None:
             grid = self.cache.get(request.map_hash)
             if grid is None:
-                LOG.info("request %d: map %s not cached: asking for an upload", request_id, short_hash)
+                LOG.info("request %d: map %s not cached: asking for an upload", request_id,
+                         request.map_hash.hex()[:12])
                 return Reply(request_id, Status.MAP_UNKNOWN, f"map {request.map_hash.hex()} is not cached: upload it")
             source = "cache hit"
         else:
@@ -73,9 +75,10 @@ class Planning:
             grid, options = self._inflated(request.map_hash, grid, options, client)
         raw = protocol_plan(grid, request, options)
         status = Status(int(raw["status"]))
-        LOG.info("request %d: map %s %s, %s -> %s: %s, plan %.2f ms, %d expansions, %.2f ms in server",
-                 request_id, short_hash, source, request.start, request.goal, raw["status"], raw["seconds"] * 1e3,
-                 raw["expansions"], (time.perf_counter() - started) * 1e3)
+        if LOG.isEnabledFor(logging.INFO):   # not even the arguments when the line is not written
+            LOG.info("request %d: map %s %s, %s -> %s: %s, plan %.2f ms, %d expansions, %.2f ms in server",
+                     request_id, request.map_hash.hex()[:12], source, request.start, request.goal, raw["status"],
+                     raw["seconds"] * 1e3, raw["expansions"], (time.perf_counter() - started) * 1e3)
         return Reply(request_id, status, raw["message"], raw["path"], raw["goal"], raw["expansions"],
                      raw["seconds"], raw["cost"])
 

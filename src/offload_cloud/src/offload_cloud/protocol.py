@@ -44,8 +44,10 @@ Fleet learner kinds ROWS, MODEL_QUERY, MODEL_FETCH (offload-cloud-learner; added
 server answers BAD_REQUEST): numbered and bounded here, their frames coded in protocol_fleet.py (split out by size).
 """
 import enum
+import functools
 import hashlib
 import json
+import math
 import struct
 from dataclasses import dataclass, field, make_dataclass
 from typing import List, Optional, Sequence, Tuple
@@ -257,6 +259,9 @@ def encode_upload(request_id: int, grid: np.ndarray) -> list:
     return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), *map_frames.split(_buffer_of(grid))]
 
 
+_DEFAULT_TAIL = PlanOptions()._tail()
+
+
 def algorithm_code(name: str) -> int:
     """PLANNER_TAIL's code of an algorithm: its index in the core's names. ValueError, the core's, for a name
     that is no algorithm."""
@@ -272,7 +277,7 @@ def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: S
             (FLAG_STOP_AT_GOAL if options.stop_at_goal else 0) | (FLAG_ANY_ANGLE if options.any_angle else 0)
     body = PLAN_BODY.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]),
                           float(options.goal_tolerance_cells), int(options.lethal_threshold), flags)
-    if options.algorithm != PlanOptions.algorithm or options._tail() != PlanOptions()._tail():
+    if options.algorithm != PlanOptions.algorithm or options._tail() != _DEFAULT_TAIL:
         body += PLANNER_TAIL.pack(algorithm_code(options.algorithm), *options._tail())
     frames = [envelope(Kind.PLAN, request_id), body]
     if grid is not None:
@@ -342,6 +347,33 @@ def decode_map(metadata_frame, data_frames, max_cells: int) -> Tuple[bytes, np.n
     return map_hash(metadata, data), grid
 
 
+_PLAN_HEAD = struct.Struct(PLAN_BODY.format[:-3])   # hash, start and goal: the part that changes every request
+
+
+@functools.lru_cache(maxsize=64)
+def _decode_options(encoded: bytes) -> PlanOptions:
+    """The options of a plan body (from the goal tolerance on, with or without PLANNER_TAIL). Cached: a robot
+    sends the same few over and over, and a frozen dataclass of 13 fields took a fifth of a worker's Python per
+    request to build; a ProtocolError is not cached."""
+    tolerance, lethal, flags = _PLAN_OPTIONS.unpack_from(encoded)
+    if not math.isfinite(tolerance) or tolerance < 0:
+        raise ProtocolError(Status.BAD_REQUEST, "goal tolerance must be a finite number >= 0 cells")
+    tail = {}
+    if len(encoded) > _PLAN_OPTIONS.size:
+        algorithm, *numbers = PLANNER_TAIL.unpack_from(encoded, _PLAN_OPTIONS.size)
+        if algorithm >= len(ALGORITHMS):
+            raise ProtocolError(Status.BAD_REQUEST, f"unknown algorithm code {algorithm}")
+        # Range checks are the core's (INVALID_REQUEST with its reason); only the codes are checked here.
+        tail = dict(zip(("cost_factor", "neutral_cost", "robot_radius_cells", "inflation_radius_cells",
+                         "inflation_decay"), numbers), algorithm=ALGORITHMS[algorithm])
+    return PlanOptions(goal_tolerance_cells=tolerance, lethal_threshold=lethal,
+                       unknown_is_obstacle=bool(flags & FLAG_UNKNOWN_IS_OBSTACLE),
+                       stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL), any_angle=bool(flags & FLAG_ANY_ANGLE), **tail)
+
+
+_PLAN_OPTIONS = struct.Struct("<" + PLAN_BODY.format[-3:])
+
+
 def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
     """A plan request from the frames after the envelope; ProtocolError when malformed or inconsistent."""
     if len(frames) == 2 or not frames:
@@ -351,21 +383,8 @@ def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
     if len(body) not in (PLAN_BODY.size, PLAN_BODY.size + PLANNER_TAIL.size):
         raise ProtocolError(Status.BAD_REQUEST, f"plan body is {len(body)} bytes, expected {PLAN_BODY.size} "
                                                 f"(or {PLAN_BODY.size + PLANNER_TAIL.size} with planner options)")
-    digest, sx, sy, gx, gy, tolerance, lethal, flags = PLAN_BODY.unpack_from(body)
-    if not np.isfinite(tolerance) or tolerance < 0:
-        raise ProtocolError(Status.BAD_REQUEST, "goal tolerance must be a finite number >= 0 cells")
-    tail = {}
-    if len(body) > PLAN_BODY.size:
-        algorithm, *numbers = PLANNER_TAIL.unpack_from(body, PLAN_BODY.size)
-        if algorithm >= len(ALGORITHMS):
-            raise ProtocolError(Status.BAD_REQUEST, f"unknown algorithm code {algorithm}")
-        # Range checks are the core's (INVALID_REQUEST with its reason); only the codes are checked here.
-        tail = dict(zip(("cost_factor", "neutral_cost", "robot_radius_cells", "inflation_radius_cells",
-                         "inflation_decay"), numbers), algorithm=ALGORITHMS[algorithm])
-    options = PlanOptions(goal_tolerance_cells=tolerance, lethal_threshold=lethal,
-                          unknown_is_obstacle=bool(flags & FLAG_UNKNOWN_IS_OBSTACLE),
-                          stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL), any_angle=bool(flags & FLAG_ANY_ANGLE),
-                          **tail)
+    digest, sx, sy, gx, gy = _PLAN_HEAD.unpack_from(body)
+    options = _decode_options(body[_PLAN_HEAD.size:])
     grid = None
     if len(frames) >= 3:
         uploaded, grid = decode_map(frames[1], frames[2:], max_cells)

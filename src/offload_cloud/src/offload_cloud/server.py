@@ -36,9 +36,11 @@ from offload_cloud.request_queue import Request, RequestQueue
 from offload_cloud.server_config import ServerConfig
 from offload_cloud.stats import count_cache_use, server_stats, stats_line
 from offload_cloud.tcp_socket import ActivityWatch, peer_address, source_fd
+from offload_cloud.zmq_frames import NOBLOCK, readable, recv_frames, send_frames
 
 LOG = logging.getLogger("offload_cloud.server")
 _READY = b"READY"
+_STATUS_NAMES = {int(status): status.name for status in Status}   # a lookup, not an enum call, per reply
 _BACKEND_POLL_MS = 25    # how often the broker and workers look at the stop flag and the connection guard
 # Every connection libzmq accepts ends with EVENT_DISCONNECTED (EVENT_CLOSED is the listener's own descriptor).
 _MONITORED = (zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
@@ -197,12 +199,12 @@ class CloudServer:
             if self._reload.is_set():
                 self._reload.clear()
                 self._do_reload()
-            while self._monitor.poll(0):   # first: a request of a closed connection must not be queued
+            while readable(self._monitor):   # first: a request of a closed connection must not be queued
                 self._on_monitor(parse_monitor_message(self._monitor.recv_multipart()), queue)
-            if self.guard.ledger.unsettled and not frontend.poll(0, zmq.POLLIN):
+            if self.guard.ledger.unsettled and not readable(frontend):
                 self.guard.frontend_drained()   # no message of a connection closed before now is left
             if backend in events:
-                frames = backend.recv_multipart(copy=False)
+                frames = recv_frames(backend)
                 worker, rest = frames[0].bytes, frames[1:]
                 done, dispatched_at = in_flight.pop(worker, (None, 0.0))
                 if len(rest) > 1:        # a reply: route frames, then the reply itself
@@ -215,11 +217,25 @@ class CloudServer:
                         queue.release(done.uploads)
                 idle.append(worker)
             if frontend in events:
-                frames = frontend.recv_multipart(copy=False)
+                frames = recv_frames(frontend)
                 try:
                     self._on_frontend(frontend, frames, queue)
                 except Exception:   # a bug must cost one message, never the server
                     LOG.exception("message dropped")
+            now = time.monotonic()
+            if self.config.stats_log_s and now - logged_at >= self.config.stats_log_s:
+                logged_at = now
+                LOG.info("%s", self.stats_line(self.stats()))
+            if guard and now - checked_at >= check_period:
+                checked_at = now
+                self.guard.check(lambda: not readable(frontend))
+                # Every 25 ms, or less often when there are so many connections that a check takes over 1/4 of that
+                # (about 2 us a connection): the guard never takes more than a fifth of the broker.
+                check_period = max(_BACKEND_POLL_MS / 1e3, 4 * (time.monotonic() - now))
+            elif guard:
+                self.guard.look_between_checks(lambda: not readable(frontend))
+            # Last, right before the poll: a woken worker then finds the GIL free at once, instead of waiting for the
+            # broker's bookkeeping to finish (a second wake-up on the request's path).
             while idle and queue.queued:
                 request = queue.pop()
                 now = time.monotonic()
@@ -236,19 +252,7 @@ class CloudServer:
                 worker = idle.popleft()
                 in_flight[worker] = (request, now)
                 # The client's name goes first: the worker stores an uploaded map as that client's.
-                backend.send_multipart([worker, request.client.name.encode(), *request.frames], copy=False)
-            now = time.monotonic()
-            if self.config.stats_log_s and now - logged_at >= self.config.stats_log_s:
-                logged_at = now
-                LOG.info("%s", self.stats_line(self.stats()))
-            if guard and now - checked_at >= check_period:
-                checked_at = now
-                self.guard.check(lambda: not frontend.poll(0, zmq.POLLIN))
-                # Every 25 ms, or less often when there are so many connections that a check takes over 1/4 of that
-                # (about 2 us a connection): the guard never takes more than a fifth of the broker.
-                check_period = max(_BACKEND_POLL_MS / 1e3, 4 * (time.monotonic() - now))
-            elif guard:
-                self.guard.look_between_checks(lambda: not frontend.poll(0, zmq.POLLIN))
+                send_frames(backend, [worker, request.client.name.encode(), *request.frames])
 
     def _on_monitor(self, event: dict, queue: RequestQueue) -> None:
         kind, fd = event["event"], int(event["value"])
@@ -293,7 +297,7 @@ class CloudServer:
         route, payload = frames[:split], frames[split:]
         if not payload:
             return
-        request_id = protocol.request_id_of(payload[0].buffer)
+        request_id = None
         client = self.admission.client(self._client_name(user, fd, connection))
         try:
             kind, request_id = protocol.decode_envelope(payload[0].buffer)
@@ -321,6 +325,8 @@ class CloudServer:
                              ProtocolError(Status.BUSY, why), victim.client)
             self.admission.admit(client, total, queue.queued, self.service_s, bool(self._idle), displace)
         except ProtocolError as error:
+            if request_id is None:   # the envelope itself is bad: its id as far as it can be read
+                request_id = protocol.request_id_of(payload[0].buffer)
             self._refuse(frontend, route, request_id, error, client)
             return
         request = Request(route + payload, total, fd, request_id, len(route), time.monotonic(), client=client,
@@ -337,8 +343,8 @@ class CloudServer:
         """Sends a reply to a plan, an upload or a bad message, counted by status for the server and client;
         returns the status name."""
         try:
-            status = Status(bytes(frames[-3])[0]).name   # frames: route, envelope, body, message, path
-        except (ValueError, IndexError):
+            status = _STATUS_NAMES.get(bytes(frames[-3])[0], "?")   # frames: route, envelope, body, message, path
+        except IndexError:
             status = "?"
         self.replies[status] += 1
         if client is not None:
@@ -363,7 +369,7 @@ class CloudServer:
     @staticmethod
     def _send(socket: zmq.Socket, frames) -> None:
         try:
-            socket.send_multipart(frames, copy=False, flags=zmq.NOBLOCK)
+            send_frames(socket, frames, NOBLOCK)
         except zmq.Again:
             LOG.warning("reply dropped: client not reading")
         except zmq.ZMQError as error:   # e.g. the client vanished; never fatal for the server
@@ -374,16 +380,18 @@ class CloudServer:
         socket = self._context.socket(zmq.DEALER)
         socket.linger = 0
         socket.connect(self._backend_address)
+        socket.rcvtimeo = _BACKEND_POLL_MS   # a blocking receive, not a poll and a receive: one call a request
         socket.send(_READY)
         try:
             while not self._stop.is_set():
-                if not socket.poll(_BACKEND_POLL_MS):
+                try:
+                    client, *frames = recv_frames(socket)
+                except zmq.Again:
                     continue
-                client, *frames = socket.recv_multipart(copy=False)
                 split = 2 if len(frames) > 2 and len(frames[1]) == 0 else 1
                 route, payload = frames[:split], frames[split:]
                 self._worker_client.name = client.bytes.decode()
-                socket.send_multipart(route + self.handle(payload), copy=False)
+                send_frames(socket, route + self.handle(payload))
         finally:
             socket.close(0)
 
