@@ -87,11 +87,12 @@ class WirePath(Path):
         stamp theirs), serialized in one numpy pass."""
         poses = np.ascontiguousarray(poses, dtype="<f8").reshape(-1, 7)
         frame = frame_id.encode("utf-8")
-        records = np.zeros(len(poses), dtype=_pose_dtype(len(frame)))
-        records["secs"], records["nsecs"], records["frame_len"] = stamp.secs, stamp.nsecs, len(frame)
-        records["pose"] = poses
-        raw = records.view(np.uint8).reshape(len(poses), records.dtype.itemsize)
-        raw[:, 16:16 + len(frame)] = np.frombuffer(frame, dtype=np.uint8)
+        # Every pose's header is the same bytes (seq 0, the stamp, the frame id): one row, repeated, then the
+        # poses' own bytes beside it: two copies in all, not one per field.
+        header = _HEADER.pack(0, stamp.secs, stamp.nsecs, len(frame)) + frame
+        raw = np.empty((len(poses), len(header) + 56), np.uint8)
+        raw[:, :len(header)] = np.frombuffer(header, np.uint8)
+        raw[:, len(header):] = poses.view(np.uint8)
         path = cls(header=Header(stamp=stamp, frame_id=frame_id))
         path._poses_wire, path._count = _COUNT.pack(len(poses)) + raw.tobytes(), len(poses)
         return path
