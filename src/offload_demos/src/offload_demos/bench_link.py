@@ -2,8 +2,10 @@
 
 1. Link overhead: a cloud plan on a cached map, round trip minus the server-reported planning time,
    against a raw pyzmq REQ/REP round trip carrying the same request and reply sizes, each server in its
-   own process, both with CURVE and both in plaintext. Median and p99.
-2. Bytes on the wire per request after the upload: TCP payload counted by the WAN emulator (no delay).
+   own process, both with CURVE and both in plaintext. Median and p99; --runs N repeats it (each run
+   followed by its own raw baseline).
+2. Bytes on the wire per request after the upload: TCP payload counted by the WAN emulator (no delay); and the
+   robot bridge's CPU per cloud plan without ROS (2048 x 2048 map, 1000-pose paths). --only-link stops here.
 3. Throughput with 1 and 2 workers: plans/s from concurrent clients on a 2000 x 2000 map.
 4. One robot's ping round trip, idle and while another client key sends 64 MiB plans (a new 8000 x 8000
    map each), with 1 libzmq I/O thread (the baseline) and with the server's default of 2; and the control:
@@ -197,6 +199,36 @@ def pings_under_large_plans(endpoint: str, robot_keys, other_keys, seconds: floa
     return idle, loaded, int(last) if last.isdigit() else 0, sending_s
 
 
+def bridge_cpu(endpoint: str, client_keys: str, count: int):
+    """The robot bridge's request path without ROS (CloudBridge.plan, its reply check and the path's poses, then
+    the PlanPath response's path bytes as the node writes them) on a 2048 x 2048 map, 1000-pose paths: per
+    request, the calling thread's CPU (what the node's cpu_s accounts) and the whole process's (the client's
+    libzmq I/O thread too), in seconds; and the poses of one path."""
+    from genpy import Time
+    from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
+    from offload_learner_py.nodes.path_wire import WirePath
+    side, resolution = 2048, 0.05
+    grid = np.full((side, side), 100, np.int8)
+    grid[1024, 24:1024] = 0           # a corridor: a 1000-cell path that the planner finds in a fraction of a ms
+    bridge = CloudBridge(BridgeConfig(endpoint=endpoint, keys_dir=client_keys))
+    try:
+        assert bridge.set_map(grid.reshape(-1), side, side, resolution, 0.0, 0.0, (0, 0, 0, 1), "map", None) == ""
+        bridge.heartbeat()            # uploads the map, as the node's heartbeat does
+        bridge.wait_for_upload(60)
+        start, goal = (StampedPose("map", (x + 0.5) * resolution, 1024.5 * resolution) for x in (24, 1023))
+        thread_s, process_s = np.empty(count), np.empty(count)
+        for k in range(-50, count):
+            began_thread, began_process = time.thread_time(), time.process_time()
+            result = bridge.plan(start, goal, 0.0)
+            path = WirePath.from_poses(result.frame_id, Time(1, 0), result.poses)
+            if k >= 0:
+                thread_s[k], process_s[k] = time.thread_time() - began_thread, time.process_time() - began_process
+            assert result.status.name == "OK", result.message
+    finally:
+        bridge.close()
+    return thread_s, process_s, path.pose_count()
+
+
 def summary(samples: np.ndarray) -> str:
     return f"median {np.median(samples) * 1e3:.3f} ms, p99 {np.percentile(samples, 99) * 1e3:.3f} ms"
 
@@ -205,6 +237,9 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--requests", type=int, default=2000, help="round trips per latency measurement")
     parser.add_argument("--throughput-plans", type=int, default=120, help="plans per throughput measurement")
+    parser.add_argument("--runs", type=int, default=1, help="link overhead measurements per mode (medians of each)")
+    parser.add_argument("--only-link", action="store_true",
+                        help="the link overhead and the bridge's CPU only (no throughput, no fairness)")
     parser.add_argument("--echo", nargs=3, help=argparse.SUPPRESS)   # PORT REPLY_BYTES KEYS|-
     parser.add_argument("--large-plans", nargs=2, help=argparse.SUPPRESS)   # ENDPOINT KEYS
     args = parser.parse_args(argv)
@@ -230,19 +265,33 @@ def main(argv=None) -> int:
                 port = free_port()
                 processes.append(spawn_cloud(port, skeys, workers=2))
                 endpoint = f"tcp://{LOOPBACK}:{port}"
-                overheads, request_bytes, reply_bytes = cloud_overheads(endpoint, grid, start, goal, args.requests,
-                                                                       ckeys)
-                echo_port = free_port()
-                processes.append(spawn([__file__, "--echo", str(echo_port), str(reply_bytes), str(skeys or "-")]))
-                raw = raw_round_trips(echo_port, request_bytes, args.requests, ckeys)
-                added_ms = (np.median(overheads) - np.median(raw)) * 1e3
-                print(f"[{label}] cloud plan minus server planning time: {summary(overheads)}")
-                print(f"[{label}] raw pyzmq REQ/REP, {request_bytes} B out / {reply_bytes} B back: {summary(raw)}")
-                print(f"[{label}] link adds {added_ms:.3f} ms median over raw pyzmq (bar: <= 1 ms)")
+                echo_port, added = free_port(), []
+                for run in range(args.runs):   # each run: the link, then the raw baseline right after it
+                    overheads, request_bytes, reply_bytes = cloud_overheads(endpoint, grid, start, goal,
+                                                                           args.requests, ckeys)
+                    if run == 0:
+                        processes.append(spawn([__file__, "--echo", str(echo_port), str(reply_bytes),
+                                                str(skeys or "-")]))
+                    raw = raw_round_trips(echo_port, request_bytes, args.requests, ckeys)
+                    added.append((np.median(overheads) - np.median(raw)) * 1e3)
+                    print(f"[{label}] cloud plan minus server planning time: {summary(overheads)}")
+                    print(f"[{label}] raw pyzmq REQ/REP, {request_bytes} B out / {reply_bytes} B back: "
+                          f"{summary(raw)}")
+                    print(f"[{label}] link adds {added[-1]:.3f} ms median over raw pyzmq (bar: <= 0.25 ms)")
+                if args.runs > 1:
+                    print(f"[{label}] added over {args.runs} runs: median {np.median(added):.3f} ms, "
+                          f"{min(added):.3f}-{max(added):.3f} ms (bar: <= 0.25 ms)")
                 if label == "CURVE":
                     up, down = wire_bytes(endpoint, grid, start, goal, 200, ckeys)
                     print(f"[{label}] after the upload: request payload {request_bytes} B, on the wire "
                           f"{up:.0f} B up / {down:.0f} B down per plan (TCP payload; bar: <= 512 B up)")
+                    thread_s, process_s, poses = bridge_cpu(endpoint, client_keys, args.requests // 2)
+                    print(f"[bridge] CPU per cloud plan on a 2048 x 2048 map, {poses}-pose paths, without ROS: "
+                          f"calling thread median {np.median(thread_s) * 1e3:.3f} ms (mean "
+                          f"{np.mean(thread_s) * 1e3:.3f}), whole process median {np.median(process_s) * 1e3:.3f} ms "
+                          f"(mean {np.mean(process_s) * 1e3:.3f}; bar: <= 0.5 ms)")
+            if args.only_link:
+                return 0
             free = np.argwhere(grid == 0)
             picks = rng.integers(0, len(free), (args.throughput_plans, 2))
             jobs = [(tuple(free[a][::-1]), tuple(free[b][::-1])) for a, b in picks]
