@@ -126,6 +126,7 @@ class CloudBridge:
         self._heartbeat_period_s = 1.0                  # measured between heartbeat() calls
         self._non_pong_warned = False
         self.upload_attempts = 0                        # map uploads started by the heartbeat (for tests)
+        self._last_options = None                       # ((resolution, tolerance cells), PlanOptions)
 
     def _new_client(self, timeout_s: float, retries: int) -> CloudClient:
         return CloudClient(self.config.endpoint, keys_dir=self.config.keys_dir, insecure=self.config.insecure,
@@ -257,15 +258,7 @@ class CloudBridge:
             result.status, result.message = request.outcome.status, request.outcome.message
             return result
 
-        config = self.config
-        options = PlanOptions(goal_tolerance_cells=request.tolerance_cells, lethal_threshold=config.lethal_threshold,
-                              unknown_is_obstacle=config.unknown_is_obstacle, algorithm=config.algorithm,
-                              any_angle=config.any_angle, cost_factor=config.cost_factor,
-                              neutral_cost=config.neutral_cost,
-                              # metres -> cells at this map's resolution, as the local planner node converts
-                              **options_in_cells(geometry.resolution, robot_radius=config.robot_radius_m,
-                                                 inflation_radius=config.inflation_radius_m,
-                                                 cost_scaling_factor=config.cost_scaling_factor))
+        options = self._options(geometry.resolution, request.tolerance_cells)
         client = self._borrow_client()
         sent_before, received_before = client.bytes_sent, client.bytes_received
         try:
@@ -299,6 +292,24 @@ class CloudBridge:
         result.reached_goal = tuple(reply.goal) == tuple(request.goal)
         result.poses = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
         return result
+
+    def _options(self, resolution: float, tolerance_cells: float) -> PlanOptions:
+        """The request's planner options; the last ones are kept, as a robot asks with the same map resolution and
+        tolerance over and over (building them took a few microseconds of the bridge's CPU per request)."""
+        last = self._last_options
+        if last is not None and last[0] == (resolution, tolerance_cells):
+            return last[1]
+        config = self.config
+        options = PlanOptions(goal_tolerance_cells=tolerance_cells, lethal_threshold=config.lethal_threshold,
+                              unknown_is_obstacle=config.unknown_is_obstacle, algorithm=config.algorithm,
+                              any_angle=config.any_angle, cost_factor=config.cost_factor,
+                              neutral_cost=config.neutral_cost,
+                              # metres -> cells at this map's resolution, as the local planner node converts
+                              **options_in_cells(resolution, robot_radius=config.robot_radius_m,
+                                                 inflation_radius=config.inflation_radius_m,
+                                                 cost_scaling_factor=config.cost_scaling_factor))
+        self._last_options = ((resolution, tolerance_cells), options)   # one assignment: safe across threads
+        return options
 
     def _borrow_client(self) -> CloudClient:
         with self._lock:

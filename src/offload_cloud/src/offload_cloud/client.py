@@ -58,6 +58,8 @@ class KnownMaps:
 
     def add(self, map_hash: bytes) -> None:
         with self._lock:
+            if self._hashes and self._hashes[-1] == map_hash:   # the newest already: every plan on one map
+                return
             if map_hash in self._hashes:
                 self._hashes.remove(map_hash)
             self._hashes.append(map_hash)

@@ -134,7 +134,13 @@ class _PlanOptionsMethods:
     __slots__ = ()
 
     def planner_kwargs(self) -> dict:
-        """The options as plan_raw's keyword arguments."""
+        """The options as plan_raw's keyword arguments (a new dict each call)."""
+        return dict(self._planner_kwargs)
+
+    @functools.cached_property
+    def _planner_kwargs(self) -> dict:
+        # Once per options object (decode_plan hands the same one out for the same body tail): the dict of
+        # 13 names cost a worker a few microseconds per request. The dataclass is frozen, so it never goes stale.
         kwargs = {row["name"]: getattr(self, row["name"]) for row in _CELL_OPTIONS}
         kwargs["goal_tolerance"] = kwargs.pop("goal_tolerance_cells")
         return kwargs
