@@ -324,7 +324,9 @@ def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Se
         return f"path ends at ({last[0]}, {last[1]}), not at the reached goal {reply.goal}"
     if math.hypot(reply.goal[0] - goal[0], reply.goal[1] - goal[1]) > options.goal_tolerance_cells + 1e-9:
         return f"reached goal {reply.goal} is farther than the tolerance from the goal {tuple(goal)}"
-    dx, dy = np.abs(np.diff(xs)), np.abs(np.diff(ys))   # inside the map: no int32 overflow
+    steps = path[1:] - path[:-1]   # inside the map: no int32 overflow (np.diff costs three times as much)
+    np.abs(steps, out=steps)
+    dx, dy = steps[:, 0], steps[:, 1]
     longer = np.maximum(dx, dy)
     shortest, longest = (int(longer.min()), int(longer.max())) if len(longer) else (1, 1)
     if options.any_angle and shortest == 0:
@@ -341,8 +343,8 @@ def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Se
     if options.any_angle:
         length = float(np.hypot(dx, dy).sum())
     else:   # every step is 1 cell long in its longer axis; a diagonal one in the other axis too
-        diagonal = int(dx.sum()) + int(dy.sum()) - len(dx)
-        length = float(len(dx) - diagonal + _SQRT2 * diagonal)
+        diagonal = int(steps.sum()) - len(steps)
+        length = float(len(steps) - diagonal + _SQRT2 * diagonal)
     if not math.isfinite(reply.cost_cells) or abs(reply.cost_cells - length) > 1e-6 * max(1.0, length):
         return f"cost {reply.cost_cells!r} cells is not the path's length {length:.6g}"
     return ""

@@ -90,11 +90,13 @@ class WirePath(Path):
         # Every pose's header is the same bytes (seq 0, the stamp, the frame id): one row, repeated, then the
         # poses' own bytes beside it: two copies in all, not one per field.
         header = _HEADER.pack(0, stamp.secs, stamp.nsecs, len(frame)) + frame
-        raw = np.empty((len(poses), len(header) + 56), np.uint8)
+        wire = np.empty(_COUNT.size + len(poses) * (len(header) + 56), np.uint8)   # the count, then the rows
+        wire[:_COUNT.size] = np.frombuffer(_COUNT.pack(len(poses)), np.uint8)
+        raw = wire[_COUNT.size:].reshape(len(poses), len(header) + 56)
         raw[:, :len(header)] = np.frombuffer(header, np.uint8)
         raw[:, len(header):] = poses.view(np.uint8)
         path = cls(header=Header(stamp=stamp, frame_id=frame_id))
-        path._poses_wire, path._count = _COUNT.pack(len(poses)) + raw.tobytes(), len(poses)
+        path._poses_wire, path._count = wire.tobytes(), len(poses)
         return path
 
 
