@@ -44,33 +44,29 @@ Fleet learner kinds ROWS, MODEL_QUERY, MODEL_FETCH (offload-cloud-learner; added
 server answers BAD_REQUEST): numbered and bounded here, their frames coded in protocol_fleet.py (split out by size).
 """
 import enum
-import functools
 import hashlib
 import json
-import math
 import struct
-from dataclasses import dataclass, field, make_dataclass
+from dataclasses import dataclass, field
 from typing import List, Optional, Sequence, Tuple
 
 import numpy as np
 
-from offload_planner_cpp import options_table
-from offload_planner_cpp._core import ALGORITHM_NAMES, PlanStatus, validate_options
+from offload_planner_cpp._core import PlanStatus
 from offload_cloud import map_frames
+from offload_cloud.plan_options import (ALGORITHMS, FLAG_ANY_ANGLE, FLAG_STOP_AT_GOAL,  # noqa: F401 (protocol's names)
+                                        FLAG_UNKNOWN_IS_OBSTACLE, OPTIONS_HEAD, PLANNER_TAIL, PlanOptions,
+                                        algorithm_code, decode_options, encode_options)
 
 MAGIC = b"OFPL"
 # 2: planner outcomes carry the PlanPath codes (version 1 had its own numbering).
 VERSION = 2
 ENVELOPE = struct.Struct("<4sBBQ")
-PLAN_BODY = struct.Struct("<16s4idhB")
-PLANNER_TAIL = struct.Struct("<B5d")
+# The plan body: what changes every request (hash, start, goal), then the options (plan_options.py).
+_PLAN_HEAD = struct.Struct("<16s4i")
+PLAN_BODY = struct.Struct(_PLAN_HEAD.format + OPTIONS_HEAD.format[1:])
 REPLY_BODY = struct.Struct("<B2iQdd")
 HASH_SIZE = 16
-FLAG_UNKNOWN_IS_OBSTACLE = 1
-FLAG_STOP_AT_GOAL = 2
-FLAG_ANY_ANGLE = 4
-# The core's algorithm names (planner_options.h): PLANNER_TAIL's algorithm code is the index, as in the core's enum.
-ALGORITHMS = ALGORITHM_NAMES
 # Largest side the planner accepts, as the ROS node's map validation.
 MAX_MAP_SIDE = 100000
 MAX_METADATA_BYTES = 1024
@@ -123,40 +119,6 @@ class ProtocolError(ValueError):
     def __init__(self, status: Status, message: str):
         super().__init__(message)
         self.status = status
-
-
-# The core's options that a request carries in cells: PlanOptions' fields, their order and defaults.
-_CELL_OPTIONS = [row for row in options_table() if row["scope"] == "cells"]
-_OPTION_TYPES = {"int": int, "bool": bool, "float": float, "algorithm": str}
-
-
-class _PlanOptionsMethods:
-    __slots__ = ()
-
-    def planner_kwargs(self) -> dict:
-        """The options as plan_raw's keyword arguments (a new dict each call)."""
-        return dict(self._planner_kwargs)
-
-    @functools.cached_property
-    def _planner_kwargs(self) -> dict:
-        # Once per options object (decode_plan hands the same one out for the same body tail): the dict of
-        # 13 names cost a worker a few microseconds per request. The dataclass is frozen, so it never goes stale.
-        kwargs = {row["name"]: getattr(self, row["name"]) for row in _CELL_OPTIONS}
-        kwargs["goal_tolerance"] = kwargs.pop("goal_tolerance_cells")
-        return kwargs
-
-    def _tail(self) -> tuple:
-        return (float(self.cost_factor), float(self.neutral_cost), float(self.robot_radius_cells),
-                float(self.inflation_radius_cells), float(self.inflation_decay))
-
-
-# Built from the core's table (planner_options.h): a new cell option of the core is a field here with no
-# change to this file. A request without PLANNER_TAIL means the core's defaults, so changing one of the core's
-# is a change of the protocol. Values are checked by the core when the server plans (INVALID_REQUEST).
-PlanOptions = make_dataclass(
-    "PlanOptions", [(row["name"], _OPTION_TYPES[row["type"]], field(default=row["default"])) for row in _CELL_OPTIONS],
-    bases=(_PlanOptionsMethods,), frozen=True, namespace={"__module__": __name__, "__doc__":
-        "The core's planner options in cells (the pybind11 module's keyword arguments), with the core's defaults."})
 
 
 @dataclass(frozen=True)
@@ -265,27 +227,12 @@ def encode_upload(request_id: int, grid: np.ndarray) -> list:
     return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), *map_frames.split(_buffer_of(grid))]
 
 
-_DEFAULT_TAIL = PlanOptions()._tail()
-
-
-def algorithm_code(name: str) -> int:
-    """PLANNER_TAIL's code of an algorithm: its index in the core's names. ValueError, the core's, for a name
-    that is no algorithm."""
-    validate_options(algorithm=name)
-    return ALGORITHMS.index(name)
-
-
 def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: Sequence[int],
                 options: PlanOptions = PlanOptions(), grid: Optional[np.ndarray] = None) -> list:
     """Frames of a plan request; with `grid` the map travels too (its buffer, in frames of at most 1 MiB, is sent
     without a copy)."""
-    flags = (FLAG_UNKNOWN_IS_OBSTACLE if options.unknown_is_obstacle else 0) | \
-            (FLAG_STOP_AT_GOAL if options.stop_at_goal else 0) | (FLAG_ANY_ANGLE if options.any_angle else 0)
-    body = PLAN_BODY.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]),
-                          float(options.goal_tolerance_cells), int(options.lethal_threshold), flags)
-    if options.algorithm != PlanOptions.algorithm or options._tail() != _DEFAULT_TAIL:
-        body += PLANNER_TAIL.pack(algorithm_code(options.algorithm), *options._tail())
-    frames = [envelope(Kind.PLAN, request_id), body]
+    body = _PLAN_HEAD.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]))
+    frames = [envelope(Kind.PLAN, request_id), body + encode_options(options)]
     if grid is not None:
         frames += [map_metadata(grid), *map_frames.split(_buffer_of(grid))]
     return frames
@@ -353,33 +300,6 @@ def decode_map(metadata_frame, data_frames, max_cells: int) -> Tuple[bytes, np.n
     return map_hash(metadata, data), grid
 
 
-_PLAN_HEAD = struct.Struct(PLAN_BODY.format[:-3])   # hash, start and goal: the part that changes every request
-
-
-@functools.lru_cache(maxsize=64)
-def _decode_options(encoded: bytes) -> PlanOptions:
-    """The options of a plan body (from the goal tolerance on, with or without PLANNER_TAIL). Cached: a robot
-    sends the same few over and over, and a frozen dataclass of 13 fields took a fifth of a worker's Python per
-    request to build; a ProtocolError is not cached."""
-    tolerance, lethal, flags = _PLAN_OPTIONS.unpack_from(encoded)
-    if not math.isfinite(tolerance) or tolerance < 0:
-        raise ProtocolError(Status.BAD_REQUEST, "goal tolerance must be a finite number >= 0 cells")
-    tail = {}
-    if len(encoded) > _PLAN_OPTIONS.size:
-        algorithm, *numbers = PLANNER_TAIL.unpack_from(encoded, _PLAN_OPTIONS.size)
-        if algorithm >= len(ALGORITHMS):
-            raise ProtocolError(Status.BAD_REQUEST, f"unknown algorithm code {algorithm}")
-        # Range checks are the core's (INVALID_REQUEST with its reason); only the codes are checked here.
-        tail = dict(zip(("cost_factor", "neutral_cost", "robot_radius_cells", "inflation_radius_cells",
-                         "inflation_decay"), numbers), algorithm=ALGORITHMS[algorithm])
-    return PlanOptions(goal_tolerance_cells=tolerance, lethal_threshold=lethal,
-                       unknown_is_obstacle=bool(flags & FLAG_UNKNOWN_IS_OBSTACLE),
-                       stop_at_goal=bool(flags & FLAG_STOP_AT_GOAL), any_angle=bool(flags & FLAG_ANY_ANGLE), **tail)
-
-
-_PLAN_OPTIONS = struct.Struct("<" + PLAN_BODY.format[-3:])
-
-
 def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
     """A plan request from the frames after the envelope; ProtocolError when malformed or inconsistent."""
     if len(frames) == 2 or not frames:
@@ -390,7 +310,10 @@ def decode_plan(request_id: int, frames, max_cells: int) -> PlanRequest:
         raise ProtocolError(Status.BAD_REQUEST, f"plan body is {len(body)} bytes, expected {PLAN_BODY.size} "
                                                 f"(or {PLAN_BODY.size + PLANNER_TAIL.size} with planner options)")
     digest, sx, sy, gx, gy = _PLAN_HEAD.unpack_from(body)
-    options = _decode_options(body[_PLAN_HEAD.size:])
+    try:
+        options = decode_options(body[_PLAN_HEAD.size:])
+    except ValueError as error:
+        raise ProtocolError(Status.BAD_REQUEST, str(error)) from None
     grid = None
     if len(frames) >= 3:
         uploaded, grid = decode_map(frames[1], frames[2:], max_cells)

@@ -40,7 +40,7 @@ from offload_cloud.zmq_frames import NOBLOCK, readable, recv_frames, send_frames
 
 LOG = logging.getLogger("offload_cloud.server")
 _READY = b"READY"
-_STATUS_NAMES = {int(status): status.name for status in Status}   # a lookup, not an enum call, per reply
+_STATUS_NAMES = {bytes([status]): status.name for status in Status}   # a lookup, not an enum call, per reply
 _BACKEND_POLL_MS = 25    # how often the broker and workers look at the stop flag and the connection guard
 # Every connection libzmq accepts ends with EVENT_DISCONNECTED (EVENT_CLOSED is the listener's own descriptor).
 _MONITORED = (zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
@@ -234,8 +234,7 @@ class CloudServer:
                 check_period = max(_BACKEND_POLL_MS / 1e3, 4 * (time.monotonic() - now))
             elif guard:
                 self.guard.look_between_checks(lambda: not readable(frontend))
-            # Last, right before the poll: a woken worker then finds the GIL free at once, instead of waiting for the
-            # broker's bookkeeping to finish (a second wake-up on the request's path).
+            # Last, right before the poll: a woken worker finds the GIL free, not held by the broker's bookkeeping.
             while idle and queue.queued:
                 request = queue.pop()
                 now = time.monotonic()
@@ -325,8 +324,7 @@ class CloudServer:
                              ProtocolError(Status.BUSY, why), victim.client)
             self.admission.admit(client, total, queue.queued, self.service_s, bool(self._idle), displace)
         except ProtocolError as error:
-            if request_id is None:   # the envelope itself is bad: its id as far as it can be read
-                request_id = protocol.request_id_of(payload[0].buffer)
+            request_id = protocol.request_id_of(payload[0].buffer) if request_id is None else request_id
             self._refuse(frontend, route, request_id, error, client)
             return
         request = Request(route + payload, total, fd, request_id, len(route), time.monotonic(), client=client,
@@ -342,10 +340,8 @@ class CloudServer:
     def _reply(self, frontend: zmq.Socket, frames, client: Optional[Client]) -> str:
         """Sends a reply to a plan, an upload or a bad message, counted by status for the server and client;
         returns the status name."""
-        try:
-            status = _STATUS_NAMES.get(bytes(frames[-3])[0], "?")   # frames: route, envelope, body, message, path
-        except IndexError:
-            status = "?"
+        # frames: route, envelope, body (its first byte the status), message, path
+        status = _STATUS_NAMES.get(bytes(frames[-3])[:1], "?") if len(frames) >= 3 else "?"
         self.replies[status] += 1
         if client is not None:
             client.replies[status] += 1
