@@ -87,7 +87,7 @@ TARGETS = {
                       ("test_breaker.py", "test_breaker_edges.py", "test_router_modes.py"), LEARNER / "test",
                       test_support=("conftest.py", "routertools.py"), budget_s=240),
     "model_guard": Target("model_guard", LEARNER / "src" / "offload_learner_py", "online/model_guard.py",
-                          ("test_fleet_robot.py", "test_model_guard_welch.py"), LEARNER / "test",
+                          ("test_fleet_robot.py", "test_model_guard_welch.py", "test_model_guard_window.py"), LEARNER / "test",
                           test_support=("conftest.py", "routertools.py"),
                           budget_s=240),
     "off_policy_combined": Target("off_policy_combined", LEARNER / "src" / "offload_learner_py",
@@ -103,7 +103,7 @@ TARGETS = {
                                CLOUD / "test",
                                test_support=("conftest.py", "cloud_test_helpers.py"), budget_s=300),
     "fleet_gate": Target("fleet_gate", CLOUD / "src" / "offload_cloud", "learner/training.py",
-                         ("test_fleet_learner.py", "test_fleet_training.py"), CLOUD / "test",
+                         ("test_fleet_learner.py", "test_fleet_training.py", "test_fleet_training_gate.py"), CLOUD / "test",
                          test_support=("conftest.py", "fleet_helpers.py"), budget_s=420),
 }
 
