@@ -22,7 +22,7 @@ from offload_learner_py.online.fleet_link import FleetConfig
 from offload_learner_py.online.model_guard import GuardConfig
 
 DEFS, MD5 = h.definitions()
-STATE = State(1.2, 0.6, 0.05)
+STATE = State(1.2, 0.6, 0.05, 2e7)
 
 
 def free_port() -> int:

@@ -3,10 +3,12 @@ from types import SimpleNamespace
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.reward import reward
+from statetools import PLAN_RATE
 
 
-def decision(request_id, action=LOCAL, d=1.0, u=0.5, b=0.05, propensity=0.95):
-    return SimpleNamespace(request_id=request_id, input_size=d, cpu_availability=u, round_trip_s=b, action=action,
+def decision(request_id, action=LOCAL, d=1.0, u=0.5, b=0.05, propensity=0.95, p=PLAN_RATE):
+    return SimpleNamespace(request_id=request_id, input_size=d, cpu_availability=u, round_trip_s=b,
+                           local_plan_rate=p, action=action,
                            action_propensity=propensity, q_local=0.0, q_cloud=0.1, policy="dqn", model_steps=3,
                            probe=True)
 

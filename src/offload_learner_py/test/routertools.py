@@ -12,7 +12,7 @@ from offload_learner_py.core.state import State
 OK, NO_PATH, TIMEOUT, ERROR, CANCELLED = 0, 7, 9, 10, 13
 STATUSES = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, refusals=(NO_PATH,))
 CANCELLABLE = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR, cancelled=CANCELLED, refusals=(NO_PATH,))
-STATE = State(1.2, 0.6, 0.05)
+STATE = State(1.2, 0.6, 0.05, 2e7)
 
 
 class VirtualClock:

@@ -8,12 +8,14 @@ from offload_learner_py.core.checkpoint import IncompatibleCheckpointError, load
     save_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
+from offload_learner_py.core.state import STATE_SIZE
+from statetools import raw_states
 
 
 def _trained_agent(config=DQNConfig(seed=4, learning_starts=10, batch_size=8)):
     agent = DQNAgent(config)
     rng = np.random.default_rng(0)
-    states = np.stack([rng.uniform(1e-4, 0.3, 40), rng.uniform(0.5, 0.7, 40), np.full(40, 0.03)], 1)
+    states = raw_states(rng.uniform(1e-4, 0.3, 40), rng.uniform(0.5, 0.7, 40), np.full(40, 0.03))
     for t in range(39):
         agent.observe(states[t], t % 2, 0.3 if t % 2 else 0.0, states[t + 1])
     return agent, states
@@ -135,7 +137,7 @@ def test_config_and_normalisation_values_are_type_checked():
         with pytest.raises(ValueError, match=message):
             DQNConfig.from_dict({**DQNConfig().to_dict(), **bad})
     with pytest.raises(ValueError, match="positive finite scales"):
-        StateNormalisation.from_dict({"mean": [0, 0, 0], "scale": [1, 0, 1], "log_input_size": True})
+        StateNormalisation.from_dict({**StateNormalisation.identity().to_dict(), "scale": [1, 0] + [1] * (STATE_SIZE - 2)})
 
 
 def test_non_finite_weights_are_refused_at_save_and_at_load(tmp_path):

@@ -5,21 +5,47 @@ import zlib
 import numpy as np
 import pytest
 
-from offload_learner_py.data.dataset import COLUMNS, TransitionTable
+from offload_learner_py.core.state import STATE_SCHEMA, STATE_SIZE
+from offload_learner_py.data.dataset import COLUMNS, TABLE_FORMAT, TransitionTable
+from offload_learner_py.data.npz_io import save_versioned_npz
 
 
 def _table(n=20):
     rng = np.random.default_rng(0)
     return TransitionTable(t=np.arange(n), input_size=rng.uniform(0, 1, n), cpu_availability=rng.uniform(0, 1, n),
-                           round_trip_s=np.full(n, 0.03), local_s=rng.uniform(0.01, 0.1, n),
+                           round_trip_s=np.full(n, 0.03), local_plan_rate=10 ** rng.uniform(6, 8, n),
+                           local_s=rng.uniform(0.01, 0.1, n),
                            cloud_s=rng.uniform(0.01, 0.1, n), action=rng.integers(0, 2, n),
                            action_propensity=np.full(n, 0.5), reward=rng.uniform(-1, 1, n),
                            metadata={"kind": "test", "seed": 3})
 
 
-def test_columns_are_the_issue_s_transition_format():
-    assert COLUMNS == ("t", "input_size", "cpu_availability", "round_trip_s", "local_s", "cloud_s", "action",
-                       "action_propensity", "reward")
+def test_columns_are_the_issue_s_transition_format_with_the_plan_rate():
+    assert COLUMNS == ("t", "input_size", "cpu_availability", "round_trip_s", "local_plan_rate", "local_s", "cloud_s",
+                       "action", "action_propensity", "reward")
+
+
+# The paper's three state fields on purpose: a table from before p_t (saved by older code, or data that never
+# had it) still reads, with p_t at the schema's value for older records in every row.
+PAPER_COLUMNS = tuple(name for name in COLUMNS if name != "local_plan_rate")
+
+
+def test_a_table_from_before_the_plan_rate_reads_with_its_missing_value(tmp_path):
+    table = _table(5)
+    old = {name: getattr(table, name) for name in PAPER_COLUMNS}
+    missing = STATE_SCHEMA["local_plan_rate"].missing
+    save_versioned_npz(str(tmp_path / "old.npz"), TABLE_FORMAT, {"kind": "old"}, old)
+    with open(tmp_path / "old.csv", "w") as out:
+        out.write(",".join(PAPER_COLUMNS) + "\n")
+        for row in zip(*old.values()):
+            out.write(",".join(repr(v.item()) for v in row) + "\n")
+    for loaded in (TransitionTable(**old), TransitionTable.load_npz(str(tmp_path / "old.npz")),
+                   TransitionTable.from_csv(str(tmp_path / "old.csv"))):
+        assert loaded.local_plan_rate.tolist() == [missing] * 5
+        for name in PAPER_COLUMNS:
+            assert np.array_equal(getattr(loaded, name), getattr(table, name))
+    with pytest.raises(TypeError, match="missing round_trip_s"):   # a field without a value for older records
+        TransitionTable(**{name: values for name, values in old.items() if name != "round_trip_s"})
 
 
 def test_npz_round_trip(tmp_path):
@@ -72,7 +98,7 @@ def test_invalid_tables_are_rejected(tmp_path):
 def test_slice_and_states():
     table = _table(10)
     part = table.slice(2, 5)
-    assert len(part) == 3 and part.states.shape == (3, 3)
+    assert len(part) == 3 and part.states.shape == (3, STATE_SIZE)
     assert np.array_equal(part.states[:, 1], table.cpu_availability[2:5])
 
 
@@ -161,11 +187,12 @@ def _csv(tmp_path, text, name="table.csv"):
 
 def test_csv_errors_name_the_file_and_line(tmp_path):
     header = ",".join(COLUMNS) + "\n"
-    good = "0,0.1,0.5,0.03,0.01,0.02,1,0.5,-0.3\n"
+    good = "0,0.1,0.5,0.03,2e7,0.01,0.02,1,0.5,-0.3\n"
     cases = [("", "table.csv is empty"),
              ("t,input_size\n" + good, "table.csv line 1: header t,input_size is not t,input_size,"),
-             (header + good + "1,0.1,0.5\n", "table.csv line 3: 3 fields, expected 9"),
-             (header + good.strip() + ",7\n", "table.csv line 2: 10 fields, expected 9"),
+             (header + good + "1,0.1,0.5\n", "table.csv line 3: 3 fields, expected 10"),
+             (header + good.strip() + ",7\n", "table.csv line 2: 11 fields, expected 10"),
+             ("t,cpu_availability,input_size" + header[12:] + good, "line 1: header t,cpu_availability,input_size,"),
              (header + good.replace("0.01", "fast"), "table.csv line 2: local_s 'fast' is not a number"),
              (header + good + good.replace("0.01", "nan"), "table.csv line 3: invalid transition table: local_s must "
                                                            "be finite in every row; row 1 is nan"),
@@ -183,5 +210,5 @@ def test_csv_errors_name_the_file_and_line(tmp_path):
 def test_csv_with_only_a_header_or_float_actions_loads(tmp_path):
     header = ",".join(COLUMNS) + "\n"
     assert len(TransitionTable.from_csv(_csv(tmp_path, header))) == 0
-    table = TransitionTable.from_csv(_csv(tmp_path, header + "0.0,0.1,0.5,0.03,0.01,0.02,1.0,0.5,-0.3\n"))
+    table = TransitionTable.from_csv(_csv(tmp_path, header + "0.0,0.1,0.5,0.03,2e7,0.01,0.02,1.0,0.5,-0.3\n"))
     assert table.action.dtype == np.int64 and table.action[0] == 1

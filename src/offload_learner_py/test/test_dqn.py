@@ -12,17 +12,31 @@ from offload_learner_py.core import config as config_module
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent, QNetwork
 from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.state import STATE_SCHEMA, STATE_SIZE
+
+D, U, B, P = (STATE_SCHEMA.index(name) for name in ("input_size", "cpu_availability", "round_trip_s",
+                                                     "local_plan_rate"))
 
 
 def _states(n, seed=0):
+    """Raw states in schema order: d_t over four decades, u_t 50-70 %, b_t about 30 ms, p_t over one decade."""
     rng = np.random.default_rng(seed)
-    return np.stack([10.0 ** rng.uniform(-4, -0.5, n), rng.uniform(0.5, 0.7, n), rng.uniform(0.028, 0.032, n)], 1)
+    columns = {"input_size": 10.0 ** rng.uniform(-4, -0.5, n), "cpu_availability": rng.uniform(0.5, 0.7, n),
+               "round_trip_s": rng.uniform(0.028, 0.032, n), "local_plan_rate": 10.0 ** rng.uniform(6.5, 7.5, n)}
+    return STATE_SCHEMA.stack(columns.__getitem__)
 
 
-def test_network_is_3_256_256_256_2_with_relu():
+def _state(d, u, b, p=2e7):
+    state = np.zeros(STATE_SIZE)
+    state[[D, U, B, P]] = d, u, b, p
+    return state
+
+
+def test_network_is_the_papers_256_256_256_2_with_relu_on_the_schemas_inputs():
     layers = list(QNetwork().layers)
     linears = [m for m in layers if isinstance(m, nn.Linear)]
-    assert [(m.in_features, m.out_features) for m in linears] == [(3, 256), (256, 256), (256, 256), (256, 2)]
+    assert [(m.in_features, m.out_features) for m in linears] == [(STATE_SIZE, 256), (256, 256), (256, 256),
+                                                                  (256, 2)]
     assert [type(m) for m in layers] == [nn.Linear, nn.ReLU] * 3 + [nn.Linear]
 
 
@@ -127,12 +141,12 @@ def test_learns_the_sign_of_a_reward_that_depends_on_cpu_availability():
     states = _states(800, 1)
     for t in range(799):
         action, _ = agent.act(states[t])
-        r = (0.5 if states[t, 1] < 0.6 else -0.5) if action == CLOUD else 0.0
+        r = (0.5 if states[t, U] < 0.6 else -0.5) if action == CLOUD else 0.0
         agent.observe(states[t], action, r, states[t + 1])
     probe = _states(200, 9)
     chosen = np.array([agent.greedy_action(s) for s in probe])
-    clear = np.abs(probe[:, 1] - 0.6) > 0.02
-    assert np.mean(chosen[clear] == (probe[clear, 1] < 0.6)) > 0.95
+    clear = np.abs(probe[:, U] - 0.6) > 0.02
+    assert np.mean(chosen[clear] == (probe[clear, U] < 0.6)) > 0.95
 
 
 def test_fast_path_matches_torch_eager():
@@ -150,7 +164,7 @@ class _NextStateQ(nn.Module):
     """A target network whose Q'(s') is known by construction: (d', u') of the normalised next state."""
 
     def forward(self, x):
-        return x[:, :2]
+        return x[:, [D, U]]
 
 
 def _agent_with_constant_q(gamma, q_local, q_cloud, huber_delta=100.0):
@@ -174,7 +188,7 @@ def _agent_with_constant_q(gamma, q_local, q_cloud, huber_delta=100.0):
 ])
 def test_td_target_is_reward_plus_gamma_max_next_q(gamma, action, expected_target):
     agent = _agent_with_constant_q(gamma, q_local=-1.0, q_cloud=0.5)
-    state, next_state = np.array([0.5, 0.0, 0.0]), np.array([0.25, 0.75, 0.0])
+    state, next_state = _state(0.5, 0.0, 0.0, 0.0), _state(0.25, 0.75, 0.0, 0.0)
     for _ in range(8):
         agent.memory.add(state, action, 0.125, next_state)
     q = (-1.0, 0.5)[action]
@@ -205,9 +219,11 @@ def _learn_state_rule(seed, cloud_is_better, steps=800):
 # The right action depends on one feature of the state at a time, and each side of the boundary holds
 # about half of the states: a policy that ignores the state scores about 50 %.
 STATE_RULES = {
-    "input_size": (lambda s: s[:, 0] > 10 ** -2.25, lambda s: np.abs(np.log10(s[:, 0]) + 2.25) > 0.2),
-    "cpu_availability": (lambda s: s[:, 1] < 0.6, lambda s: np.abs(s[:, 1] - 0.6) > 0.02),
-    "round_trip_s": (lambda s: s[:, 2] < 0.030, lambda s: np.abs(s[:, 2] - 0.030) > 0.0004),
+    "input_size": (lambda s: s[:, D] > 10 ** -2.25, lambda s: np.abs(np.log10(s[:, D]) + 2.25) > 0.2),
+    "cpu_availability": (lambda s: s[:, U] < 0.6, lambda s: np.abs(s[:, U] - 0.6) > 0.02),
+    "round_trip_s": (lambda s: s[:, B] < 0.030, lambda s: np.abs(s[:, B] - 0.030) > 0.0004),
+    # a robot that plans slowly offloads: the same request on a faster robot stays on board
+    "local_plan_rate": (lambda s: s[:, P] < 10 ** 7, lambda s: np.abs(np.log10(s[:, P]) - 7) > 0.1),
 }
 
 
@@ -260,9 +276,9 @@ def test_fast_path_clamps_the_input_size_like_the_normalisation():
     agent, _ = _train(DQNConfig(seed=2, learning_starts=20, batch_size=16))
     fast = agent.fast_decision()
     for d in (0.0, -1e-9, -0.5):
-        _, q_local, q_cloud = fast.decide(d, 0.6, 0.03)
-        assert np.allclose([q_local, q_cloud], agent.q_values(np.array([d, 0.6, 0.03])), atol=1e-5)
-        assert np.allclose([q_local, q_cloud], agent.q_values(np.array([0.0, 0.6, 0.03])), atol=1e-5)
+        _, q_local, q_cloud = fast.decide(*_state(d, 0.6, 0.03))
+        assert np.allclose([q_local, q_cloud], agent.q_values(_state(d, 0.6, 0.03)), atol=1e-5)
+        assert np.allclose([q_local, q_cloud], agent.q_values(_state(0.0, 0.6, 0.03)), atol=1e-5)
 
 
 def test_propensities_when_the_greedy_action_is_cloud():

@@ -4,6 +4,7 @@ import pytest
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.core.evaluation import (accuracy, confusion_matrix, evaluate, learned_cpu_threshold,
                                            oracle_actions)
+from statetools import raw_states
 
 
 def _table(local_s, cloud_s, cpu=None):
@@ -36,7 +37,7 @@ def test_latency_savings_and_regret():
 
 
 def test_learned_threshold_of_a_step_shaped_q_function():
-    states = np.stack([np.full(200, 0.1), np.linspace(0.5, 0.7, 200), np.full(200, 0.03)], 1)
+    states = raw_states(np.full(200, 0.1), np.linspace(0.5, 0.7, 200), np.full(200, 0.03))
 
     def q_values(probe):
         return np.stack([np.zeros(len(probe)), np.tanh((0.61 - probe[:, 1]) * 50)], 1)
@@ -45,7 +46,7 @@ def test_learned_threshold_of_a_step_shaped_q_function():
 
 
 def test_learned_threshold_picks_the_main_switch_and_reports_nan_without_one():
-    states = np.stack([np.full(200, 0.1), np.linspace(0.5, 0.7, 200), np.full(200, 0.03)], 1)
+    states = raw_states(np.full(200, 0.1), np.linspace(0.5, 0.7, 200), np.full(200, 0.03))
 
     def wiggly(probe):  # cloud below 0.6 except a narrow dip at 0.52
         u = probe[:, 1]

@@ -131,7 +131,7 @@ def test_a_trace_loader_applies_the_same_bounds(tmp_path, small_trace):
 
 def test_a_csv_larger_than_the_cap_is_refused_before_parsing(tmp_path):
     path = tmp_path / "big.csv"
-    path.write_text(",".join(COLUMNS) + "\n" + "0,0.1,0.5,0.03,0.1,0.1,0,0.5,0\n" * 2000)
+    path.write_text(",".join(COLUMNS) + "\n" + "0,0.1,0.5,0.03,2e7,0.1,0.1,0,0.5,0\n" * 2000)
     assert len(TransitionTable.from_csv(str(path))) == 2000
     with pytest.raises(ValueError, match=r"big.csv: .*over the 10240-byte cap"):
         TransitionTable.from_csv(str(path), max_bytes=10 * 2 ** 10)

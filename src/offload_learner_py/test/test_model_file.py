@@ -12,13 +12,16 @@ from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.model_file import (ModelFileError, agent_model_bytes, load_model, model_bytes,
                                                 model_version)
 from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.state import STATE_FIELDS, STATE_SIZE
+from statetools import raw_states
 
 
 @pytest.fixture(scope="module")
 def agent():
     rng = np.random.default_rng(3)
     agent = DQNAgent(DQNConfig(seed=3))
-    states = np.column_stack([10 ** rng.uniform(-4, 0, 300), rng.uniform(0, 1, 300), rng.uniform(0, 0.2, 300)])
+    states = raw_states(10 ** rng.uniform(-4, 0, 300), rng.uniform(0, 1, 300), rng.uniform(0, 0.2, 300),
+                        10 ** rng.uniform(6, 8, 300))
     agent.normalisation = StateNormalisation.fit(states)
     return agent
 
@@ -29,7 +32,7 @@ def test_the_file_decides_as_the_agent(agent):
     reference = agent.fast_decision()
     rng = np.random.default_rng(4)
     for _ in range(200):
-        state = (10 ** rng.uniform(-4, 0), rng.uniform(0, 1), rng.uniform(0, 0.2))
+        state = raw_states(10 ** rng.uniform(-4, 0), rng.uniform(0, 1), rng.uniform(0, 0.2), 10 ** rng.uniform(6, 8))[0]
         assert fast.decide(*state)[0] == reference.decide(*state)[0]
         assert fast.decide(*state)[1] == pytest.approx(reference.decide(*state)[1], rel=1e-5, abs=1e-6)
     assert normalisation == agent.normalisation
@@ -81,9 +84,22 @@ def test_a_file_that_is_not_a_valid_model_is_refused(agent):
 
 def test_the_loaded_model_keeps_to_the_width_it_declares():
     normalisation = StateNormalisation.identity()
-    weights = [np.ones((3, 4), np.float32), np.ones((4, 2), np.float32)]
+    weights = [np.ones((STATE_SIZE, 4), np.float32), np.ones((4, 2), np.float32)]
     biases = [np.zeros(4, np.float32), np.array([0.0, 1.0], np.float32)]
     fast, _ = load_model(model_bytes(weights, biases, normalisation))
-    assert fast.decide(0.1, 0.5, 0.03)[0] == 1   # Q(cloud) = Q(local) + 1
+    assert fast.decide(*raw_states(0.1, 0.5, 0.03)[0])[0] == 1   # Q(cloud) = Q(local) + 1
     with pytest.raises(ModelFileError, match="2 action values"):
         load_model(model_bytes(weights[:1], biases[:1], normalisation))
+
+
+def test_a_model_of_the_papers_three_field_state_is_refused_naming_both_states():
+    """A fleet model trained before p_t existed (3 inputs): the robot refuses it (and keeps the model it has)
+    rather than feed it a state it never learned."""
+    paper = ("input_size", "cpu_availability", "round_trip_s")
+    old = StateNormalisation(mean=(0.0,) * 3, scale=(1.0,) * 3)
+    data = model_bytes([np.ones((3, 4), np.float32), np.ones((4, 2), np.float32)],
+                       [np.zeros(4, np.float32), np.zeros(2, np.float32)], old)
+    data = _rewritten(data, normalisation=np.array(json.dumps({**old.to_dict(), "fields": list(paper)})))
+    with pytest.raises(ModelFileError, match=f"normalisation is of the state \\({', '.join(paper)}\\), this code's "
+                                             f"state is \\({', '.join(STATE_FIELDS)}\\)"):
+        load_model(data)

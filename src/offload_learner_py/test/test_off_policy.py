@@ -11,6 +11,7 @@ from offload_learner_py.data import bags
 from offload_learner_py.offline import off_policy
 from offload_demos.bag_writer import probe_request
 from offload_learner_py.core.reward import reward
+from statetools import raw_states
 
 
 def logged_steps(n=4000, seed=3, probe_rate=1.0):
@@ -25,7 +26,7 @@ def logged_steps(n=4000, seed=3, probe_rate=1.0):
     action = (rng.random(n) < p_cloud).astype(np.int64)
     propensity = np.where(action == CLOUD, p_cloud, 1 - p_cloud)
     probe = rng.random(n) < probe_rate
-    steps = off_policy.LoggedSteps(states=np.stack([d, u, b], 1), action=action, propensity=propensity,
+    steps = off_policy.LoggedSteps(states=raw_states(d, u, b), action=action, propensity=propensity,
                                    latency_s=np.where(action == CLOUD, cloud_s, local_s), probe=probe,
                                    local_s=np.where(probe | (action == LOCAL), local_s, np.nan),
                                    cloud_s=np.where(probe | (action == CLOUD), cloud_s, np.nan))
@@ -198,7 +199,7 @@ def test_a_request_the_router_kept_local_whatever_the_draw_has_propensity_one(tm
 
 
 def few_requests(n, probe=False, action=CLOUD, propensity=0.001, latency=1.2):
-    states = np.tile([[1.0, 0.5, 0.05]], (n, 1))
+    states = np.tile(raw_states(1.0, 0.5, 0.05), (n, 1))
     other = np.full(n, np.nan) if not probe else np.full(n, 0.5)
     return off_policy.LoggedSteps(states=states, action=np.full(n, action), propensity=np.full(n, propensity),
                                   latency_s=np.full(n, latency), probe=np.full(n, probe),
@@ -235,8 +236,8 @@ def test_every_request_a_probe_scores_the_measured_latency_whatever_the_propensi
 
     rows = load_rows(__file__.rsplit("/", 1)[0] + "/data/learning_demo_rows.npz")
     n = len(rows["action"])
-    steps = off_policy.LoggedSteps(states=np.stack([rows["input_size"], rows["cpu_availability"],
-                                                    rows["round_trip_s"]], 1),
+    steps = off_policy.LoggedSteps(states=raw_states(rows["input_size"], rows["cpu_availability"],
+                                                    rows["round_trip_s"]),
                                    action=rows["action"], propensity=np.ones(n),
                                    latency_s=np.where(rows["action"] == CLOUD, rows["cloud_s"], rows["local_s"]),
                                    probe=np.ones(n, dtype=bool), local_s=rows["local_s"], cloud_s=rows["cloud_s"])
@@ -263,7 +264,7 @@ def test_parts_combine_by_share_with_summed_variances():
 
 
 def test_a_latency_model_extrapolates_no_further_than_ten_times_what_was_measured():
-    states = np.stack([np.r_[np.full(60, 0.1), 1e5], np.full(61, 0.5), np.full(61, 0.03)], 1)
+    states = raw_states(np.r_[np.full(60, 0.1), 1e5], np.full(61, 0.5), np.full(61, 0.03))
     local_s = np.r_[0.01 * np.exp(np.linspace(0, 3, 60)), np.nan]   # grows with the row, never seen at d = 1e5
     predicted = off_policy.cross_fitted_latencies(states, local_s, np.full(61, 0.05))
     assert predicted.max() <= 10 * np.nanmax(local_s) + 1e-12

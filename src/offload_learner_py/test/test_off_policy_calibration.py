@@ -22,10 +22,14 @@ import pytest
 
 from ope_rows import load_rows
 from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py.core.state import STATE_SCHEMA
 from offload_learner_py.offline import off_policy
+from statetools import raw_states
 
 ROWS = load_rows(__file__.rsplit("/", 1)[0] + "/data/learning_demo_rows.npz")
-STATES = np.stack([ROWS["input_size"], ROWS["cpu_availability"], ROWS["round_trip_s"]], axis=1)
+# The rows were recorded before p_t existed: it reads as the schema's value for older records.
+STATES = raw_states(ROWS["input_size"], ROWS["cpu_availability"], ROWS["round_trip_s"],
+                    STATE_SCHEMA["local_plan_rate"].missing)
 LOGS = 300
 ESTIMATORS = ("ips", "snips", "dr")
 # (probe rate, epsilon): the deployed defaults (0.05, 0.1), a frozen greedy model (0.05, 0), more probes,

@@ -12,6 +12,7 @@ import pytest
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.offline import off_policy
+from statetools import raw_states
 
 TARGETS = ("always_local", "always_cloud", "threshold")
 ESTIMATORS = ("ips", "snips", "dr")
@@ -25,7 +26,7 @@ def population(size=4000, seed=0, sigma=0.5):
     b = rng.uniform(0.02, 0.06, size)
     local_s = (0.005 + 0.04 * d / u) * rng.lognormal(0, sigma, size)
     cloud_s = (b + 0.01 * d) * rng.lognormal(0, sigma, size)
-    return np.stack([d, u, b], 1), local_s, cloud_s
+    return raw_states(d, u, b), local_s, cloud_s
 
 
 STATES, LOCAL_S, CLOUD_S = population()

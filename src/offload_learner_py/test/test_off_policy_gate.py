@@ -9,6 +9,7 @@ import pytest
 
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.offline import off_policy
+from statetools import raw_states
 
 
 def population(n=3000, seed=11):
@@ -19,7 +20,7 @@ def population(n=3000, seed=11):
     local_mean, cloud_mean = 0.005 + 0.04 * d / u, b + 0.01 * d
     local_s = local_mean * rng.lognormal(0, 0.3, n)
     cloud_s = cloud_mean * rng.lognormal(0, 0.3, n)
-    return np.stack([d, u, b], 1), local_s, cloud_s, local_mean, cloud_mean
+    return raw_states(d, u, b), local_s, cloud_s, local_mean, cloud_mean
 
 
 STATES, LOCAL_S, CLOUD_S, LOCAL_MEAN, CLOUD_MEAN = population()

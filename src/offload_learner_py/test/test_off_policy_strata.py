@@ -7,12 +7,13 @@ import pytest
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.offline import off_policy
 from offload_learner_py.offline.off_policy_combined import MIN_PROBE_ROWS, evaluate_policy
+from statetools import raw_states
 
 
 def greedy_local_log(n=400, probe_every=20, seed=3):
     """A deployed robot that always planned locally (propensity 1) and probed every probe_every-th request."""
     rng = np.random.default_rng(seed)
-    states = np.stack([rng.uniform(0.1, 2, n), rng.uniform(0.2, 1, n), rng.uniform(0.02, 0.06, n)], 1)
+    states = raw_states(rng.uniform(0.1, 2, n), rng.uniform(0.2, 1, n), rng.uniform(0.02, 0.06, n))
     local_s, cloud_s = rng.uniform(0.02, 0.05, n), rng.uniform(0.06, 0.09, n)
     probe = np.arange(n) % probe_every == 0
     return off_policy.LoggedSteps(states=states, action=np.full(n, LOCAL), propensity=np.ones(n), latency_s=local_s,

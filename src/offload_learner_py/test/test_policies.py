@@ -79,7 +79,7 @@ def test_the_oracle_and_the_lstm_are_offline_only():
     from offload_learner_py.core.state import State
     for policy in (OraclePolicy(), LSTMPolicy(LSTMConfig(epochs=1))):
         with pytest.raises(NotImplementedError, match="offline only"):
-            policy.decide(State(1.0, 0.5, 0.05))
+            policy.decide(State(1.0, 0.5, 0.05, 2e7))
 
 
 def test_a_fixed_threshold_is_not_refitted_and_must_be_finite(size_split_table):

@@ -14,7 +14,7 @@ from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, Decision,
 from offload_learner_py.core.state import State
 from offload_learner_py.data.dataset import TransitionTable
 
-STATE = State(1.0, 0.5, 0.05)
+STATE = State(1.0, 0.5, 0.05, 2e7)
 
 
 def table(d, local_s, cloud_s):
@@ -56,8 +56,8 @@ def test_a_random_policy_takes_both_sides_evenly_with_propensity_one_half():
 @pytest.mark.parametrize("threshold", [0.0, 1e-12, 5.0])
 def test_any_finite_threshold_from_zero_up_is_accepted(threshold):
     policy = InputSizeThreshold(threshold)
-    assert policy.decide(State(threshold + 1.0, 0.5, 0.05)).action == CLOUD
-    assert policy.decide(State(threshold, 0.5, 0.05)).action == LOCAL   # at the threshold: not above it
+    assert policy.decide(State(threshold + 1.0, 0.5, 0.05, 2e7)).action == CLOUD
+    assert policy.decide(State(threshold, 0.5, 0.05, 2e7)).action == LOCAL   # at the threshold: not above it
 
 
 @pytest.mark.parametrize("threshold", [-1e-9, -1.0, math.inf, math.nan])
@@ -90,7 +90,7 @@ def test_a_learning_dqn_decides_with_its_latest_network_after_every_step():
     policy.fit(table(np.linspace(0.1, 2, 8), np.linspace(1, 2, 8), np.full(8, 1.5)))
     rng = np.random.default_rng(0)
     for step in range(30):
-        state = State(float(rng.uniform(0, 2)), float(rng.uniform(0, 1)), 0.05)
+        state = State(float(rng.uniform(0, 2)), float(rng.uniform(0, 1)), 0.05, 2e7)
         policy.learn(state, int(rng.integers(0, 2)), float(rng.uniform(-1, 1)))
         _, q_local, q_cloud = policy.agent.fast_decision().decide(*STATE.as_tuple())
         decided = policy.decide(STATE)

@@ -164,14 +164,14 @@ def test_dqn_learns_on_probe_steps_and_prefers_the_faster_side():
     router, recorder = make_router(policy, ScriptedSide(False), ScriptedSide(True), clock, probe_rate=1.0)
     sizes = [0.01 * (k % 50) for k in range(300)]
     for d in sizes:
-        router.route(d, State(d, 0.5, 0.05))
+        router.route(d, State(d, 0.5, 0.05, 2e7))
     finish(router)
     policy.flush()
     assert policy.steps == 2 * len(sizes)     # full information: both actions' rewards from every probe
     assert all(o.learned and o.transitions == 2 for o in recorder.outcomes)
     assert any(o.loss is not None for o in recorder.outcomes)
-    assert policy.decide(State(0.45, 0.5, 0.05)).q_cloud > policy.decide(State(0.45, 0.5, 0.05)).q_local
-    assert policy.agent.greedy_action(State(0.02, 0.5, 0.05).as_array()) == LOCAL
+    assert policy.decide(State(0.45, 0.5, 0.05, 2e7)).q_cloud > policy.decide(State(0.45, 0.5, 0.05, 2e7)).q_local
+    assert policy.agent.greedy_action(State(0.02, 0.5, 0.05, 2e7).as_array()) == LOCAL
 
 
 def test_frozen_dqn_is_greedy_and_does_not_learn():
@@ -191,8 +191,8 @@ def test_dqn_warm_up_explores_uniformly_with_propensity_one_half():
 
 
 def test_baseline_policies():
-    assert InputSizeThreshold(1.1).decide(State(1.2, 0.5, 0.0)).action == CLOUD
-    assert InputSizeThreshold(1.1).decide(State(1.0, 0.5, 0.0)).action == LOCAL
+    assert InputSizeThreshold(1.1).decide(State(1.2, 0.5, 0.0, 2e7)).action == CLOUD
+    assert InputSizeThreshold(1.1).decide(State(1.0, 0.5, 0.0, 2e7)).action == LOCAL
     actions = {RandomPolicy(seed=2).decide(STATE).action for _ in range(1)}
     assert actions <= {LOCAL, CLOUD}
     assert isinstance(AlwaysCloud("cloud"), Policy) and AlwaysCloud("c").decide(STATE) == \

@@ -14,7 +14,7 @@ from offload_learner_py.core.state import State
 
 OK, NO_PATH, TIMEOUT, ERROR = 0, 7, 9, 10
 STATUSES = Statuses(ok=OK, cloud_timeout=TIMEOUT, cloud_error=ERROR)
-STATE = State(1.2, 0.6, 0.05)
+STATE = State(1.2, 0.6, 0.05, 2e7)
 
 
 from routertools import ERROR, OK, STATE, STATUSES, TIMEOUT, FakePlanner, Recorder, VirtualClock, finish, \
@@ -306,14 +306,14 @@ def test_hedge_keeps_a_cloud_choice_local_when_the_round_trip_alone_exceeds_the_
         routers[hedge] = router, recorder
     router, recorder = routers[True]
     calls = len(cloud.calls)
-    router.route("req", State(1.2, 0.6, 0.02))       # a fast link: the cloud as chosen
-    router.route("req", State(1.2, 0.6, 0.5))        # 0.5 s of round trip against a 0.1 s local plan
+    router.route("req", State(1.2, 0.6, 0.02, 2e7))       # a fast link: the cloud as chosen
+    router.route("req", State(1.2, 0.6, 0.5, 2e7))        # 0.5 s of round trip against a 0.1 s local plan
     finish(router)
     assert [(r.action, r.breaker, r.decision.action) for r in recorder.routings] == [
         (CLOUD, "closed", CLOUD), (LOCAL, "slow", CLOUD)]
     assert len(cloud.calls) == calls + 1 and recorder.outcomes[-1].delivered == LOCAL
     router, recorder = routers[False]                # without the hedge the policy's choice stands
-    router.route("req", State(1.2, 0.6, 0.5))
+    router.route("req", State(1.2, 0.6, 0.5, 2e7))
     finish(router)
     assert [(r.action, r.breaker) for r in recorder.routings] == [(CLOUD, "closed")]
 

@@ -32,7 +32,7 @@ def test_a_restarted_node_resumes_from_its_checkpoint_before_the_model(tmp_path)
 def test_fixed_policies_keep_the_node_names_and_never_learn(name, action):
     policy, agent = make_policy(SessionConfig(policy=name))
     assert policy.name == name and agent is None and not policy.learns
-    assert policy.decide(State(1.0, 0.5, 0.05)).action == action
+    assert policy.decide(State(1.0, 0.5, 0.05, 2e7)).action == action
 
 
 def test_an_unknown_policy_or_a_bad_dqn_block_is_refused():

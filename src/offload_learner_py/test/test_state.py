@@ -44,16 +44,19 @@ def test_invalid_geometry_is_rejected(bad):
 
 
 def test_state_validates_ranges():
-    assert np.allclose(State(0.5, 0.6, 0.03).as_array(), [0.5, 0.6, 0.03])
-    for bad in [(-1, 0.5, 0.03), (0.5, 1.5, 0.03), (0.5, 0.5, -0.1), (float("nan"), 0.5, 0.03)]:
+    assert np.allclose(State(0.5, 0.6, 0.03, 2e7).as_array(), [0.5, 0.6, 0.03, 2e7])
+    for bad in [(-1, 0.5, 0.03, 2e7), (0.5, 1.5, 0.03, 2e7), (0.5, 0.5, -0.1, 2e7), (float("nan"), 0.5, 0.03, 2e7),
+                (0.5, 0.5, 0.03, -1.0), (0.5, 0.5, 0.03, math.inf)]:
         with pytest.raises(ValueError):
             State(*bad)
+    with pytest.raises(TypeError, match="local_plan_rate"):   # every field measured: no default for p_t
+        State(0.5, 0.6, 0.03)
 
 
-def test_the_state_has_the_papers_three_features():
+def test_the_state_has_the_papers_three_features_and_the_robots_plan_rate():
     from offload_learner_py.core.state import STATE_FIELDS, STATE_SIZE
-    assert STATE_SIZE == 3 and STATE_FIELDS == ("input_size", "cpu_availability", "round_trip_s")
-    assert State(0.5, 0.6, 0.03).as_array().shape == (STATE_SIZE,)
+    assert STATE_SIZE == 4 and STATE_FIELDS == ("input_size", "cpu_availability", "round_trip_s", "local_plan_rate")
+    assert State(0.5, 0.6, 0.03, 2e7).as_array().shape == (STATE_SIZE,)
 
 
 def test_input_size_between_one_and_two_nodes_is_n_ln_n():
@@ -89,11 +92,12 @@ def test_negative_resolution_is_rejected():
 
 
 def test_state_bounds_are_inclusive_and_the_state_is_immutable():
-    for edge in [(0.0, 0.5, 0.03), (0.5, 0.0, 0.03), (0.5, 1.0, 0.03), (0.5, 0.5, 0.0)]:
-        State(*edge)  # d = 0 (goal beside the start), an idle or saturated CPU, a zero round trip
-    for bad in [(0.5, -0.5, 0.03), (0.5, -1e-9, 0.03), (0.5, 1.0 + 1e-9, 0.03)]:
+    for edge in [(0.0, 0.5, 0.03, 2e7), (0.5, 0.0, 0.03, 2e7), (0.5, 1.0, 0.03, 2e7), (0.5, 0.5, 0.0, 2e7),
+                 (0.5, 0.5, 0.03, 0.0)]:
+        State(*edge)  # d = 0 (goal beside the start), an idle or saturated CPU, a zero round trip, no plan timed yet
+    for bad in [(0.5, -0.5, 0.03, 2e7), (0.5, -1e-9, 0.03, 2e7), (0.5, 1.0 + 1e-9, 0.03, 2e7)]:
         with pytest.raises(ValueError, match="cpu_availability must be in"):
             State(*bad)
-    state = State(0.5, 0.6, 0.03)
+    state = State(0.5, 0.6, 0.03, 2e7)
     with pytest.raises(AttributeError):
         state.cpu_availability = 2.0  # would bypass the validation

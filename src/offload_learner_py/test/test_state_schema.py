@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from recordtools import decision, outcome
+from statetools import PLAN_RATE
 from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.core.state import STATE_FIELDS, STATE_SCHEMA, STATE_SIZE, State, StateField, StateSchema
 from offload_learner_py.data import records
@@ -17,7 +18,15 @@ from offload_learner_py.data.dataset import COLUMNS, TransitionTable
 
 FIELDS = list(STATE_SCHEMA)
 IDS = [f.name for f in FIELDS]
-GOOD = {"input_size": 0.5, "cpu_availability": 0.6, "round_trip_s": 0.03}
+GOOD = {"input_size": 0.5, "cpu_availability": 0.6, "round_trip_s": 0.03, "local_plan_rate": PLAN_RATE}
+PAPER_FIELDS = ("input_size", "cpu_availability", "round_trip_s")
+
+
+def _spread(f, rng, n):
+    """Values across a field's range; a log-scaled field's across three decades above its log floor (a spread far
+    below the floor is invisible on the log scale and only tests float32 rounding)."""
+    high = min(f.high, 2.0) if f.log_floor is None or f.log_floor < 1 else 1e3 * f.log_floor
+    return rng.uniform(f.low, high, n)
 
 
 def _good_state() -> dict:
@@ -32,15 +41,17 @@ def _table(n=4, **override) -> TransitionTable:
     return TransitionTable(**columns)
 
 
-def test_the_schema_is_the_papers_state_in_its_order():
-    assert STATE_FIELDS == ("input_size", "cpu_availability", "round_trip_s") == tuple(IDS)
-    assert [f.symbol for f in FIELDS] == ["d_t", "u_t", "b_t"] and STATE_SIZE == 3
-    d, u, b = FIELDS
+def test_the_schema_is_the_papers_state_then_the_robots_plan_rate():
+    assert STATE_FIELDS == (*PAPER_FIELDS, "local_plan_rate") == tuple(IDS)
+    assert [f.symbol for f in FIELDS] == ["d_t", "u_t", "b_t", "p_t"] and STATE_SIZE == 4
+    d, u, b, p = FIELDS
     assert (d.low, d.high, d.recorded_high, d.log_floor) == (0.0, math.inf, 1e6, 1e-6)
     assert (u.low, u.high, u.recorded_high, u.log_floor) == (0.0, 1.0, 1.0, None)
     assert (b.low, b.high, b.recorded_high, b.log_floor, b.unit) == (0.0, math.inf, 3600.0, None, "s")
-    assert all(f.missing is None for f in FIELDS)     # every field is in every recorded decision so far
-    assert [STATE_SCHEMA.index(name) for name in IDS] == [0, 1, 2] and STATE_SCHEMA["round_trip_s"] is b
+    assert (p.low, p.high, p.recorded_high, p.log_floor, p.unit) == (0.0, math.inf, 1e10, 1e5, "cells/s")
+    assert all(f.missing is None for f in FIELDS[:3])     # the paper's fields are in every recorded decision
+    assert p.missing == 0.0                               # p_t was not: "not measured", as before a robot's first plan
+    assert [STATE_SCHEMA.index(name) for name in IDS] == [0, 1, 2, 3] and STATE_SCHEMA["round_trip_s"] is b
     with pytest.raises(KeyError, match="'battery' is not a state field"):
         STATE_SCHEMA.index("battery")
 
@@ -93,10 +104,10 @@ def test_a_table_without_a_schema_column_or_with_another_is_refused():
 
 def test_decision_records_carry_every_field_and_the_table_rows_take_them():
     assert records.DECISION_FIELDS[1:1 + STATE_SIZE] == STATE_FIELDS
-    assert all(records.DECISION_DEFAULTS[name] is None for name in STATE_FIELDS)   # required
-    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125)], [outcome(1)])
+    assert {name: records.DECISION_DEFAULTS[name] for name in STATE_FIELDS} == {f.name: f.missing for f in FIELDS}
+    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125, p=4e7)], [outcome(1)])
     table = records.transition_table(log)
-    assert table.states.tolist() == [[0.25, 0.75, 0.125]]
+    assert table.states.tolist() == [[0.25, 0.75, 0.125, 4e7]]
 
 
 @pytest.mark.parametrize("f", FIELDS, ids=IDS)
@@ -132,20 +143,23 @@ def test_the_decision_message_has_every_field_as_float64_and_the_learner_fills_t
 
 def test_normalisation_log_scales_the_fields_the_schema_hints_and_records_the_fields():
     rng = np.random.default_rng(1)
-    states = np.stack([rng.uniform(f.low, min(f.high, 2.0), 200) for f in FIELDS], axis=1)
+    states = np.stack([_spread(f, rng, 200) for f in FIELDS], axis=1)
     norm = StateNormalisation.fit(states)
     logged = [i for i, f in enumerate(FIELDS) if f.log_floor is not None]
     expected = states.copy()
     for i in logged:
         expected[:, i] = np.log(states[:, i] + FIELDS[i].log_floor)
-    assert logged == [0]
+    assert [FIELDS[i].name for i in logged] == ["input_size", "local_plan_rate"]
     assert np.allclose(norm.mean, expected.mean(axis=0)) and np.allclose(norm.scale, expected.std(axis=0))
     plain = StateNormalisation.fit(states, log_input_size=False)
     assert np.allclose(plain.mean, states.mean(axis=0))
     assert norm.to_dict()["fields"] == list(STATE_FIELDS)
     assert StateNormalisation.from_dict(norm.to_dict()) == norm
-    saved = {k: v for k, v in norm.to_dict().items() if k != "fields"}   # a checkpoint from before the field list
-    assert StateNormalisation.from_dict(saved) == norm
+    # A checkpoint from before the field list was saved holds the paper's three fields: refused, naming them.
+    saved = {k: v for k, v in norm.to_dict().items() if k != "fields"}
+    with pytest.raises(ValueError, match=re.escape(f"normalisation is of the state ({', '.join(PAPER_FIELDS)}), this "
+                                                   f"code's state is ({', '.join(STATE_FIELDS)})")):
+        StateNormalisation.from_dict(saved)
     for fields in (list(reversed(STATE_FIELDS)), [*STATE_FIELDS, "battery"], "input_size", [1, 2, 3]):
         with pytest.raises(ValueError, match="normalisation"):
             StateNormalisation.from_dict({**norm.to_dict(), "fields": fields})
@@ -167,7 +181,7 @@ def test_the_fast_decision_takes_a_state_in_schema_order():
     from offload_learner_py.core.dqn import DQNAgent
 
     rng = np.random.default_rng(2)
-    states = np.stack([rng.uniform(f.low, min(f.high, 2.0), 20) for f in FIELDS], axis=1)
+    states = np.stack([_spread(f, rng, 20) for f in FIELDS], axis=1)
     agent = DQNAgent(normalisation=StateNormalisation.fit(states))
     fast = agent.fast_decision()
     for row in states:
@@ -184,8 +198,8 @@ def test_the_summary_and_the_offline_features_follow_the_schema():
     assert summary.FEATURES == tuple((f.name, f.symbol) for f in FIELDS)
     assert list(summary.oracle_share_by_tercile(_table())) == [f.symbol for f in FIELDS]
     assert FEATURE_COLUMNS == STATE_FIELDS
-    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125)], [outcome(1)])
-    assert off_policy.LoggedSteps.from_log(log).states.tolist() == [[0.25, 0.75, 0.125]]
+    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125, p=4e7)], [outcome(1)])
+    assert off_policy.LoggedSteps.from_log(log).states.tolist() == [[0.25, 0.75, 0.125, 4e7]]
     k = STATE_SIZE
     assert off_policy._features(np.random.default_rng(3).uniform(0.1, 1, (10, k))).shape == \
         (10, 1 + k + k * (k + 1) // 2)
@@ -212,13 +226,14 @@ def test_a_field_that_cannot_be_validated_is_refused(bad, message):
 
 
 def test_log_scaling_clamps_below_zero_and_leaves_the_other_fields():
-    raw = np.array([[-0.5, 0.25, 0.125], [2.0, 0.5, 0.5]])
+    raw = np.array([[-0.5, 0.25, 0.125, -3.0], [2.0, 0.5, 0.5, 2e7]])
     columns = [i for i, _ in STATE_SCHEMA.log_columns]
     scaled = STATE_SCHEMA.log_scaled(raw)
     for i, f in enumerate(FIELDS):
         expected = np.log(np.maximum(raw[:, i], 0) + f.log_floor) if i in columns else raw[:, i]
         assert np.array_equal(scaled[:, i], expected)
     assert scaled[0, 0] == math.log(1e-6) and raw[0, 0] == -0.5     # a copy
+    assert scaled[0, 3] == math.log(1e5) and scaled[1, 3] == math.log(2e7 + 1e5)
 
 
 def test_state_documents_its_fields_with_their_units_and_rules():

@@ -15,6 +15,7 @@ import numpy as np
 from offload_learner_py.core.checkpoint import save_checkpoint
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.state import STATE_SIZE
 
 HERE = Path(__file__).resolve().parent
 PACKAGE = HERE.parent / "src" / "offload_learner_py"
@@ -22,11 +23,12 @@ ANCHOR = "STATE_FIELDS = STATE_SCHEMA.names\n"
 VARIANT = '''import dataclasses as _dataclasses
 _PAPER = STATE_SCHEMA
 STATE_SCHEMA = StateSchema((
-    StateField("rate", "p_t", "1/s", "a field for the test: the robot's planning rate", low=0.0, high=1000.0,
+    StateField("rate", "r_t", "1/s", "a field for the test: some rate of the robot", low=0.0, high=1000.0,
                recorded_max=100.0, log_floor=1e-3, missing=2.0),
     _dataclasses.replace(_PAPER["round_trip_s"], high=10.0, recorded_max=5.0),
     _dataclasses.replace(_PAPER["input_size"], recorded_max=50.0),
     _PAPER["cpu_availability"],
+    _PAPER["local_plan_rate"],
 ))
 '''
 
@@ -43,7 +45,7 @@ def variant_package(parent: Path) -> Path:
 
 
 def test_the_consumers_follow_a_changed_schema(tmp_path):
-    states = np.random.default_rng(0).uniform(0.1, 0.9, (50, 3))
+    states = np.random.default_rng(0).uniform(0.1, 0.9, (50, STATE_SIZE))
     paper_checkpoint = tmp_path / "paper.pt"
     save_checkpoint(DQNAgent(normalisation=StateNormalisation.fit(states)), str(paper_checkpoint))
     parent = variant_package(tmp_path / "variant")

@@ -49,10 +49,11 @@ def typestore_for(decision_msg: str, outcome_msg: str, extra: Dict[str, str] = N
 
 def probe_request(request_id: int, input_size: float, cpu_availability: float, round_trip_s: float,
                   local_s: float, cloud_s: float, action: int, propensity: float, reward_value: float,
-                  probe: bool = True, loss: float = math.nan) -> Tuple[dict, dict]:
-    """(decision fields, outcome fields) of one request; with probe false only the taken side is measured."""
+                  probe: bool = True, loss: float = math.nan, local_plan_rate: float = 0.0) -> Tuple[dict, dict]:
+    """(decision fields, outcome fields) of one request; with probe false only the taken side is measured. The
+    local planning rate p_t defaults to 0, "not measured" (the state schema's value for older records)."""
     decision = dict(request_id=request_id, input_size=input_size, cpu_availability=cpu_availability,
-                    round_trip_s=round_trip_s, action=action, action_propensity=propensity, q_local=math.nan,
+                    round_trip_s=round_trip_s, local_plan_rate=local_plan_rate, action=action, action_propensity=propensity, q_local=math.nan,
                     q_cloud=math.nan, policy="dqn", model_steps=request_id, probe=probe, routed=action)
     local_measured, cloud_measured = probe or action == LOCAL, probe or action == CLOUD
     outcome = dict(request_id=request_id, action=action, delivered=action, local_measured=local_measured,

@@ -16,6 +16,12 @@ import numpy as np
 
 # A latency or a round trip of an hour is no planning request: a recorded one beyond it is damage.
 MAX_LATENCY_S = 3600.0
+# p_t, the local planning rate: this machine's planner settles 4e6-7e7 cells/s (the demo's bags, 2026-11); a
+# recorded rate over 1e10 is a broken timer, not a planner. The log floor sits well below any robot's real rate,
+# so measured rates keep their log spacing and "not measured yet" (0, also the value of records from before the
+# field) lands at log(1e5): apart from every measured robot, not on top of one of them.
+MAX_PLAN_RATE = 1e10
+PLAN_RATE_LOG_FLOOR = 1e5
 _RESERVED = ("as_array", "as_tuple", "as_dict", "SCHEMA")   # State's own attributes
 
 
@@ -124,6 +130,9 @@ STATE_SCHEMA = StateSchema((
                "arrives", low=0.0, high=1.0),
     StateField("round_trip_s", "b_t", "s", "round-trip latency to the cloud, last measured by the link",
                low=0.0, recorded_max=MAX_LATENCY_S),
+    StateField("local_plan_rate", "p_t", "cells/s", "the robot's own local planning rate: cells its local planner "
+               "settles per second of planning, an EWMA of its recent timed plans (0: not measured yet)",
+               low=0.0, recorded_max=MAX_PLAN_RATE, log_floor=PLAN_RATE_LOG_FLOOR, missing=0.0),
 ))
 STATE_FIELDS = STATE_SCHEMA.names
 STATE_SIZE = len(STATE_SCHEMA)

@@ -1,8 +1,12 @@
 """The one transition table of the project: a step per row with (t, the state s_t's fields, l_local,
 l_cloud, action, action propensity, reward). The state columns are the state schema's fields in its order
-(`core/state.py`: d, u, b). Saved as .npz (columns as arrays plus JSON metadata) and exportable to CSV.
+(`core/state.py`: d, u, b, p). Saved as .npz (columns as arrays plus JSON metadata) and exportable to CSV.
 Both latencies are in every row, as the paper measured both at every step, so any policy can be scored
-offline against the oracle."""
+offline against the oracle.
+
+A table without a state column that the schema gives a value for older records (`missing`: p_t) takes that
+value in every row: a table saved before the field existed (.npz or CSV), or one of data that never had it (the
+paper's synthetic datasets), reads as the bag reader reads an older decision."""
 import csv
 import os
 from typing import Dict, Optional
@@ -15,6 +19,8 @@ from offload_learner_py.data.npz_io import VersionedNpz
 
 OUTCOME_COLUMNS = ("local_s", "cloud_s", "action", "action_propensity", "reward")
 COLUMNS = ("t", *STATE_FIELDS, *OUTCOME_COLUMNS)
+# State columns a table may lack (filled with the schema's value for older records).
+OPTIONAL_COLUMNS = tuple(f.name for f in STATE_SCHEMA if f.missing is not None)
 TABLE_FORMAT = "offload_learner_py.transitions/1"
 _INTEGER_COLUMNS = ("t", "action")
 # A CSV is parsed into Python objects (about 50 bytes per field): 64 MiB, about a million rows, stays
@@ -67,16 +73,19 @@ def _require(table: "TransitionTable", name: str, ok: np.ndarray, rule: str) -> 
 class TransitionTable(VersionedNpz):
     """Columns by name (`table.local_s`, `table.cpu_availability`), one row per step: every name of COLUMNS
     given as a keyword, plus optional `metadata`."""
-    NPZ_FORMAT, NPZ_ARRAYS, NPZ_WHAT = TABLE_FORMAT, COLUMNS, "transition table"
+    NPZ_FORMAT, NPZ_ARRAYS, NPZ_OPTIONAL, NPZ_WHAT = TABLE_FORMAT, COLUMNS, OPTIONAL_COLUMNS, "transition table"
 
     def __init__(self, *, metadata: Optional[Dict] = None, **columns):
-        missing, unknown = [n for n in COLUMNS if n not in columns], sorted(set(columns) - set(COLUMNS))
+        missing = [n for n in COLUMNS if n not in columns and n not in OPTIONAL_COLUMNS]
+        unknown = sorted(set(columns) - set(COLUMNS))
         if missing or unknown:
             raise TypeError(f"a transition table has the columns {', '.join(COLUMNS)}"
                             + (f"; missing {', '.join(missing)}" if missing else "")
                             + (f"; unknown {', '.join(unknown)}" if unknown else ""))
+        rows = len(np.atleast_1d(columns["t"]))
         for name in COLUMNS:
-            setattr(self, name, _column(name, columns[name]))
+            values = columns[name] if name in columns else np.full(rows, STATE_SCHEMA[name].missing)
+            setattr(self, name, _column(name, values))
         self.metadata = {} if metadata is None else metadata
         lengths = {name: len(getattr(self, name)) for name in COLUMNS}
         if len(set(lengths.values())) != 1:
@@ -118,10 +127,9 @@ class TransitionTable(VersionedNpz):
 
     @classmethod
     def from_csv(cls, path: str, max_bytes: int = MAX_CSV_BYTES) -> "TransitionTable":
-        """The table in a CSV written by to_csv: the header must be COLUMNS and every row must have one
-        number per column (blank lines are skipped). Anything else, or a file over max_bytes, raises
-        ValueError naming the file and the line."""
-        values = {name: [] for name in COLUMNS}
+        """The table in a CSV written by to_csv: the header must be COLUMNS (an older table's may lack
+        OPTIONAL_COLUMNS) and every row must have one number per column (blank lines are skipped). Anything
+        else, or a file over max_bytes, raises ValueError naming the file and the line."""
         lines = []
         try:
             size = os.path.getsize(path)
@@ -134,15 +142,17 @@ class TransitionTable(VersionedNpz):
                 if header is None:
                     raise ValueError(f"{path} is empty: a transition table CSV starts with the header "
                                      f"{','.join(COLUMNS)}")
-                if tuple(header) != COLUMNS:
+                names = tuple(header)
+                if names != tuple(n for n in COLUMNS if n in names or n not in OPTIONAL_COLUMNS):
                     raise ValueError(f"{path} line 1: header {','.join(header)} is not {','.join(COLUMNS)}")
+                values = {name: [] for name in names}
                 for row in reader:
                     if not row:
                         continue
-                    if len(row) != len(COLUMNS):
+                    if len(row) != len(names):
                         raise ValueError(f"{path} line {reader.line_num}: {len(row)} fields, expected "
-                                         f"{len(COLUMNS)} ({','.join(COLUMNS)})")
-                    for name, text in zip(COLUMNS, row):
+                                         f"{len(names)} ({','.join(names)})")
+                    for name, text in zip(names, row):
                         values[name].append(_parse_number(text, path, reader.line_num, name))
                     lines.append(reader.line_num)
         except OSError as error:

@@ -30,8 +30,9 @@ def save_versioned_npz(path: str, file_format: str, metadata: Mapping, arrays: M
 
 
 def load_versioned_npz(path: str, file_format: str, names: Iterable[str], what: str,
-                       max_member_bytes: int = MAX_MEMBER_BYTES) -> Tuple[Dict, Dict]:
-    """(arrays by name, metadata) of a file written by save_versioned_npz with `file_format`. A missing,
+                       max_member_bytes: int = MAX_MEMBER_BYTES, optional: Iterable[str] = ()) -> Tuple[Dict, Dict]:
+    """(arrays by name, metadata) of a file written by save_versioned_npz with `file_format`; of `names`, the
+    `optional` ones may be absent (an older file) and are then left out of the arrays. A missing,
     corrupt, foreign or oversized file raises ValueError naming the file and saying why. Each member's
     uncompressed size (from the zip directory) must be at most max_member_bytes and agree with its .npy
     header before it is read."""
@@ -58,11 +59,12 @@ def load_versioned_npz(path: str, file_format: str, names: Iterable[str], what: 
             raise ValueError(f"{path}: cannot read {what}: its format tag is unreadable: {error}") from error
         if found != file_format:
             raise ValueError(f"{path} is not a {what} ({file_format}), format is {found!r}")
-        missing = [name for name in names + ("metadata",) if name not in archive.files]
+        optional = set(optional)
+        missing = [name for name in names + ("metadata",) if name not in archive.files and name not in optional]
         if missing:
             raise ValueError(f"{path} lacks {what} arrays {missing}")
         arrays = {}
-        for name in names + ("metadata",):
+        for name in tuple(n for n in names if n in archive.files) + ("metadata",):
             _check_member(archive, name, path, what,
                           min(max_member_bytes, MAX_METADATA_BYTES) if name == "metadata" else max_member_bytes)
             try:
@@ -84,10 +86,10 @@ def load_versioned_npz(path: str, file_format: str, names: Iterable[str], what: 
 
 
 def load_versioned(build: Callable, path: str, file_format: str, names: Iterable[str], what: str,
-                   max_member_bytes: int = MAX_MEMBER_BYTES):
+                   max_member_bytes: int = MAX_MEMBER_BYTES, optional: Iterable[str] = ()):
     """`build(**arrays, metadata=metadata)` from the file; its ValueError on invalid content is raised
     again naming the file."""
-    arrays, metadata = load_versioned_npz(path, file_format, names, what, max_member_bytes)
+    arrays, metadata = load_versioned_npz(path, file_format, names, what, max_member_bytes, optional)
     try:
         return build(**arrays, metadata=metadata)
     except ValueError as error:
@@ -152,6 +154,8 @@ class VersionedNpz:
     its arrays and what it is called in errors."""
     NPZ_FORMAT = ""
     NPZ_ARRAYS: tuple = ()
+    NPZ_OPTIONAL: tuple = ()
+    """arrays an older file may lack (the class fills them in)."""
     NPZ_WHAT = ""
 
     def save_npz(self, path: str) -> None:
@@ -161,4 +165,5 @@ class VersionedNpz:
     def load_npz(cls, path: str, max_member_bytes: int = MAX_MEMBER_BYTES):
         """The object in an .npz written by save_npz. Any unreadable, foreign, invalid or oversized file (an
         array over max_member_bytes uncompressed) raises ValueError naming the file."""
-        return load_versioned(cls, path, cls.NPZ_FORMAT, cls.NPZ_ARRAYS, cls.NPZ_WHAT, max_member_bytes)
+        return load_versioned(cls, path, cls.NPZ_FORMAT, cls.NPZ_ARRAYS, cls.NPZ_WHAT, max_member_bytes,
+                              cls.NPZ_OPTIONAL)

@@ -11,11 +11,11 @@ import torch
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
-from offload_msgs.msg import LinkLatency
+from offload_msgs.msg import LinkLatency, PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
-from offload_learner_py.core.state import State, input_size
+from offload_learner_py.core.state import STATE_SCHEMA, State, input_size
 from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, planner_proxy, RvizGoals, \
     StaleMapCheck, account, exit_fatal, rejection, wait_for_recorder
 from offload_learner_py.nodes.learner_fleet import NodeFleet
@@ -23,6 +23,7 @@ from offload_learner_py.nodes.learner_outputs import LearnerOutputs
 from offload_learner_py.nodes.learner_params import read_learner_parameters
 from offload_learner_py.online.breaker import LinkBreaker
 from offload_learner_py.online.cpu import make_cpu_sampler
+from offload_learner_py.online.plan_rate import PlanRateEstimator
 from offload_learner_py.online.router import OffloadRouter
 from offload_cloud.gc_pauses import freeze_startup_heap
 
@@ -44,6 +45,8 @@ class LearnerNode:
         # so it sees the load the next plan will meet, not the previous plan. Jiffy counters (10 ms)
         # are too coarse for that and keep the window from request to request.
         self.cpu_window_from_outcome = bool(node.cpu_cgroup)
+        # p_t: "not measured" (the value of records from before it) until the local planner has timed a plan.
+        self.plan_rate = PlanRateEstimator(STATE_SCHEMA["local_plan_rate"].missing, node.plan_rate_weight)
         self.map_info, self.round_trip_s = None, None
         self.goals = RvizGoals(self.serve, node.goal_tolerance, (node.start_x, node.start_y), node.base_frame,
                                lambda: self.map_info)
@@ -65,6 +68,8 @@ class LearnerNode:
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = node.latency_topic
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
+        rospy.Subscriber(node.plan_timing_topic, PlanTiming,
+                         lambda msg: self.plan_rate.observe(msg.expansions, msg.planning_time_s), queue_size=100)
         # s_t needs the map's size and a first round trip: serve once both are in (or the wait is over).
         deadline = time.monotonic() + wait_s
         while (self.map_info is None or self.round_trip_s is None) and time.monotonic() < deadline \
@@ -104,7 +109,8 @@ class LearnerNode:
         a, b = request.start.pose.position, request.goal.pose.position
         try:
             d = input_size((a.x, a.y), (b.x, b.y), info.resolution, info.width * info.height)
-            return State(input_size=d, cpu_availability=self.cpu.sample(), round_trip_s=self.round_trip_s)
+            return State(input_size=d, cpu_availability=self.cpu.sample(), round_trip_s=self.round_trip_s,
+                         local_plan_rate=self.plan_rate.value)
         except (ValueError, RuntimeError, OSError) as error:
             rospy.logwarn("request not learnable: %s", error)
             return None
