@@ -85,3 +85,44 @@ def test_without_a_version_in_use_a_candidate_is_judged_against_the_greedy_choic
     del log.columns["routed"]
     assert list(logged_actions(log, np.arange(4))) == [0, 1, 1, 1]   # an older bag: the action it took
     assert list(logged_actions(log, np.array([2, 0]))) == [1, 0]
+
+
+def paper_state_model() -> bytes:
+    """A model file of the state before p_t (input_size, cpu_availability, round_trip_s): 3 inputs."""
+    import io
+    import json
+
+    from offload_learner_py.core.model_file import model_bytes
+    from offload_learner_py.core.normalisation import StateNormalisation
+
+    old = StateNormalisation(mean=(0.0,) * 3, scale=(1.0,) * 3)
+    data = model_bytes([np.ones((3, 4), np.float32), np.ones((4, 2), np.float32)],
+                       [np.zeros(4, np.float32), np.zeros(2, np.float32)], old)
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    arrays["normalisation"] = np.array(json.dumps({**old.to_dict(), "fields": ["input_size", "cpu_availability",
+                                                                              "round_trip_s"]}))
+    out = io.BytesIO()
+    np.savez(out, **arrays)
+    return out.getvalue()
+
+
+def test_a_version_in_use_of_the_state_before_p_t_is_replaced_by_a_round_from_scratch(learner, caplog):  # noqa: F811
+    """The fleet's current version was trained on the paper's three fields: this code can neither warm-start from
+    it nor compare with it. The round trains from scratch, judges against what the robot logged, and its
+    candidate replaces the old version; it does not fail (it used to raise in every round)."""
+    from offload_learner_py.core.model_file import model_version
+
+    service, _ = learner()
+    old = paper_state_model()
+    assert service.store.record_round({"version": model_version(old), "parent": ""}, old)
+    service.pool.add("robot1", DEFS, MD5, h.rows(300, seed=4))
+    with caplog.at_level("WARNING"):
+        entry = service.train_once()
+    assert service.round_errors == 0 and entry is not None
+    assert entry["parent"] == model_version(old) and entry["published"]
+    assert service.store.state()["current"] == entry["version"]
+    fast, _ = load_model(service.store.get(entry["version"]))
+    assert fast.weights[0].shape[0] == len(STATE_FIELDS)
+    assert any("cannot be loaded here" in r.getMessage() and "round_trip_s), this code's state is" in r.getMessage()
+               for r in caplog.records)

@@ -20,6 +20,7 @@ from offload_learner_py.online.fleet_link import FleetConfig, RowBuffer
 from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.model_guard import GuardConfig, ModelGuard, welch_worse
 from offload_learner_py.online.router_types import Outcome, RouterConfig
+from statetools import paper_state_model_file
 from routertools import STATE, STATUSES, FakePlanner, Recorder, VirtualClock, finish, wired_router
 
 
@@ -226,7 +227,7 @@ def test_a_new_version_is_fetched_checked_loaded_and_decides():
     assert fake.fetches == [model_version(data)]          # fetched once, not at every period
 
 
-@pytest.mark.parametrize("kind", ["hash", "pickle", "garbage"])
+@pytest.mark.parametrize("kind", ["hash", "pickle", "garbage", "paper state"])
 def test_a_file_of_the_wrong_hash_or_a_hostile_one_is_refused_and_the_old_model_kept(kind, caplog):
     fake = FakeLearner()
     good = model_file(LOCAL)
@@ -240,8 +241,10 @@ def test_a_file_of_the_wrong_hash_or_a_hostile_one_is_refused_and_the_old_model_
             out = io.BytesIO()
             np.save(out, np.array([{"os.system": "echo pwned"}], dtype=object), allow_pickle=True)
             bad = out.getvalue()
-        else:
+        elif kind == "garbage":
             bad = b"PK\x03\x04" + pickle.dumps(object) * 3
+        else:   # a version trained before p_t: three inputs
+            bad = paper_state_model_file()
         version = model_version(bad)
         fake.files = {version: bad}
     fake.offer = version

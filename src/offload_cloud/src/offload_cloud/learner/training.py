@@ -1,6 +1,9 @@
 """One training round of the fleet learner: each robot's recent rows from the pool, the DQN trained (warm-started
 from the version in use) with offload_learner_py.offline.retrain's training, the candidate gated on each
-contributing robot's most recent rows (held out of its training), and the round recorded in the store.
+contributing robot's most recent rows (held out of its training), and the round recorded in the store. A version
+in use that this code cannot load (a model of another state schema: trained before p_t was added) is neither
+warm-started nor compared with: the round trains from scratch and judges as when no version is in use, so the
+first candidate that passes replaces it (the robots refuse it anyway, keeping the model they have).
 
 Per robot the window is its last `window_rows` requests (bags read newest first only as far as needed is not
 attempted: a robot's pool directory is bounded by its disk share, and it is read whole). The window's first
@@ -23,7 +26,7 @@ from offload_cloud.learner.pool import ExperiencePool
 from offload_cloud.learner.store import ModelStore
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent, greedy_actions
-from offload_learner_py.core.model_file import agent_model_bytes, load_model, model_version
+from offload_learner_py.core.model_file import ModelFileError, agent_model_bytes, load_model, model_version
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.data.dataset import COLUMNS, TransitionTable
 from offload_learner_py.data.records import RequestLog, transition_table
@@ -55,6 +58,17 @@ def warm_agent(data: bytes, config: DQNConfig) -> DQNAgent:
             layer.bias.copy_(torch.from_numpy(b))
     agent.target_network.load_state_dict(agent.q_network.state_dict())
     return agent
+
+
+def agent_in_use(data: Optional[bytes], config: DQNConfig) -> Optional[DQNAgent]:
+    """warm_agent of the version in use; None when there is none or this code cannot load it (said in the log)."""
+    if not data:
+        return None
+    try:
+        return warm_agent(data, config)
+    except ModelFileError as error:
+        LOG.warning("the version in use cannot be loaded here (%s): this round trains from scratch", error)
+        return None
 
 
 def _rows(log: RequestLog, rows: np.ndarray) -> RequestLog:
@@ -93,12 +107,12 @@ def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConf
     if not tables or sum(used.values()) < 2:
         return None
     table = TransitionTable(**{name: np.concatenate([getattr(t, name) for t in tables]) for name in COLUMNS})
-    base = warm_agent(current_data, dqn) if current_data else None
+    base = agent_in_use(current_data, dqn)
     steps_count = gradient_steps_for(len(table), dqn, config.epochs)
     result = train_offline(table, base.config if base else dqn, steps_count, agent=base)
     data = agent_model_bytes(result.agent)
     version = model_version(data)
-    reference = warm_agent(current_data, dqn) if current_data else None
+    reference = agent_in_use(current_data, dqn) if base is not None else None
     figures = {}
     for robot, (steps, logged) in judged.items():
         new = result.agent.greedy_actions(steps.states)
