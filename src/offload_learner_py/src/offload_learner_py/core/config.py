@@ -65,7 +65,7 @@ class DQNConfig:
     max_grad_norm: float = 10.0
     """gradient norm clip, guards against rare large TD errors when gamma > 0."""
     log_input_size: bool = True
-    """feed log(d + 1e-6) instead of d: d spans orders of magnitude across requests."""
+    """feed log(d + 1e-6) and log(p + 1e5) for d and p: they span orders of magnitude (the schema's log floors)."""
 
     def __post_init__(self):
         for spec in fields(self):

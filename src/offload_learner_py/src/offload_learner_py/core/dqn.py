@@ -1,4 +1,4 @@
-"""The DQN of Algorithm 1: a Q-network STATE_SIZE (3) -> 256 -> 256 -> 256 -> 2 (ReLU), a target copy refreshed
+"""The DQN of Algorithm 1: a Q-network STATE_SIZE (4) -> 256 -> 256 -> 256 -> 2 (ReLU), a target copy refreshed
 every K steps, FIFO replay, epsilon-greedy actions. Plus a numpy copy of the network for the robot's
 per-request decision, which must cost well under 100 us."""
 import math

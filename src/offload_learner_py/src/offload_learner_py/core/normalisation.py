@@ -1,5 +1,5 @@
 """State normalisation: the network sees each feature of s_t centred and scaled, the fields the state schema
-hints so (d_t) on a log scale first. It is fitted once on warm-up states and then frozen, because moving it
+hints so (d_t, p_t) on a log scale first. It is fitted once on warm-up states and then frozen, because moving it
 would silently change what the learned weights mean; it is saved with every checkpoint for the same reason,
 with the state's field names, so a checkpoint of another state (fields added, removed or reordered) is
 refused rather than fed columns it never learned."""
@@ -34,7 +34,7 @@ class StateNormalisation:
     mean: tuple
     scale: tuple
     log_input_size: bool = True
-    """log-scale the fields the state schema hints so (`log_floor`: the input size)."""
+    """log-scale the fields the state schema hints so (`log_floor`: the input size, the local planning rate)."""
 
     @classmethod
     def identity(cls, log_input_size: bool = True) -> "StateNormalisation":
