@@ -167,3 +167,22 @@ def test_orphaned_temp_files_of_killed_saves_are_removed(tmp_path):
     assert sorted(remove_orphaned_temps(path)) == [".checkpoint-abc.tmp", ".checkpoint-def.tmp"]
     assert sorted(os.listdir(tmp_path)) == ["dqn.pt", "notes.tmp"]
     load_checkpoint(path)
+
+
+def test_a_checkpoint_of_the_papers_three_field_state_is_refused_with_what_to_do(tmp_path):
+    """A checkpoint saved before p_t joined the state (its normalisation of three fields, its network of three
+    inputs): refused naming both states and how to get a usable one; the node prints this as its FATAL line."""
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "paper.pt")
+    save_checkpoint(agent, path)
+    payload = torch.load(path, weights_only=True)
+    normalisation = payload["normalisation"]
+    payload["normalisation"] = {**normalisation, "mean": normalisation["mean"][:3], "scale": normalisation["scale"][:3]}
+    del payload["normalisation"]["fields"]      # checkpoints of the paper's state were saved without the list
+    for network in ("q_network", "target_network"):
+        payload[network]["layers.0.weight"] = payload[network]["layers.0.weight"][:, :3].clone()
+    torch.save(payload, path)
+    with pytest.raises(IncompatibleCheckpointError, match=r"paper.pt was trained on another state: normalisation is "
+                       r"of the state \(input_size, cpu_availability, round_trip_s\), this code's state is "
+                       r"\(input_size, cpu_availability, round_trip_s, local_plan_rate\); retrain from its bags"):
+        load_checkpoint(path)

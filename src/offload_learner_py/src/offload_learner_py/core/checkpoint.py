@@ -8,7 +8,7 @@ import torch
 
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import N_ACTIONS, DQNAgent
-from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.normalisation import OtherStateError, StateNormalisation
 from offload_learner_py.core.state import STATE_SIZE
 
 CHECKPOINT_FORMAT = "offload_learner_py.dqn"   # a file format name: kept when the module moved
@@ -116,6 +116,9 @@ def load_checkpoint(path: str, expected_config: DQNConfig = None,
     try:
         config = DQNConfig.from_dict(payload["config"])
         normalisation = StateNormalisation.from_dict(payload["normalisation"])
+    except OtherStateError as error:
+        raise IncompatibleCheckpointError(f"{path} was trained on another state: {error}; retrain from its bags "
+                                          f"(python -m offload_learner_py.offline.retrain)") from error
     except (KeyError, TypeError, ValueError) as error:
         raise IncompatibleCheckpointError(f"{path} has an invalid config or normalisation: {error}") from error
     if expected_config is not None and tuple(expected_config.hidden_sizes) != config.hidden_sizes:

@@ -14,7 +14,7 @@ from typing import Optional, Sequence
 
 import numpy as np
 
-from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.normalisation import OtherStateError, StateNormalisation
 
 FORMAT = "offload-model-1"
 MAX_MODEL_BYTES = 16 << 20     # the 3 x 256 network is about 0.5 MB; a file far larger is not a model
@@ -81,6 +81,8 @@ def load_model(data: bytes, expected_version: Optional[str] = None):
         raise ModelFileError(f"not a {FORMAT} file")
     try:
         normalisation = StateNormalisation.from_dict(json.loads(str(arrays["normalisation"])))
+    except OtherStateError as error:
+        raise ModelFileError(f"a model of another state: {error}") from None
     except (KeyError, ValueError, TypeError) as error:
         raise ModelFileError(f"bad normalisation: {error}") from None
     weights, biases = [], []

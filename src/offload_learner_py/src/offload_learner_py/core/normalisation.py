@@ -18,6 +18,10 @@ INPUT_SIZE_LOG_FLOOR = STATE_SCHEMA["input_size"].log_floor
 PAPER_STATE_FIELDS = ("input_size", "cpu_availability", "round_trip_s")
 
 
+class OtherStateError(ValueError):
+    """A saved normalisation (of a checkpoint or a model file) of another state than this code's schema."""
+
+
 def _rows(states) -> np.ndarray:
     """Raw states as N x STATE_SIZE float64 (one state: 1 x STATE_SIZE); another width is refused, never
     reshaped (a table of the paper's three fields must not be read as rows of four)."""
@@ -74,7 +78,7 @@ class StateNormalisation:
         if not (isinstance(fields, (list, tuple)) and all(isinstance(name, str) for name in fields)):
             raise ValueError(f"normalisation fields must be a list of names, got {fields!r}")
         if tuple(fields) != STATE_FIELDS:
-            raise ValueError(f"normalisation is of the state ({', '.join(map(str, fields))}), this code's state is "
+            raise OtherStateError(f"normalisation is of the state ({', '.join(map(str, fields))}), this code's state is "
                              f"({', '.join(STATE_FIELDS)})")
         mean, scale = tuple(float(v) for v in values["mean"]), tuple(float(v) for v in values["scale"])
         if len(mean) != STATE_SIZE or len(scale) != STATE_SIZE:
