@@ -44,3 +44,18 @@ def test_a_push_waits_for_its_moment_and_says_why_it_failed(tmp_path):
     assert push.version == "" and push.error == ""
     push.join(5.0)
     assert push.version == "" and "no current version" in push.error
+
+
+def test_a_push_reaches_its_robot_through_the_robots_own_pin(tmp_path):
+    store = ModelStore(str(tmp_path / "store"))
+    good, older = a_model(1), a_model(2)
+    assert store.record_round({"version": model_version(older), "parent": "", "rows": {}, "gate": {}}, older)
+    assert store.record_round({"version": model_version(good), "parent": model_version(older), "rows": {},
+                               "gate": {}}, good)
+    # robot-a's guard rolled the good version back to the older one it ran: the learner pins robot-a to that
+    assert store.version_for("robot-a", model_version(older), [model_version(good)]) == model_version(older)
+    fleet_only = push_bad_model(str(tmp_path / "store"))
+    assert store.version_for("robot-a", model_version(older), []) == model_version(older)   # its pin wins
+    bad = push_bad_model(str(tmp_path / "store"), base=good, robot="robot-a")
+    assert bad == fleet_only
+    assert store.version_for("robot-a", model_version(older), []) == bad

@@ -85,7 +85,7 @@ def synthetic_run(path, learns_after, n=120, seed=0, probe_every=1, bad=()):
 
 
 class FakePush:
-    def __init__(self, store_dir, at):
+    def __init__(self, store_dir, at, robot=""):
         self.store_dir, self.version, self.error = store_dir, "bad", ""
 
 

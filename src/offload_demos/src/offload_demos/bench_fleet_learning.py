@@ -221,7 +221,8 @@ def main(argv=None) -> int:
         if arm in ("fleet", "bad_model"):
             extra += ["--fleet-store", str(store)]
         if arm == "bad_model":   # the launch takes a few seconds more than the lead: pushed a little late at worst
-            push = DelayedPush(str(store), time.monotonic() + args.start_lead_s + args.bad_model_after_s)
+            push = DelayedPush(str(store), time.monotonic() + args.start_lead_s + args.bad_model_after_s,
+                               robot=robot.name)
         runs[robot.name][arm] = run_demo(args.launch, where, args.steps, robot.seed, str((ROOT / robot.map).resolve()),
                                          extra, f"{robot.name} {arm}, {done + 1}/{len(plan)}{left}")
     for robot in robots:

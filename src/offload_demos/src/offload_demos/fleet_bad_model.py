@@ -24,9 +24,10 @@ def always_side_model(base: bytes, side: int = CLOUD) -> bytes:
     return model_bytes(weights, biases, normalisation)
 
 
-def push_bad_model(store_dir: str, side: int = CLOUD, base: Optional[bytes] = None) -> str:
+def push_bad_model(store_dir: str, side: int = CLOUD, base: Optional[bytes] = None, robot: str = "") -> str:
     """Puts an always-`side` model derived from the fleet's current version (or `base`) in the store and pins
-    the fleet to it; its version."""
+    the fleet to it, and `robot` too: a robot whose guard rolled back an earlier version holds its own pin, which
+    a fleet pin does not override (the bench of 2026-11-26 17:48 never reached its robot so); its version."""
     store = ModelStore(store_dir)
     if base is None:
         current = store.state()["current"]
@@ -36,6 +37,8 @@ def push_bad_model(store_dir: str, side: int = CLOUD, base: Optional[bytes] = No
     data = always_side_model(base, side)
     store.put(data)
     store.pin(model_version(data), None)
+    if robot:
+        store.pin(model_version(data), robot)
     return model_version(data)
 
 
@@ -43,8 +46,8 @@ class DelayedPush:
     """push_bad_model at monotonic time `at` (a run's request epoch plus a delay), on a thread; `version` and
     `error` once it ran."""
 
-    def __init__(self, store_dir: str, at: float, side: int = CLOUD):
-        self.store_dir, self.at, self.side = store_dir, at, side
+    def __init__(self, store_dir: str, at: float, side: int = CLOUD, robot: str = ""):
+        self.store_dir, self.at, self.side, self.robot = store_dir, at, side, robot
         self.version, self.error = "", ""
         self._thread = threading.Thread(target=self._run, daemon=True, name="bad-model-push")
         self._thread.start()
@@ -52,7 +55,7 @@ class DelayedPush:
     def _run(self) -> None:
         time.sleep(max(0.0, self.at - time.monotonic()))
         try:
-            self.version = push_bad_model(self.store_dir, self.side)
+            self.version = push_bad_model(self.store_dir, self.side, robot=self.robot)
         except (OSError, ValueError) as error:
             self.error = str(error)
 
