@@ -6,15 +6,10 @@ path is checked with path_clear (the core's line-of-sight rule: no blocked cell,
 against the optimum (never longer). Maps as bench_planner_p2p's."""
 import argparse
 import sys
-from pathlib import Path
-
-import numpy as np
 
 from offload_planner_cpp import path_clear, plan
-from offload_planner_cpp.maps import load_map, load_movingai_map, load_scenarios
 
-from offload_demos.bench_planner_p2p import BUNDLED, SHARED, _by_name, random_pairs
-from offload_demos.movingai import spread
+from offload_demos.bench_planner_p2p import bench_maps
 
 MODES = {"default": {}, "any-angle": {"any_angle": True}}
 
@@ -41,7 +36,6 @@ def bench_any_angle(name, grid, pairs, runs):
 
 
 def run(pairs=20, runs=3, random_sizes=(2000, 4000), movingai=True, ros=True):
-    rng = np.random.default_rng(0)
     print(f"## Any-angle against the default: ms summed over the queries (fastest of {runs} runs per query and "
           f"mode, one process), lengths against the 8-connected optimum")
     print(f"{'map':22s} {'size':13s} {'qs':>4s}  {'default':>9s}  {'any-angle':>9s}  {'ratio':>6s}  "
@@ -56,19 +50,8 @@ def run(pairs=20, runs=3, random_sizes=(2000, 4000), movingai=True, ros=True):
               f"{total['default'] * 1e3:9.2f}  {total['any-angle'] * 1e3:9.2f}  {ratio:5.2f}x  "
               f"{length['default']:13.1f}  {100 * (length['any-angle'] / length['default'] - 1):+8.2f}%", flush=True)
 
-    if ros:
-        for yaml_file in _by_name(BUNDLED / "maps", SHARED / "ros", pattern="*/*.yaml"):
-            occupancy = load_map(yaml_file)
-            one(occupancy.name, occupancy.grid, random_pairs(occupancy.grid, pairs, rng))
-    if movingai:
-        for map_file in _by_name(BUNDLED / "test" / "data" / "movingai", SHARED / "movingai", pattern="*/*.map"):
-            grid = load_movingai_map(map_file).grid
-            scenarios = spread(load_scenarios(Path(str(map_file) + ".scen")), pairs)
-            one(map_file.stem, grid, [(s.start, s.goal) for s in scenarios])
-    for size in random_sizes:
-        grid = ((np.random.default_rng(0).random((size, size)) < 0.2) * 100).astype(np.int8)
-        grid[0, 0] = grid[-1, -1] = 0
-        one(f"random 20 % {size}", grid, [((0, 0), (size - 1, size - 1))])
+    for name, grid, queries in bench_maps(pairs, random_sizes, movingai, ros):
+        one(name, grid, queries)
     print(f"any-angle / default from {min(ratios):.2f}x to {max(ratios):.2f}x over {len(ratios)} maps "
           f"({sum(r > 1.5 for r in ratios)} above 1.5x)")
     print()

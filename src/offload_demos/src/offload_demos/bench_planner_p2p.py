@@ -44,6 +44,25 @@ def random_pairs(grid, count, rng):
             for _ in range(count)]
 
 
+def bench_maps(pairs, random_sizes=(2000, 4000), movingai=True, ros=True):
+    """(name, grid, queries) of the planner benchmarks' maps: the ROS maps (bundled and shared, `pairs` random
+    pairs each), the MovingAI maps (bundled and shared, `pairs` queries spread over the scenario file) and 20 %
+    random grids corner to corner."""
+    rng = np.random.default_rng(0)
+    if ros:
+        for yaml_file in _by_name(BUNDLED / "maps", SHARED / "ros", pattern="*/*.yaml"):
+            occupancy = load_map(yaml_file)
+            yield occupancy.name, occupancy.grid, random_pairs(occupancy.grid, pairs, rng)
+    if movingai:
+        for map_file in _by_name(BUNDLED / "test" / "data" / "movingai", SHARED / "movingai", pattern="*/*.map"):
+            scenarios = spread(load_scenarios(Path(str(map_file) + ".scen")), pairs)
+            yield map_file.stem, load_movingai_map(map_file).grid, [(s.start, s.goal) for s in scenarios]
+    for size in random_sizes:
+        grid = ((np.random.default_rng(0).random((size, size)) < 0.2) * 100).astype(np.int8)
+        grid[0, 0] = grid[-1, -1] = 0
+        yield f"random 20 % {size}", grid, [((0, 0), (size - 1, size - 1))]
+
+
 def bench_fastest(name, grid, pairs, runs, modes=MODES):
     """Sum over `pairs` of each mode's fastest of `runs` core times; fails when a mode's cost differs from
     the default's. A mode's runs of one query go in a row, as a planner serving one mode plans (run after
@@ -71,7 +90,6 @@ def report(name, shape, count, total):
 
 
 def run(pairs=20, runs=3, random_sizes=(2000, 4000), movingai=True, ros=True):
-    rng = np.random.default_rng(0)
     print(f"## Point to point: ms summed over the queries (fastest of {runs} runs per query and mode, one "
           f"process); default / mode")
     print(f"{'map':22s} {'size':13s} {'qs':>4s}  " + "  ".join(f"{m:>9s}" for m in MODES) + "   "
@@ -84,19 +102,8 @@ def run(pairs=20, runs=3, random_sizes=(2000, 4000), movingai=True, ros=True):
         for mode in MODES[1:]:
             ratios[mode].append(total["dijkstra"] / total[mode])
 
-    if ros:
-        for yaml_file in _by_name(BUNDLED / "maps", SHARED / "ros", pattern="*/*.yaml"):
-            occupancy = load_map(yaml_file)
-            one(occupancy.name, occupancy.grid, random_pairs(occupancy.grid, pairs, rng))
-    if movingai:
-        for map_file in _by_name(BUNDLED / "test" / "data" / "movingai", SHARED / "movingai", pattern="*/*.map"):
-            grid = load_movingai_map(map_file).grid
-            scenarios = spread(load_scenarios(Path(str(map_file) + ".scen")), pairs)
-            one(map_file.stem, grid, [(s.start, s.goal) for s in scenarios])
-    for size in random_sizes:
-        grid = ((np.random.default_rng(0).random((size, size)) < 0.2) * 100).astype(np.int8)
-        grid[0, 0] = grid[-1, -1] = 0
-        one(f"random 20 % {size}", grid, [((0, 0), (size - 1, size - 1))])
+    for name, grid, queries in bench_maps(pairs, random_sizes, movingai, ros):
+        one(name, grid, queries)
     for mode, values in ratios.items():
         print(f"{mode}: default / {mode} from {min(values):.2f}x to {max(values):.2f}x over {len(values)} maps "
               f"({sum(v < 1.0 for v in values)} slower than the default)")
