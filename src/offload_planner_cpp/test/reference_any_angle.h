@@ -12,6 +12,7 @@
 #include <vector>
 
 #include "offload_planner_cpp/dijkstra.h"
+#include "reference_search.h"
 
 namespace offload_planner {
 namespace test {
@@ -67,22 +68,16 @@ double thetaStarLength(int width, int height, Cell s, Cell t, Free free) {
     if (closed[i]) continue;
     closed[i] = 1;
     if (i == goal) return g[i];
-    const int x = i % width, y = i / width;
-    for (int dy = -1; dy <= 1; ++dy) {
-      for (int dx = -1; dx <= 1; ++dx) {
-        if ((dx == 0 && dy == 0) || !free(x + dx, y + dy)) continue;
-        if (dx != 0 && dy != 0 && (!free(x + dx, y) || !free(x, y + dy))) continue;
-        const int j = (y + dy) * width + x + dx;
-        if (closed[j]) continue;
-        const int from = sight(parent[i], j) ? parent[i] : i;
-        const double nd = g[from] + dist(from, j);
-        if (nd < g[j]) {
-          g[j] = nd;
-          parent[j] = from;
-          open.push({nd + dist(j, goal), j});
-        }
+    forEachMove(width, i % width, i / width, free, [&](int, int, int j) {
+      if (closed[j]) return;
+      const int from = sight(parent[i], j) ? parent[i] : i;
+      const double nd = g[from] + dist(from, j);
+      if (nd < g[j]) {
+        g[j] = nd;
+        parent[j] = from;
+        open.push({nd + dist(j, goal), j});
       }
-    }
+    });
   }
   return INFINITY;
 }

@@ -14,6 +14,19 @@
 namespace offload_planner {
 namespace test {
 
+// Calls move(dx, dy, j) for each of the core's moves out of cell i = (x, y): a free neighbour (j its index), and
+// no diagonal past a blocked corner.
+template <class Free, class Move>
+void forEachMove(int width, int x, int y, Free free, Move move) {
+  for (int dy = -1; dy <= 1; ++dy) {
+    for (int dx = -1; dx <= 1; ++dx) {
+      if ((dx == 0 && dy == 0) || !free(x + dx, y + dy)) continue;
+      if (dx != 0 && dy != 0 && (!free(x + dx, y) || !free(x, y + dy))) continue;
+      move(dx, dy, (y + dy) * width + x + dx);
+    }
+  }
+}
+
 template <class Free, class Weight>
 double referenceCost(int width, int height, Cell s, Cell t, Free free, Weight weight) {
   const double sqrt2 = std::sqrt(2.0);
@@ -26,19 +39,14 @@ double referenceCost(int width, int height, Cell s, Cell t, Free free, Weight we
     auto [d, i] = heap.top();
     heap.pop();
     if (d > dist[i]) continue;
-    const int x = i % width, y = i / width;
-    for (int dy = -1; dy <= 1; ++dy) {
-      for (int dx = -1; dx <= 1; ++dx) {
-        if ((dx == 0 && dy == 0) || !free(x + dx, y + dy)) continue;
-        if (dx != 0 && dy != 0 && (!free(x + dx, y) || !free(x, y + dy))) continue;
-        const int j = (y + dy) * width + x + dx;
-        const double nd = d + ((dx != 0 && dy != 0) ? sqrt2 : 1.0) * weight(i, j);
-        if (nd < dist[j]) {
-          dist[j] = nd;
-          heap.push({nd, j});
-        }
+    // (a structured binding is not captured by reference before C++20)
+    forEachMove(width, i % width, i / width, free, [&, d = d, i = i](int dx, int dy, int j) {
+      const double nd = d + ((dx != 0 && dy != 0) ? sqrt2 : 1.0) * weight(i, j);
+      if (nd < dist[j]) {
+        dist[j] = nd;
+        heap.push({nd, j});
       }
-    }
+    });
   }
   return dist[t.y * width + t.x];
 }

@@ -13,6 +13,7 @@
 #include <vector>
 
 #include "offload_planner_cpp/dijkstra.h"
+#include "reference_search.h"
 
 using namespace offload_planner;
 
@@ -39,33 +40,10 @@ struct Grid {
   DijkstraPlanner planner;
 };
 
-// Independent reference: textbook Dijkstra with a binary heap, same move rules.
+// Independent reference (reference_search.h): textbook Dijkstra with a binary heap, same move rules.
 double referenceCost(const std::vector<std::int8_t>& grid, int w, int h, Cell s, Cell g) {
   auto free = [&](int x, int y) { return x >= 0 && y >= 0 && x < w && y < h && grid[y * w + x] == 0; };
-  std::vector<double> dist(w * h, INFINITY);
-  using Item = std::pair<double, int>;
-  std::priority_queue<Item, std::vector<Item>, std::greater<Item>> heap;
-  dist[s.y * w + s.x] = 0;
-  heap.push({0, s.y * w + s.x});
-  while (!heap.empty()) {
-    auto [d, i] = heap.top();
-    heap.pop();
-    if (d > dist[i]) continue;
-    const int x = i % w, y = i / w;
-    for (int dy = -1; dy <= 1; ++dy) {
-      for (int dx = -1; dx <= 1; ++dx) {
-        if ((dx == 0 && dy == 0) || !free(x + dx, y + dy)) continue;
-        if (dx != 0 && dy != 0 && (!free(x + dx, y) || !free(x, y + dy))) continue;
-        const double nd = d + ((dx != 0 && dy != 0) ? kSqrt2 : 1.0);
-        const int j = (y + dy) * w + x + dx;
-        if (nd < dist[j]) {
-          dist[j] = nd;
-          heap.push({nd, j});
-        }
-      }
-    }
-  }
-  return dist[g.y * w + g.x];
+  return test::referenceCost(w, h, s, g, free, [](int, int) { return 1.0; });
 }
 
 // Each step of a path is one legal move and the steps add up to the reported cost.

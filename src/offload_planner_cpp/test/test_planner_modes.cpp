@@ -29,6 +29,12 @@ struct RandomGrid {
     data.resize(static_cast<std::size_t>(w) * h);
     for (auto& v : data) v = wall(*rng) ? 100 : graded ? occupancy(*rng) : 0;
   }
+  // A cell drawn uniformly (x first, then y, as every test here draws them).
+  Cell randomCell(std::mt19937* rng) const {
+    const int x = static_cast<int>((*rng)() % w);
+    return {x, static_cast<int>((*rng)() % h)};
+  }
+  void open(Cell c) { data[c.y * w + c.x] = 0; }
   bool free(int x, int y, int lethal = 50) const {
     return x >= 0 && y >= 0 && x < w && y < h && data[y * w + x] >= 0 && data[y * w + x] < lethal;
   }
@@ -69,9 +75,9 @@ TEST(PlannerModes, AStarHasDijkstrasCostsAndSettlesFewerCells) {
   for (int trial = 0; trial < 40; ++trial) {
     RandomGrid g(&rng, 20 + rng() % 80, 20 + rng() % 80, 0.1 + 0.1 * (trial % 3), trial % 2 == 1);
     for (int q = 0; q < 5; ++q) {
-      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      const Cell s = g.randomCell(&rng), t = g.randomCell(&rng);
+      g.open(s);
+      g.open(t);
       for (double factor : {0.0, 3.0}) {
         PlannerOptions d;
         d.cost_factor = a.cost_factor = factor;
@@ -97,9 +103,9 @@ TEST(PlannerModes, CostAwareMatchesAWeightedReferenceAndUniformIsUnchanged) {
   for (int trial = 0; trial < 40; ++trial) {
     RandomGrid g(&rng, 10 + rng() % 60, 10 + rng() % 60, 0.15, true);
     for (int q = 0; q < 5; ++q) {
-      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      const Cell s = g.randomCell(&rng), t = g.randomCell(&rng);
+      g.open(s);
+      g.open(t);
       PlannerOptions o;
       o.cost_factor = 3.0;
       o.neutral_cost = 50.0;
@@ -204,9 +210,9 @@ TEST(PlannerModes, AnyAngleCrossesNoBlockedCellAndIsNeverLonger) {
   for (int trial = 0; trial < 30; ++trial) {
     RandomGrid g(&rng, 30 + rng() % 70, 30 + rng() % 70, 0.2, trial % 2 == 1);
     for (int q = 0; q < 5; ++q) {
-      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      const Cell s = g.randomCell(&rng), t = g.randomCell(&rng);
+      g.open(s);
+      g.open(t);
       for (double factor : {0.0, 3.0}) {
         PlannerOptions o;
         o.cost_factor = factor;
@@ -238,8 +244,7 @@ TEST(PlannerModes, AnyAngleIsAtLeastFourPercentShorterOnRandomMaps) {
   for (int trial = 0; trial < 12; ++trial) {
     RandomGrid g(&rng, 160, 160, 0.2, false);
     for (int q = 0; q < 8; ++q) {
-      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      const Cell s = g.randomCell(&rng), t = g.randomCell(&rng);
       if (std::hypot(s.x - t.x, s.y - t.y) < 60) continue;
       g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
       const auto cells = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t);
@@ -271,8 +276,7 @@ TEST(PlannerModes, AnyAngleTouchesNoBlockedCornerAmongPillars) {
       for (int x = 1 + (y / spacing) % 2; x < g.w; x += spacing) g.data[y * g.w + x] = 100;
     }
     for (int q = 0; q < 30; ++q) {
-      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      const Cell s = g.randomCell(&rng), t = g.randomCell(&rng);
       if (!g.free(s.x, s.y) || !g.free(t.x, t.y)) continue;
       const auto cells = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t);
       if (!cells.ok()) continue;
@@ -298,9 +302,9 @@ TEST(PlannerModes, AnyAngleIsNoLongerThanThetaStar) {
   for (int trial = 0; trial < 8; ++trial) {
     RandomGrid g(&rng, 90, 90, 0.1 + 0.05 * (trial % 3), false);
     for (int q = 0; q < 6; ++q) {
-      Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
-      g.data[s.y * g.w + s.x] = g.data[t.y * g.w + t.x] = 0;
+      const Cell s = g.randomCell(&rng), t = g.randomCell(&rng);
+      g.open(s);
+      g.open(t);
       PlannerOptions o;
       o.any_angle = true;
       const auto tight = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
