@@ -3,7 +3,6 @@
 server stopped the bridge's status is ERROR and the learner's shows the breaker open within 3 s (the bridge's and the
 learner's default heartbeat and breaker settings), and both return to OK once the server is back on its port; the
 analyzers of launch/config/diagnostics_agg.yaml group them under one offload entry."""
-import socket
 import subprocess
 import sys
 import threading
@@ -14,14 +13,10 @@ import rospy
 import rostest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
+from offload_demos.loopback import free_port
+
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 BRIDGE, LEARNER, PLANNER = "cloud_bridge: cloud link", "offload_learner: offload decisions", "planner: planner"
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def stop(process):

@@ -8,14 +8,7 @@ pytest.importorskip("offload_msgs.msg", reason="offload_msgs is not built")
 
 from offload_learner_py.nodes.learner_io import Every  # noqa: E402
 from offload_learner_py.nodes.learner_params import LearnerNodeConfig, read_learner_parameters  # noqa: E402
-
-
-class Clock:
-    def __init__(self):
-        self.now = 100.0
-
-    def __call__(self):
-        return self.now
+from test_breaker import Clock  # noqa: E402
 
 
 def test_at_most_once_a_period_and_the_first_at_once():

@@ -32,7 +32,6 @@ class LearnerNode:
     def __init__(self):
         settings = read_learner_parameters(lambda name, default: rospy.get_param("~" + name, default))
         node, session, config = settings.node, settings.session, settings.router
-        self.router_config = config
         # One thread: fastest for this small network, leaves the robot's other cores to the planner, and keeps the
         # learner's CPU per request (its thread's time) whole.
         torch.set_num_threads(node.torch_threads)
