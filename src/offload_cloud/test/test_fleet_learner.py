@@ -259,3 +259,21 @@ def test_the_client_refuses_a_file_that_is_not_the_version_asked_for():
     client.close()
     socket.close(0)
     context.term()
+
+
+def test_a_robots_rollback_pin_gives_way_to_the_next_published_version_but_not_an_operators_pin(tmp_path):
+    """bench-fleet-learning: robots that rolled a version back stayed pinned for the rest of the run and never
+    received the fleet's later versions. The pin a rollback sets lapses when the gate publishes a newer one."""
+    store = ModelStore(str(tmp_path / "store"))
+    v1, v2, v3, v4 = (model_version(_model(i)) for i in (1, 2, 3, 4))
+    store.record_round({"version": v1, "parent": "", "rows": {}, "gate": {}}, _model(1))
+    store.record_round({"version": v2, "parent": v1, "rows": {}, "gate": {}}, _model(2))
+    assert store.version_for("r1", v1, [v2]) == v1 and store.version_for("r1", v1, [v2]) == v1   # pinned at v1
+    store.record_round({"version": v3, "parent": v2, "rows": {}, "gate": {}}, _model(3))
+    assert store.version_for("r1", v1, [v2]) == v3          # the next published version reaches it
+    assert "r1" not in store.state()["pins"] and store.history("rollback_pin_lapsed")
+    assert store.version_for("r1", v1, [v2, v3]) == v1      # it rolled v3 back too: pinned at v1 again
+    assert store.state()["pins"]["r1"] == v1 and store.version_for("r1", v1, [v2, v3]) == v1
+    store.pin(v1, robot="r2")                                # an operator's pin holds through publications
+    store.record_round({"version": v4, "parent": v3, "rows": {}, "gate": {}}, _model(4))
+    assert store.version_for("r2", v1, []) == v1

@@ -6,7 +6,9 @@ pins, in one directory that operator commands and the running service share.
                                  rows used per robot, gate figures per robot, published or not) or an operator's
                                  or robot's pin / rollback / unpin
     STORE/state.json             {"current": version, "fleet_pinned": bool, "pins": {robot: version},
-                                 "rolled_back": {robot: [version, ...]}}
+                                 "rolled_back": {robot: [version, ...]},
+                                 "rollback_pins": {robot: the fleet's current version when the robot's rollback
+                                 pinned it}}
     STORE/lock                   flock'ed around every read-modify-write of state.json and history appends
 
 Every write is atomic (a temporary file in the same directory, fsync, os.replace), so a running service reads
@@ -20,7 +22,7 @@ from typing import Dict, List, Optional, Sequence
 
 from offload_learner_py.core.model_file import MAX_MODEL_BYTES, model_version
 
-EMPTY_STATE = {"current": "", "fleet_pinned": False, "pins": {}, "rolled_back": {}}
+EMPTY_STATE = {"current": "", "fleet_pinned": False, "pins": {}, "rolled_back": {}, "rollback_pins": {}}
 MAX_HISTORY_BYTES = 64 << 20
 
 
@@ -139,7 +141,8 @@ class ModelStore:
 
     def version_for(self, robot: str, current: str, rolled_back: Sequence[str]) -> str:
         """The version `robot` should run: its pin, else the fleet's current, never one it rolled back (then the
-        one it runs). A rollback it reports pins it to the version it went back to until an operator unpins it."""
+        one it runs). A rollback it reports pins it to the version it went back to until the gate publishes a newer
+        fleet version (its guard judges that one live) or an operator pins or unpins it."""
         state = self.state()
         known = set(state["rolled_back"].get(robot, []))
         new = [v for v in rolled_back if v not in known]
@@ -148,9 +151,17 @@ class ModelStore:
                 state["rolled_back"][robot] = sorted(known | set(new))[-64:]
                 if current and current not in new:
                     state["pins"][robot] = current
+                    state["rollback_pins"][robot] = state["current"]
             state = self._update(pin, {"event": "robot_rollback", "robot": robot, "rolled_back": new,
                                        "pinned": current})
         refused = set(rolled_back) | set(state["rolled_back"].get(robot, []))
+        held = state["rollback_pins"].get(robot)
+        if held is not None and state["current"] != held and state["current"] not in refused:
+            def lapse(state):   # a version published after the rollback: the robot's own pin gives way to it
+                if state["rollback_pins"].pop(robot, None) is not None:
+                    state["pins"].pop(robot, None)
+            state = self._update(lapse, {"event": "rollback_pin_lapsed", "robot": robot,
+                                         "current": state["current"]})
         answer = state["pins"].get(robot) or state["current"]
         return current if answer in refused or not self.has(answer) and answer else answer
 
@@ -161,6 +172,7 @@ class ModelStore:
         def change(state):
             if robot:   # an operator's word: the learner no longer holds the robot's rollback of it against it
                 state["pins"][robot] = version
+                state["rollback_pins"].pop(robot, None)
                 state["rolled_back"][robot] = [v for v in state["rolled_back"].get(robot, []) if v != version]
             else:
                 state["current"], state["fleet_pinned"] = version, True
@@ -175,6 +187,7 @@ class ModelStore:
         def change(state):
             if robot:
                 state["pins"][robot] = previous
+                state["rollback_pins"].pop(robot, None)
                 state["rolled_back"][robot] = sorted(set(state["rolled_back"].get(robot, [])) | {running})
             else:
                 state["current"], state["fleet_pinned"] = previous, True
@@ -185,6 +198,7 @@ class ModelStore:
             if robot:
                 state["pins"].pop(robot, None)
                 state["rolled_back"].pop(robot, None)
+                state["rollback_pins"].pop(robot, None)
             else:
                 state["fleet_pinned"] = False
         return self._update(change, {"event": "unpin", "robot": robot or ""})
