@@ -18,6 +18,7 @@ budget are reported as such, never counted as killed.
 """
 import argparse
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -92,7 +93,8 @@ TARGETS = {
                           budget_s=240),
     "off_policy_combined": Target("off_policy_combined", LEARNER / "src" / "offload_learner_py",
                                   "offline/off_policy_combined.py",
-                                  ("test_off_policy_gate.py", "test_off_policy.py", "test_off_policy_strata.py"),
+                                  ("test_off_policy_gate.py", "test_off_policy.py", "test_off_policy_strata.py",
+                                   "test_off_policy_boundaries.py"),
                                   LEARNER / "test", test_support=("conftest.py", "bagtools.py", "ope_rows.py", "data"),
                                   budget_s=420),
     "admission": Target("admission", CLOUD / "src" / "offload_cloud", "admission.py",
@@ -147,6 +149,19 @@ def target_tests(target: Target) -> List[str]:
     return [f"test/{name}" for name in target.tests] + list(target.pytest_args)
 
 
+def copy_local_imports(test_dir: Path, copy_dir: Path) -> None:
+    """Copies the helper modules of test_dir that the copied tests import, and theirs, so a test that gains a
+    helper import cannot leave a target unjudged (its tests failing on the unmutated copy)."""
+    pending = list(copy_dir.glob("*.py"))
+    while pending:
+        text = pending.pop().read_text()
+        for name in re.findall(r"^\s*(?:from|import)\s+(\w+)", text, re.MULTILINE):
+            source, copy = test_dir / f"{name}.py", copy_dir / f"{name}.py"
+            if source.is_file() and not copy.exists():
+                shutil.copy2(source, copy)
+                pending.append(copy)
+
+
 def prepare_shard(target: Target, shard_dir: Path) -> None:
     if shard_dir.exists():
         shutil.rmtree(shard_dir)
@@ -164,6 +179,7 @@ def prepare_shard(target: Target, shard_dir: Path) -> None:
             shutil.copytree(source, shard_dir / "test" / name)
         else:
             shutil.copy2(source, shard_dir / "test" / name)
+    copy_local_imports(target.test_dir, shard_dir / "test")
     # Its own pytest.ini, so the workspace's (found by walking up) is not used.
     (shard_dir / "pytest.ini").write_text("[pytest]\naddopts = -p no:cacheprovider -p mutate_order\n")
     (shard_dir / "mutate_order.py").write_text(ORDER_PLUGIN)
