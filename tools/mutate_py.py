@@ -80,7 +80,8 @@ TARGETS = {
                        ("test_cloud_protocol.py",), CLOUD / "test", test_support=("conftest.py",), budget_s=180),
     # What decides, routes, admits and evaluates (#31): each with the tests that exercise it.
     "policies": Target("policies", LEARNER / "src" / "offload_learner_py", "core/policies.py",
-                       ("test_policies.py", "test_policies_edges.py"), LEARNER / "test", budget_s=300),
+                       ("test_policies.py", "test_policies_edges.py", "test_policies_boundaries.py"),
+                       LEARNER / "test", budget_s=300),
     "router": Target("router", LEARNER / "src" / "offload_learner_py", "online/router.py",
                      ("test_router.py", "test_router_modes.py", "test_router_cancel.py"), LEARNER / "test",
                      test_support=("conftest.py", "routertools.py"), budget_s=420),
