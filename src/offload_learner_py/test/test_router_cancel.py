@@ -177,12 +177,17 @@ def test_the_local_planner_is_not_hedged_into_when_it_cannot_win_until_hedge_max
 def test_the_local_planner_is_hedged_into_when_it_can_win():
     clock = VirtualClock()
     # (a local plan slower than the round trip: a faster one would keep the cloud choice local from the start)
+    # hedge_max_s far away: the local plan must start at the deadline because it can win, not at hedge_max_s
     router, recorder = router_for(AlwaysCloud("cloud"), FakePlanner(clock, 0.08), CancellablePlanner(clock, 0.4, held=1),
-                                  clock, probe_rate=0.0, hedge=True, hedge_deadline_s=0.05)
+                                  clock, probe_rate=0.0, hedge=True, hedge_deadline_s=0.05, hedge_max_s=60.0)
     for k in range(60):
         router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.08)
         router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.3 + 0.01 * (k % 3))
-    assert router.route("req", STATE).response["request"] == "req"
+    answers = []
+    caller = threading.Thread(target=lambda: answers.append(router.route("req", STATE)), daemon=True)
+    caller.start()
+    caller.join(20)
+    assert answers and answers[0].response["request"] == "req", "the local plan waited for hedge_max_s"
     router.sides[CLOUD].release()
     finish(router)
     assert recorder.outcomes[0].hedged and recorder.outcomes[0].delivered == LOCAL
