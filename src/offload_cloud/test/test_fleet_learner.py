@@ -271,7 +271,7 @@ def test_a_robots_rollback_pin_gives_way_to_the_next_published_version_but_not_a
     assert store.version_for("r1", v1, [v2]) == v1 and store.version_for("r1", v1, [v2]) == v1   # pinned at v1
     store.record_round({"version": v3, "parent": v2, "rows": {}, "gate": {}}, _model(3))
     assert store.version_for("r1", v1, [v2]) == v3          # the next published version reaches it
-    assert "r1" not in store.state()["pins"] and store.history("rollback_pin_lapsed")
+    assert "r1" not in store.state()["pins"] and store.history("trained")[-1]["rollback_pins_lapsed"] == ["r1"]
     assert store.version_for("r1", v1, [v2, v3]) == v1      # it rolled v3 back too: pinned at v1 again
     assert store.state()["pins"]["r1"] == v1 and store.version_for("r1", v1, [v2, v3]) == v1
     store.pin(v1, robot="r2")                                # an operator's pin holds through publications

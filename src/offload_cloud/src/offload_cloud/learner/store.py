@@ -7,8 +7,8 @@ pins, in one directory that operator commands and the running service share.
                                  or robot's pin / rollback / unpin
     STORE/state.json             {"current": version, "fleet_pinned": bool, "pins": {robot: version},
                                  "rolled_back": {robot: [version, ...]},
-                                 "rollback_pins": {robot: the fleet's current version when the robot's rollback
-                                 pinned it}}
+                                 "rollback_pins": {robot: the version its own rollback pinned it to, until the gate
+                                 publishes a newer one}}
     STORE/lock                   flock'ed around every read-modify-write of state.json and history appends
 
 Every write is atomic (a temporary file in the same directory, fsync, os.replace), so a running service reads
@@ -133,6 +133,12 @@ class ModelStore:
             if data is not None and not state["fleet_pinned"] and state["current"] == entry["parent"]:
                 state["current"] = entry["version"]
                 entry["published"] = True
+                # A robot that rolled a version back was pinned where it went back to: a newer version the gate
+                # published replaces that pin (its guard judges it live); an operator's pins stay.
+                for robot in state["rollback_pins"]:
+                    state["pins"].pop(robot, None)
+                entry["rollback_pins_lapsed"] = sorted(state["rollback_pins"])
+                state["rollback_pins"] = {}
         entry = {**entry, "event": "trained", "published": False}
         if data is not None:
             self.put(data)
@@ -151,17 +157,10 @@ class ModelStore:
                 state["rolled_back"][robot] = sorted(known | set(new))[-64:]
                 if current and current not in new:
                     state["pins"][robot] = current
-                    state["rollback_pins"][robot] = state["current"]
+                    state["rollback_pins"][robot] = current
             state = self._update(pin, {"event": "robot_rollback", "robot": robot, "rolled_back": new,
                                        "pinned": current})
         refused = set(rolled_back) | set(state["rolled_back"].get(robot, []))
-        held = state["rollback_pins"].get(robot)
-        if held is not None and state["current"] != held and state["current"] not in refused:
-            def lapse(state):   # a version published after the rollback: the robot's own pin gives way to it
-                if state["rollback_pins"].pop(robot, None) is not None:
-                    state["pins"].pop(robot, None)
-            state = self._update(lapse, {"event": "rollback_pin_lapsed", "robot": robot,
-                                         "current": state["current"]})
         answer = state["pins"].get(robot) or state["current"]
         return current if answer in refused or not self.has(answer) and answer else answer
 
