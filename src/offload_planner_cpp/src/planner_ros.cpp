@@ -66,18 +66,25 @@ MapInfo mapInfoOf(const nav_msgs::OccupancyGrid& map) {
   return out;
 }
 
+std::shared_ptr<const std::vector<std::int8_t>> PlanRequestHandler::inflated(const nav_msgs::OccupancyGrid& map,
+                                                                             const MapGeometry& geometry,
+                                                                             const PlannerOptions& options,
+                                                                             const InflationParams& inflation) const {
+  if (!inflation.enabled()) return nullptr;
+  PlannerOptions in_cells = options;
+  optionsInCells(geometry.resolution, inflation, &in_cells);   // checkMap: the resolution is finite and > 0
+  auto grid = std::make_shared<std::vector<std::int8_t>>();
+  inflate(map.data.data(), static_cast<int>(geometry.width), static_cast<int>(geometry.height), in_cells, grid.get());
+  return grid;
+}
+
 bool PlanRequestHandler::setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, std::string* error) {
+  std::lock_guard<std::mutex> update(update_mutex_);   // options_ and inflation_ stay as they are meanwhile
   MapGeometry geometry;
   const Outcome checked = map ? checkMap(mapInfoOf(*map), max_map_cells_, &geometry)
                               : Outcome{PlanStatus::kInvalidMap, "null map"};
-  std::shared_ptr<std::vector<std::int8_t>> inflated;
-  if (checked.ok() && inflation_.enabled()) {   // outside the lock: requests keep planning on the last map
-    PlannerOptions options = options_;
-    optionsInCells(geometry.resolution, inflation_, &options);   // checkMap: the resolution is finite and > 0
-    inflated = std::make_shared<std::vector<std::int8_t>>();
-    inflate(map->data.data(), static_cast<int>(geometry.width), static_cast<int>(geometry.height), options,
-            inflated.get());
-  }
+  std::shared_ptr<const std::vector<std::int8_t>> grid;
+  if (checked.ok()) grid = inflated(*map, geometry, options_, inflation_);   // outside map_mutex_: requests go on
   std::lock_guard<std::mutex> lock(map_mutex_);
   if (!checked.ok()) {
     rejected_ = checked.message;
@@ -85,7 +92,7 @@ bool PlanRequestHandler::setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, st
     return false;
   }
   map_ = map;
-  inflated_ = inflated;
+  inflated_ = grid;
   geometry_ = geometry;
   return true;
 }
@@ -101,12 +108,14 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
   std::shared_ptr<const std::vector<std::int8_t>> inflated;
   MapGeometry geometry;
   std::string rejected;
+  PlannerOptions options;
   {
     std::lock_guard<std::mutex> lock(map_mutex_);
     map = map_;  // a map arriving now replaces map_, while this request keeps planning on its copy
     inflated = inflated_;
     geometry = geometry_;
     rejected = rejected_;
+    options = options_;
   }
   *res = PlanPath::Response();
   if (!map) return setStatus(noMapOutcome(rejected), res);
@@ -115,7 +124,6 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
   const CellRequest request = resolveRequest(geometry, frame, pointOf(req.start), pointOf(req.goal), req.tolerance);
   if (!request.outcome.ok()) return setStatus(request.outcome, res);
 
-  PlannerOptions options = options_;
   options.goal_tolerance_cells = request.tolerance_cells;
   options.cancel = cancel;
   static thread_local DijkstraPlanner planner;
@@ -223,6 +231,7 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
     ROS_FATAL("~%s", problem.c_str());
     throw std::invalid_argument("bad planner parameter: " + problem);
   }
+  parameters_ = parameters;
   const PlannerOptions& options = parameters.options;
   const InflationParams& inflation = parameters.inflation;
   int max_map_cells = 0;
@@ -251,6 +260,11 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
   pnh.param("diagnostic_period", diagnostic_period, diagnostic_period);
   diagnostics_timer_ = nh.createTimer(ros::Duration(diagnostic_period > 0 ? diagnostic_period : 1.0),
                                       [this](const ros::TimerEvent&) { diagnostics_.update(); });
+  // ~set_parameters, ~parameter_updates (latched, recorded), ~parameter_descriptions: cfg/Planner.cfg's options.
+  reconfigure_server_ =
+      std::make_unique<dynamic_reconfigure::Server<offload_planner_cpp::PlannerConfig>>(reconfigure_mutex_, pnh);
+  reconfigure_server_->setCallback(boost::bind(&PlannerNode::reconfigure, this, boost::placeholders::_1,
+                                               boost::placeholders::_2));
   plan_srv_ = pnh.advertiseService("plan", &PlannerNode::onPlan, this);
   make_plan_srv_ = pnh.advertiseService("make_plan", &PlannerNode::onMakePlan, this);
   ROS_INFO("planner ready: %s%s, %s, lethal_threshold %d, unknown cells %s, inflation %.3g m + %.3g m, %d planning "

@@ -12,13 +12,16 @@
 #include <string>
 #include <unordered_map>
 
+#include <boost/thread/recursive_mutex.hpp>
 #include <diagnostic_updater/diagnostic_updater.h>
+#include <dynamic_reconfigure/server.h>
 #include <nav_msgs/GetPlan.h>
 #include <nav_msgs/OccupancyGrid.h>
 #include <offload_msgs/PlanPath.h>
 #include <offload_msgs/PlanTiming.h>
 #include <ros/callback_queue.h>
 #include <ros/ros.h>
+#include <offload_planner_cpp/PlannerConfig.h>
 #include <std_msgs/UInt64.h>
 
 #include "offload_planner_cpp/dijkstra.h"
@@ -41,6 +44,10 @@ class PlanRequestHandler {
   // Keeps the previous map and returns false (with the reason) when `map` is malformed.
   bool setMap(const nav_msgs::OccupancyGrid::ConstPtr& map, std::string* error);
   nav_msgs::OccupancyGrid::ConstPtr map() const;
+  // Plans from now on with `parameters` (dynamic_reconfigure): the map in force is inflated again first when the
+  // inflation changed, so no plan ever meets a grid inflated for other options. Plans already running finish with
+  // the options they began with. The caller has checked `parameters` (parametersProblem).
+  void setParameters(const PlannerParameters& parameters);
 
   // Thread safe; each calling thread plans with its own buffers on the map current at the call. `cancel`
   // (optional), set from another thread, stops the plan with CANCELLED.
@@ -48,10 +55,16 @@ class PlanRequestHandler {
               const std::atomic<bool>* cancel = nullptr) const;
 
  private:
+  // `map` inflated for `options` and `inflation`, or nullptr when the inflation is off.
+  std::shared_ptr<const std::vector<std::int8_t>> inflated(const nav_msgs::OccupancyGrid& map,
+                                                           const MapGeometry& geometry, const PlannerOptions& options,
+                                                           const InflationParams& inflation) const;
+
+  std::mutex update_mutex_;   // one new map or new parameters at a time (each inflates outside map_mutex_)
   PlannerOptions options_;
   std::uint64_t max_map_cells_;
   InflationParams inflation_;
-  mutable std::mutex map_mutex_;
+  mutable std::mutex map_mutex_;   // what a request reads: the map, its inflated grid, geometry and options
   nav_msgs::OccupancyGrid::ConstPtr map_;
   std::shared_ptr<const std::vector<std::int8_t>> inflated_;  // map_ inflated, when inflation_ is enabled
   MapGeometry geometry_;  // of map_
@@ -94,8 +107,13 @@ class PlannerNode {
   void serve(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res);
   // /diagnostics: the map the node plans on (size, age, a refused newer one) and how its plans ended.
   void diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat);
+  // dynamic_reconfigure (planner_reconfigure.cpp): a change checked by the core's table, refused or in force.
+  void reconfigure(offload_planner_cpp::PlannerConfig& config, std::uint32_t level);
 
   std::unique_ptr<PlanRequestHandler> handler_;
+  PlannerParameters parameters_;   // in force; changed by reconfigure() only, under reconfigure_mutex_
+  boost::recursive_mutex reconfigure_mutex_;
+  std::unique_ptr<dynamic_reconfigure::Server<offload_planner_cpp::PlannerConfig>> reconfigure_server_;
   std::string planner_name_;
   int planning_threads_ = 4;
   ros::CallbackQueue map_queue_;
