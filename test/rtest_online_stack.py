@@ -24,7 +24,7 @@ CLOUD_TIMEOUT_S = 1.0
 FIRST_RUN = 24
 RECORDED_TOPICS = ("/offload_learner/decision", "/offload_learner/outcome", "/offload_learner/stats", "/offload_learner/config",
                    "/offload_learner/goal", "/cloud_bridge/latency", "/cloud_bridge/timing", "/planner/timing",
-                   "/goal_generator/goal", "/map_metadata")
+                   "/goal_generator/goal", "/map_metadata", "/planner/parameter_updates")
 
 
 def launch_file(name):

@@ -216,7 +216,7 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-
                "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph",
                "atheris": "python3-atheris-pip", "rospkg": "python3-rospkg", "rosunit": "rosunit",
                "lz4": "python3-lz4", "offload_demos": "offload_demos", "diagnostic_updater": "diagnostic_updater",
-               "diagnostic_msgs": "diagnostic_msgs"}
+               "diagnostic_msgs": "diagnostic_msgs", "dynamic_reconfigure": "dynamic_reconfigure"}
 
 
 def imported_modules(source: Path):

@@ -6,7 +6,7 @@ CLOUD_TIMEOUT."""
 import logging
 import threading
 import time
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any, Optional, Tuple
 
 import numpy as np
@@ -14,7 +14,7 @@ import zmq
 
 from offload_planner_cpp import OPTION_DEFAULTS, PlanStatus
 from offload_planner_cpp._core import (MapGeometry, check_map, no_map_outcome, options_in_cells, options_table,
-                                      path_poses, resolve_request)
+                                      path_poses, resolve_request, validate_options)
 from offload_cloud import protocol
 from offload_cloud.client import CloudClient, CloudTimeout, KnownMaps, PlannedGrids
 from offload_cloud.protocol import PlanOptions, Status
@@ -126,7 +126,7 @@ class CloudBridge:
         self._heartbeat_period_s = 1.0                  # measured between heartbeat() calls
         self._non_pong_warned = False
         self.upload_attempts = 0                        # map uploads started by the heartbeat (for tests)
-        self._last_options = None                       # ((resolution, tolerance cells), PlanOptions)
+        self._last_options = None                       # (config, (resolution, tolerance cells), PlanOptions)
 
     def _new_client(self, timeout_s: float, retries: int) -> CloudClient:
         return CloudClient(self.config.endpoint, keys_dir=self.config.keys_dir, insecure=self.config.insecure,
@@ -296,10 +296,9 @@ class CloudBridge:
     def _options(self, resolution: float, tolerance_cells: float) -> PlanOptions:
         """The request's planner options; the last ones are kept, as a robot asks with the same map resolution and
         tolerance over and over (building them took a few microseconds of the bridge's CPU per request)."""
-        last = self._last_options
-        if last is not None and last[0] == (resolution, tolerance_cells):
-            return last[1]
-        config = self.config
+        last, config = self._last_options, self.config
+        if last is not None and last[0] is config and last[1] == (resolution, tolerance_cells):
+            return last[2]
         options = PlanOptions(goal_tolerance_cells=tolerance_cells, lethal_threshold=config.lethal_threshold,
                               unknown_is_obstacle=config.unknown_is_obstacle, algorithm=config.algorithm,
                               any_angle=config.any_angle, cost_factor=config.cost_factor,
@@ -308,8 +307,23 @@ class CloudBridge:
                               **options_in_cells(resolution, robot_radius=config.robot_radius_m,
                                                  inflation_radius=config.inflation_radius_m,
                                                  cost_scaling_factor=config.cost_scaling_factor))
-        self._last_options = ((resolution, tolerance_cells), options)   # one assignment: safe across threads
+        self._last_options = (config, (resolution, tolerance_cells), options)   # one assignment: thread safe
         return options
+
+    def set_planner_parameters(self, parameters: dict) -> dict:
+        """Plans from the next request on with `parameters` (planner options by the core table's node parameter
+        names, radii in metres: the local planner's dynamic_reconfigure values) over those in force; returns
+        {name: value} of the ones that changed. ValueError, in the core's words, for a value the core refuses (TypeError
+        for a name that is none of its options): then nothing changes."""
+        current = self.config.planner_parameters()
+        unknown = sorted(set(parameters) - set(current))
+        if unknown:
+            raise TypeError(f"no planner node parameter {', '.join(unknown)}; they are {', '.join(current)}")
+        validate_options(**{**current, **parameters})
+        changed = {name: value for name, value in parameters.items() if value != current[name]}
+        if changed:   # a new config object: _options builds the next request's options from it
+            self.config = replace(self.config, **BridgeConfig.planner_fields(changed))
+        return changed
 
     def _borrow_client(self) -> CloudClient:
         with self._lock:

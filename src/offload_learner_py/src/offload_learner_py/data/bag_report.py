@@ -31,7 +31,8 @@ class BagReport(PairingCounts):
     undecodable: int = 0              # messages that do not decode with their own definition
     damaged_chunks: int = 0           # chunks that do not decompress (their messages are lost)
     definitions: Dict[str, str] = field(default_factory=dict)   # message type -> md5 of the bag's definition
-    configs: List[dict] = field(default_factory=list)   # the learner's distinct latched settings (sessions)
+    configs: List[dict] = field(default_factory=list)   # the learner's distinct settings (sessions, and changes made
+                                                        # on the running node), each with since_ns: first recorded
     other_configs: int = 0            # settings messages past MAX_CONFIGS distinct ones, not kept
 
     def note(self, example: str) -> None:
@@ -44,15 +45,17 @@ class BagReport(PairingCounts):
         self.other_topics += max(0, len(ranked) - MAX_LISTED_TOPICS)
         self.other_topic_messages += sum(count for _, count in ranked[MAX_LISTED_TOPICS:])
 
-    def add_config(self, values: dict) -> None:
-        """One session's settings, unless the same (NaN equal to NaN) are kept already."""
+    def add_config(self, values: dict, since_ns: int = 0) -> None:
+        """One session's settings, or a change made on the running node (dynamic_reconfigure), unless the same (NaN
+        equal to NaN) are kept already; `since_ns`: the message's stamp (else its time in the bag), so an analysis
+        knows from when on the requests ran under them."""
         values = {key: clip(value) if isinstance(value, str) else value for key, value in values.items()}
         seen = self.__dict__.setdefault("_config_keys", set())   # not a field: not in the report's dict
         if repr(values) in seen:
             return
         if len(self.configs) < MAX_CONFIGS:
             seen.add(repr(values))
-            self.configs.append(values)
+            self.configs.append({**values, "since_ns": since_ns})
         else:
             self.other_configs += 1
 

@@ -170,7 +170,7 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
             continue
         topics[connection.topic] = topics.get(connection.topic, 0) + 1
         if connection.msgtype == CONFIG_TYPE:
-            report.add_config(values)
+            report.add_config(values, stamp or time_ns)
             continue
         if connection.msgtype == DECISION_TYPE:
             pairing.decision(values, stamp or time_ns)

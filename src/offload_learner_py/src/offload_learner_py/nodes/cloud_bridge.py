@@ -15,6 +15,7 @@ from rospy.numpy_msg import numpy_msg
 from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
 from offload_cloud.gc_pauses import freeze_startup_heap
 from offload_learner_py.nodes import params
+from offload_learner_py.nodes.bridge_reconfigure import PlannerUpdates
 from offload_learner_py.nodes.diagnostics import NodeDiagnostics
 from offload_learner_py.online.health import LinkHealth
 from offload_learner_py.nodes.path_wire import WirePath, WirePlanPathResponse, pose_count
@@ -36,6 +37,8 @@ class BridgeNodeConfig:
     """ping period for ~latency (b_t fresh for the learner); 0 disables the heartbeat."""
     planner_name: str = "cloud"
     """the `planner` field of ~timing."""
+    planner_updates: str = "/planner/parameter_updates"
+    """the local planner's dynamic_reconfigure updates, whose planner options the bridge follows ("": its own)."""
 
 
 # ~name -> (dataclass, field), its default the field's, for the parameters beside the planner options (those
@@ -189,7 +192,8 @@ def main():
 
     Parameters (private): ~endpoint (required), PARAMETERS and NODE_PARAMETERS (each defaulting to its
     field's default) and the core's planner options; the package README's table lists them.
-    Topics: subscribes map (nav_msgs/OccupancyGrid); publishes ~latency (offload_msgs/LinkLatency),
+    Topics: subscribes map (nav_msgs/OccupancyGrid) and the local planner's dynamic_reconfigure updates (the topic
+    ~planner_updates names); publishes ~latency (offload_msgs/LinkLatency),
     ~timing (offload_msgs/PlanTiming), ~path (nav_msgs/Path, latched), /diagnostics (the link's status).
     Services: ~plan (offload_msgs/PlanPath), ~make_plan (nav_msgs/GetPlan).
     """
@@ -199,6 +203,7 @@ def main():
         # None: the heartbeat thread waits for shutdown only.
         node = CloudBridgeNode(config, own.heartbeat_period_s if own.heartbeat_period_s > 0 else None,
                                own.planner_name)
+        node.planner_updates = PlannerUpdates(node.bridge, own.planner_updates)
     except (ValueError, OSError, zmq.ZMQError) as error:
         # One line naming the cause (a key file: KeyFileError names it), then exit: never a node that
         # runs without a working link.

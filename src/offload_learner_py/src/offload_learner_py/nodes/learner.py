@@ -21,6 +21,7 @@ from offload_learner_py.nodes.learner_io import STATUSES, PlannerProxy, RosLog, 
 from offload_learner_py.nodes.learner_fleet import NodeFleet
 from offload_learner_py.nodes.learner_outputs import LearnerOutputs
 from offload_learner_py.nodes.learner_params import read_learner_parameters
+from offload_learner_py.nodes.learner_reconfigure import LearnerReconfigure
 from offload_learner_py.online.breaker import LinkBreaker
 from offload_learner_py.online.cpu import make_cpu_sampler
 from offload_learner_py.online.plan_rate import PlanRateEstimator
@@ -64,6 +65,8 @@ class LearnerNode:
         self.router = OffloadRouter(self.learner, *self.sides, STATUSES, config,
                                     on_decision=self.outputs.decision, on_outcome=self.on_outcome,
                                     stale=StaleMapCheck(lambda: self.map_info), account=account, breaker=breaker)
+        # ~set_parameters: mode, probe rate, hedge and cloud timeout changed on the running node.
+        self.reconfigure = LearnerReconfigure(config, self.learner, self.outputs, session.seed)
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = node.latency_topic
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
