@@ -85,8 +85,9 @@ def read_node_parameters() -> BridgeNodeConfig:
 
 
 class CloudBridgeNode:
-    def __init__(self, config: BridgeConfig, heartbeat_period_s: float, planner_name: str):
+    def __init__(self, config: BridgeConfig, heartbeat_period_s: float, planner_name: str, planner_updates: str = ""):
         self.bridge = CloudBridge(config)
+        self.planner_updates = PlannerUpdates(self.bridge, planner_updates)   # the local planner's options, followed
         self.planner_name = planner_name
         self.heartbeat_period_s = heartbeat_period_s
         self.latency_pub = rospy.Publisher("~latency", LinkLatency, queue_size=10)
@@ -202,8 +203,7 @@ def main():
         config, own = read_parameters(), read_node_parameters()
         # None: the heartbeat thread waits for shutdown only.
         node = CloudBridgeNode(config, own.heartbeat_period_s if own.heartbeat_period_s > 0 else None,
-                               own.planner_name)
-        node.planner_updates = PlannerUpdates(node.bridge, own.planner_updates)
+                               own.planner_name, own.planner_updates)
     except (ValueError, OSError, zmq.ZMQError) as error:
         # One line naming the cause (a key file: KeyFileError names it), then exit: never a node that
         # runs without a working link.
