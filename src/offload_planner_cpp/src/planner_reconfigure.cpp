@@ -5,6 +5,8 @@
 #include "offload_planner_cpp/planner_reconfigure.h"
 
 #include <cstdio>
+#include <stdexcept>
+#include <string>
 
 #include <boost/any.hpp>
 #include <dynamic_reconfigure/config_tools.h>
