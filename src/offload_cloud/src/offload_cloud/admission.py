@@ -64,6 +64,7 @@ class Admission:
         self.waiting = 0                           # requests queued or parked
         self.queued_bytes = 0                      # and their bytes
         self.clients_waiting = 0                   # clients with requests queued or parked
+        self.busy = collections.Counter()          # BUSY replies by reason (the broker adds "waited")
 
     def client(self, name: str) -> Client:
         client = self.clients.get(name)
@@ -106,6 +107,7 @@ class Admission:
         rate, burst = self.config.rate_per_client, self.config.burst_per_client
         if rate and not client.take_token(self.clock(), rate, burst):
             client.rate_limited += 1
+            self.busy["rate_limit"] += 1
             raise ProtocolError(Status.BUSY, f"client {client.name} is over its rate of {rate:g} requests/s")
 
     def admit(self, client: Client, total: int, queued, service_s: float, idle_workers: bool,
@@ -121,6 +123,7 @@ class Admission:
         byte_share = max(total, config.max_queued_bytes // sharing)
         if sharing > 1 and (client.waiting >= share or client.waiting_bytes + total > byte_share):
             client.fair_share_refused += 1
+            self.busy["fair_share"] += 1
             raise ProtocolError(Status.BUSY, f"fair share: client {client.name} already has {client.waiting} "
                                              f"requests ({client.waiting_bytes} bytes) queued, its share of the "
                                              f"{config.max_queued} places ({config.max_queued_bytes} bytes) "
@@ -128,13 +131,16 @@ class Admission:
         if self.waiting >= config.max_queued or self.queued_bytes + total > config.max_queued_bytes:
             victim = self.displaceable(queued, share, total) if client.waiting < share else None
             if victim is None:
+                self.busy["queue_full"] += 1
                 raise ProtocolError(Status.BUSY, f"all {config.workers} workers busy and {self.waiting} "
                                                  f"requests ({self.queued_bytes} bytes) queued")
             victim.client.fair_share_refused += 1
+            self.busy["displaced"] += 1
             displace(victim, f"fair share: client {victim.client.name} had {victim.client.waiting} of the "
                              f"{config.max_queued} queue places; this one went to client {client.name}")
         expected_wait_s = self.waiting * service_s / config.workers
         if expected_wait_s > config.max_wait_s:
+            self.busy["expected_wait"] += 1
             raise ProtocolError(Status.BUSY, f"{self.waiting} requests queued, about {expected_wait_s:.2f} s of "
                                              f"work: over --max-wait-s {config.max_wait_s:g}")
         # Over its rate, a client is still served when a worker is idle and nobody waits: the limit
@@ -142,6 +148,7 @@ class Admission:
         rate, burst = config.rate_per_client, config.burst_per_client
         if rate and not client.take_token(self.clock(), rate, burst) and (self.waiting or not idle_workers):
             client.rate_limited += 1
+            self.busy["rate_limit"] += 1
             raise ProtocolError(Status.BUSY, f"rate limit: client {client.name} is over --rate-per-client "
                                              f"{rate:g} plans/s (--burst-per-client {burst}) while the "
                                              f"server is busy")

@@ -24,6 +24,7 @@ The guard needs no descriptor of its own: it reads and shuts connections through
 (tcp_socket.py); between checks an epoll set points it at the connections with bytes waiting for libzmq.
 Beyond `max_connections` open connections it cuts one (connection_cap.py).
 """
+import collections
 import time
 from dataclasses import dataclass
 from typing import Callable, Dict, Optional, Union
@@ -84,7 +85,9 @@ class ConnectionGuard:
         self._closed_before_accept = set()   # fds of connections that closed before their accept event came
         self._cutting: Dict[int, Connection] = {}   # connections cut, until libzmq reports them closed
         self._judging = set()  # unidentified fds libzmq read past their first bytes of: looked at between checks
-        self.cuts = 0
+        self.cut_reasons = collections.Counter()   # connections cut, by the bound that cut them
+        self.accepts = 0      # connections accepted
+        self.held = {"all": 0, "largest_key": 0, "unidentified": 0}   # bytes held undelivered at the last check
         self.messages = 0     # frontend messages the broker has read
         self.turns = 1        # connections that may have a message waiting (a turn in the ROUTER's round robin)
 
@@ -106,9 +109,23 @@ class ConnectionGuard:
         self.connections[fd] = self.unidentified[fd] = Connection(
             received, address if address is not None else self.address(fd), accepted_at=now, last_active=now,
             received=received)
+        self.accepts += 1
         if self.max_connections:
-            connection_cap.enforce(self.connections, self.unidentified, self.max_connections, self._drop, self.log,
-                                   fd, now)
+            connection_cap.enforce(self.connections, self.unidentified, self.max_connections, self._drop_over_cap,
+                                   self.log, fd, now)
+
+    @property
+    def cuts(self) -> int:
+        return sum(self.cut_reasons.values())
+
+    def snapshot(self) -> dict:
+        """Connections by state, cuts by reason, bytes held against each bound (STATS, metrics)."""
+        return {"connections": {"identified": len(self.connections) - len(self.unidentified),
+                                "unidentified": len(self.unidentified), "closing": len(self._cutting)},
+                "accepted": self.accepts, "max_connections": self.max_connections, "cuts": dict(self.cut_reasons),
+                "held_bytes": dict(self.held), "bounds_bytes": {"all": self.total_limit_bytes,
+                                                                "largest_key": self.key_limit_bytes,
+                                                                "unidentified": self.unidentified_limit_bytes}}
 
     def closed(self, fd: int) -> None:
         self.unidentified.pop(fd, None)
@@ -169,8 +186,8 @@ class ConnectionGuard:
                                 adopted=True)
         self.connections[fd] = connection
         if self.max_connections:
-            connection_cap.enforce(self.connections, self.unidentified, self.max_connections, self._drop, self.log,
-                                   fd, now)
+            connection_cap.enforce(self.connections, self.unidentified, self.max_connections, self._drop_over_cap,
+                                   self.log, fd, now)
         return connection
 
     def identify(self, fd: int, connection: Connection, user: bytes) -> None:
@@ -189,7 +206,7 @@ class ConnectionGuard:
             self.log("cut the connection from %s: client key %s has %d connections (bound %d): its least recently "
                      "active one goes", self.connections[oldest].address, user.decode(errors="replace"),
                      len(others) + 2, self.key_connections)
-            self._drop(oldest)
+            self._drop(oldest, "key_connections")
 
     def forget(self, fd: int) -> None:
         """Cut a connection the broker refuses to hear from (a revoked key)."""
@@ -197,6 +214,7 @@ class ConnectionGuard:
         connection = self.connections.pop(fd, None)
         if connection is not None:
             self._cutting[fd] = connection
+        self.cut_reasons["revoked"] += 1
         self.cut(fd)
 
     def check(self, drained: Callable[[], bool] = lambda: True) -> None:
@@ -212,7 +230,7 @@ class ConnectionGuard:
             if held > self.limit_bytes:
                 self.log("cut the connection from %s: %d bytes received without a complete message (bound %d "
                          "bytes: a message of too many frames)", connection.address, held, self.limit_bytes)
-                self._drop(fd)
+                self._drop(fd, "message_bytes")
                 continue
             pending[fd] = held
             if connection.identified:
@@ -230,10 +248,13 @@ class ConnectionGuard:
             user = self.connections[fd].user
             if user is not None:
                 by_key.setdefault(user, []).append(fd)
+        self.held = {"all": sum(pending.values()),
+                     "largest_key": max((sum(pending[fd] for fd in fds) for fds in by_key.values()), default=0),
+                     "unidentified": sum(held for fd, held in pending.items() if not self.connections[fd].identified)}
         for user, fds in by_key.items():
             self._cut_largest({fd: pending[fd] for fd in fds}, self.key_limit_bytes, pending,
-                              f"client key {user.decode(errors='replace')}'s connections")
-        self._cut_largest(dict(pending), self.total_limit_bytes, pending, "all connections")
+                              f"client key {user.decode(errors='replace')}'s connections", "key_bytes")
+        self._cut_largest(dict(pending), self.total_limit_bytes, pending, "all connections", "all_bytes")
 
     def _check_unidentified(self, pending: Dict[int, int], drained: Callable[[], bool]) -> None:
         """Cut unidentified connections past the first-message bound, then the oldest while they hold more than
@@ -258,7 +279,7 @@ class ConnectionGuard:
                      "together (bound %d bytes): the oldest goes", self.connections[fd].address, total,
                      self.unidentified_limit_bytes)
             total -= judged[fd]
-            self._drop(fd)
+            self._drop(fd, "unidentified_bytes")
             pending.pop(fd)
 
     def _due(self, fd: int, read: int, now: float) -> bool:
@@ -279,7 +300,7 @@ class ConnectionGuard:
             return False
         self.log("cut the connection from %s: %d bytes read before its first message (bound %d bytes: a client "
                  "pings ahead of a larger message)", self.connections[fd].address, read, self.first_limit_bytes)
-        self._drop(fd)
+        self._drop(fd, "first_message")
         return True
 
     def look_between_checks(self, drained: Callable[[], bool]) -> None:
@@ -311,15 +332,19 @@ class ConnectionGuard:
         empty)."""
         self.ledger.drained()
 
-    def _drop(self, fd: int) -> None:
+    def _drop(self, fd: int, reason: str) -> None:
         self.unidentified.pop(fd, None)
         connection = self.connections.pop(fd, None)
         if connection is not None:
             self._cutting[fd] = connection   # its messages still on their way are stale
-        self.cuts += 1
+        self.cut_reasons[reason] += 1
         self.cut(fd)
 
-    def _cut_largest(self, holders: Dict[int, int], bound: int, pending: Dict[int, int], whose: str) -> None:
+    def _drop_over_cap(self, fd: int) -> None:
+        self._drop(fd, "max_connections")
+
+    def _cut_largest(self, holders: Dict[int, int], bound: int, pending: Dict[int, int], whose: str,
+                     reason: str) -> None:
         """Cut the largest of `holders` (fd -> bytes held) until they hold at most `bound` together, those that
         have not said whose they are first."""
         total = sum(holders.values())
@@ -329,7 +354,7 @@ class ConnectionGuard:
                 break
             self.log("cut the connection from %s: it held %d of the %d bytes %s held undelivered (bound %d "
                      "bytes)", self.connections[fd].address, holders[fd], total, whose, bound)
-            self._drop(fd)
+            self._drop(fd, reason)
             total -= holders[fd]
             pending.pop(fd, None)
 
@@ -339,4 +364,5 @@ class ConnectionGuard:
             if connection.user is not None and connection.user not in allowlist:
                 self.log("closing the connection of revoked client key %s from %s", connection.user.decode(),
                          connection.address)
+                self.cut_reasons["revoked"] += 1
                 self.cut(fd)

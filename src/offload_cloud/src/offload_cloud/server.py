@@ -13,7 +13,7 @@ same time, and reloads the CURVE allowlist on SIGHUP.
 This module is the broker and the workers; the rest by job: admission.py (who may wait for a worker: fair
 share, rate limits), connection_guard.py (bounds on what connections hold undelivered), auth.py (CURVE
 allowlist), server_cli.py (the command line). A summary line of the STATS counters is logged every
---stats-log-s.
+--stats-log-s; with --metrics-bind the same counters are served to Prometheus (metrics_server.py).
 """
 import collections
 import logging
@@ -29,14 +29,16 @@ from offload_cloud.admission import Admission, AdmissionConfig, Client
 from offload_cloud.auth import RateLimitedLog, user_of
 from offload_cloud.connection_guard import GUARD_SLACK_BYTES, STALE, Connection, ConnectionGuard
 from offload_cloud.frontend import monitor_socket, open_frontend
+from offload_cloud.histogram import Histogram
 from offload_cloud.map_cache import MapCache
+from offload_cloud.metrics_server import open_endpoint
 from offload_cloud.planning import Planning
 from offload_cloud.protocol import Kind, ProtocolError, Reply, Status
 from offload_cloud.request_queue import Request, RequestQueue
 from offload_cloud.server_config import ServerConfig
-from offload_cloud.stats import count_cache_use, server_stats, stats_line
+from offload_cloud.stats import count_cache_use, serving_line, server_stats, stats_line
 from offload_cloud.tcp_socket import ActivityWatch, peer_address, source_fd
-from offload_cloud.zmq_frames import NOBLOCK, readable, recv_frames, send_frames
+from offload_cloud.zmq_frames import readable, recv_frames, send_frames, send_or_drop
 
 LOG = logging.getLogger("offload_cloud.server")
 _READY = b"READY"
@@ -45,6 +47,7 @@ _BACKEND_POLL_MS = 25    # how often the broker and workers look at the stop fla
 # Every connection libzmq accepts ends with EVENT_DISCONNECTED (EVENT_CLOSED is the listener's own descriptor).
 _MONITORED = (zmq.EVENT_ACCEPTED | zmq.EVENT_DISCONNECTED | zmq.EVENT_HANDSHAKE_FAILED_NO_DETAIL
               | zmq.EVENT_HANDSHAKE_FAILED_PROTOCOL | zmq.EVENT_HANDSHAKE_FAILED_AUTH)
+_HANDSHAKE_REFUSALS = {zmq.EVENT_HANDSHAKE_FAILED_AUTH: "unknown_key"}   # else "handshake_failed"
 
 
 class CloudServer:
@@ -84,6 +87,10 @@ class CloudServer:
         self.service_s = 0.0            # moving average of a worker's time per request (broker thread only)
         self.started = time.monotonic()
         self.counts = collections.Counter()     # requests, pings, stats (broker thread only)
+        self.refused = collections.Counter()    # connections and messages refused without a reply, by reason
+        self.plan_seconds, self.queue_seconds = Histogram(), Histogram()   # dispatch to reply; arrival to dispatch
+        # The broker hands its counters to a metrics scrape; no endpoint (None) unless --metrics-bind.
+        self.snapshots, self.metrics = open_endpoint(config.metrics_bind)
         self.replies = collections.Counter()    # status name -> replies to plans, uploads and bad messages
         self._key_names = {}                    # Z85 public key -> allowlist name (file stem)
         self._idle = ()                         # the broker's idle workers (for the rate limit)
@@ -101,11 +108,6 @@ class CloudServer:
     def queued_bytes(self) -> int:
         """Bytes of the requests waiting for a worker or parked (broker thread only)."""
         return self.admission.queued_bytes
-
-    @property
-    def connections_cut(self) -> int:
-        """Connections the guard cut (for tests)."""
-        return self.guard.cuts
 
     def _bind_frontend(self) -> zmq.Socket:
         try:
@@ -142,12 +144,7 @@ class CloudServer:
                    for k in range(self.config.workers)]
         for worker in workers:
             worker.start()
-        LOG.info("serving on %s with %d workers, map cache %d MiB, max message %d MiB, queue %d requests / "
-                 "%d MiB, pending bytes per connection %d MiB and in all %d MiB, at most %d connections "
-                 "(descriptor limit %d)", self.endpoint, self.config.workers,
-                 self.config.cache_bytes >> 20, self.config.max_message_bytes >> 20, self.config.max_queued,
-                 self.config.max_queued_bytes >> 20, self.connection_limit_bytes >> 20,
-                 self.config.max_pending_bytes >> 20, self.guard.max_connections, self.descriptor_limit)
+        LOG.info("%s", serving_line(self))
         try:
             self._broker(self._frontend, backend)
         finally:
@@ -162,6 +159,8 @@ class CloudServer:
             self._monitor.close(0)
             self._frontend.close(0)
             self.guard.watch.close()
+            if self.metrics is not None:
+                self.metrics.close()
             self._close_context()
             LOG.info("stopped; cache hits %d, misses %d, evictions %d; %s", self.cache.hits, self.cache.misses,
                      self.cache.evictions, self.stats_line(self.stats()))
@@ -178,7 +177,6 @@ class CloudServer:
         elif self._auth.reload():
             self._key_names = self._auth.names
             self.guard.cut_revoked(self._auth.allowlist)
-
 
     def _broker(self, frontend: zmq.Socket, backend: zmq.Socket) -> None:
         idle = collections.deque()      # worker identities waiting for a request
@@ -199,6 +197,8 @@ class CloudServer:
             if self._reload.is_set():
                 self._reload.clear()
                 self._do_reload()
+            if self.snapshots.wanted:
+                self.snapshots.serve(self.stats)
             while readable(self._monitor):   # first: a request of a closed connection must not be queued
                 self._on_monitor(parse_monitor_message(self._monitor.recv_multipart()), queue)
             if self.guard.ledger.unsettled and not readable(frontend):
@@ -212,7 +212,10 @@ class CloudServer:
                     if done is not None:
                         count_cache_use(done, status)
                 if done is not None:
-                    self.service_s = 0.7 * self.service_s + 0.3 * (time.monotonic() - dispatched_at)
+                    elapsed = time.monotonic() - dispatched_at
+                    self.service_s = 0.7 * self.service_s + 0.3 * elapsed
+                    if done.kind == Kind.PLAN:
+                        self.plan_seconds.observe(elapsed)
                     if done.uploads is not None:
                         queue.release(done.uploads)
                 idle.append(worker)
@@ -238,7 +241,9 @@ class CloudServer:
             while idle and queue.queued:
                 request = queue.pop()
                 now = time.monotonic()
+                self.queue_seconds.observe(now - request.arrived)
                 if now - request.arrived > self.config.max_wait_s:
+                    self.admission.busy["waited"] += 1
                     # Its client has (nearly) given up: a quick BUSY lets it plan locally now, and the
                     # worker goes to a request that can still be answered in time.
                     self._refuse(frontend, request.frames[:request.route_frames], request.request_id,
@@ -261,6 +266,7 @@ class CloudServer:
             self.guard.closed(fd)
             self._drop_requests_of(fd, queue)
         else:
+            self.refused[_HANDSHAKE_REFUSALS.get(kind, "handshake_failed")] += 1
             self._log_limited.log(logging.WARNING, ("handshake", kind),
                                   "refused a connection: handshake failed (%s, code %s): a plaintext client, wrong "
                                   "server key or not a ZeroMQ peer", zmq.Event(kind).name, fd)
@@ -282,6 +288,7 @@ class CloudServer:
         if self._auth is not None:
             user = user_of(frames[-1])
             if user is None or user not in self._auth.allowlist:   # revoked since its handshake
+                self.refused["revoked_key"] += 1
                 self._log_limited.log(logging.WARNING, ("revoked", user),
                                       "dropped a message from revoked client key %s", (user or b"?").decode())
                 if fd is not None:
@@ -290,6 +297,7 @@ class CloudServer:
             if connection is not None:
                 self.guard.identify(fd, connection, user)
         if len(frames) > self.config.max_frames + 2:
+            self.refused["too_many_frames"] += 1
             self._log_limited.log(logging.WARNING, "frames", "dropped a message of %d frames", len(frames))
             return
         split = 2 if len(frames) > 2 and len(frames[1]) == 0 else 1
@@ -302,12 +310,12 @@ class CloudServer:
             kind, request_id = protocol.decode_envelope(payload[0].buffer)
             if kind == Kind.PING:
                 self.counts["pings"] += 1
-                self._send(frontend, route + protocol.encode_reply(Reply(request_id, Status.OK, "pong")))
+                send_or_drop(frontend, route + protocol.encode_reply(Reply(request_id, Status.OK, "pong")), LOG)
                 return
             if kind == Kind.STATS:
                 self.counts["stats"] += 1
                 self.admission.charge_stats(client)
-                self._send(frontend, route + protocol.encode_stats_reply(request_id, self.stats(client.name)))
+                send_or_drop(frontend, route + protocol.encode_stats_reply(request_id, self.stats(client.name)), LOG)
                 return
             if kind not in (Kind.PLAN, Kind.UPLOAD):
                 raise ProtocolError(Status.BAD_REQUEST, f"a client cannot send a {kind.name} message")
@@ -345,9 +353,8 @@ class CloudServer:
         self.replies[status] += 1
         if client is not None:
             client.replies[status] += 1
-        self._send(frontend, frames)
+        send_or_drop(frontend, frames, LOG)
         return status
-
 
     def _client_name(self, user: Optional[bytes], fd: Optional[int], connection: Optional[Connection]) -> str:
         """The client a message is charged to: its key's allowlist name, else (--insecure) its connection."""
@@ -361,16 +368,6 @@ class CloudServer:
         return server_stats(self, viewer)
 
     stats_line = staticmethod(stats_line)
-
-    @staticmethod
-    def _send(socket: zmq.Socket, frames) -> None:
-        try:
-            send_frames(socket, frames, NOBLOCK)
-        except zmq.Again:
-            LOG.warning("reply dropped: client not reading")
-        except zmq.ZMQError as error:   # e.g. the client vanished; never fatal for the server
-            LOG.warning("reply dropped: %s", error)
-
 
     def _worker(self) -> None:
         socket = self._context.socket(zmq.DEALER)

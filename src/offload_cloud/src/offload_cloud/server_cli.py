@@ -7,6 +7,7 @@ import sys
 import zmq
 
 from offload_cloud.cli_args import bounded_float, bounded_int
+from offload_cloud.metrics import parse_bind
 from offload_cloud.server import LOG, CloudServer, ServerConfig
 from offload_cloud.gc_pauses import freeze_startup_heap
 
@@ -18,6 +19,15 @@ def _endpoint(text: str) -> str:
     host, _, port = text[len("tcp://"):].rpartition(":") if text.startswith("tcp://") else ("", "", "")
     if not host or not port.isdigit() or not 0 <= int(port) <= 65535:
         raise argparse.ArgumentTypeError(f"endpoint must be tcp://HOST:PORT with a port in 0..65535, got {text!r}")
+    return text
+
+
+def metrics_bind(text: str) -> str:
+    """HOST:PORT for the Prometheus endpoint (metrics.parse_bind)."""
+    try:
+        parse_bind(text)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(str(error)) from None
     return text
 
 
@@ -80,6 +90,9 @@ def parse_args(argv=None) -> argparse.Namespace:
                              "their own figures only")
     parser.add_argument("--stats-log-s", type=bounded_float("--stats-log-s", 0, 86400), default=60.0,
                         help="log a line of the STATS counters every this many seconds (default 60; 0: never)")
+    parser.add_argument("--metrics-bind", type=metrics_bind, metavar="HOST:PORT",
+                        help="serve Prometheus metrics (the STATS counters) at http://HOST:PORT/metrics; port 0 picks "
+                             "a free one. Unauthenticated: bind a private address (default: off)")
     parser.add_argument("--log-level", default="INFO", type=str.upper, choices=["DEBUG", "INFO", "WARNING", "ERROR"],
                         help="DEBUG, INFO, WARNING or ERROR (default INFO)")
     args = parser.parse_args(argv)
@@ -117,7 +130,7 @@ def main(argv=None) -> int:
             max_pending_unidentified_bytes=args.max_pending_unidentified_mib << 20, keepalive_s=args.keepalive_s,
             handshake_timeout_s=args.handshake_timeout_s,
             max_wait_s=args.max_wait_s, rate_per_client=args.rate_per_client, burst_per_client=args.burst_per_client,
-            stats_log_s=args.stats_log_s, stats_admins=tuple(args.stats_admin)))
+            stats_log_s=args.stats_log_s, stats_admins=tuple(args.stats_admin), metrics_bind=args.metrics_bind))
     except (OSError, ValueError, zmq.ZMQError) as error:
         LOG.error("cannot start: %s", error)
         return 2
@@ -129,6 +142,8 @@ def main(argv=None) -> int:
         signal.signal(signum, lambda *_: server.stop())
     signal.signal(signal.SIGHUP, lambda *_: server.reload_allowlist())   # as sshd and nginx: re-read keys
     print(f"listening on {server.endpoint}", flush=True)
+    if server.metrics is not None:
+        print(f"metrics on http://{server.metrics.address}/metrics", flush=True)
     freeze_startup_heap()
     server.run()
     return 0

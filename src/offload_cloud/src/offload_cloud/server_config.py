@@ -3,6 +3,7 @@ from dataclasses import dataclass
 from typing import Optional
 
 from offload_cloud.map_frames import FRAME_MAX_BYTES
+from offload_cloud.metrics import parse_bind
 from offload_cloud.protocol import FIRST_MESSAGE_MAX_BYTES
 
 
@@ -38,6 +39,7 @@ class ServerConfig:
     stats_log_s: float = 60.0             # period of the stats log line; 0: none
     stats_admins: tuple = ()              # client key names whose STATS show every client; others see
                                           # their own figures only (a local, inproc/ipc, caller sees all)
+    metrics_bind: Optional[str] = None    # HOST:PORT of the Prometheus endpoint (GET /metrics); None: off
 
     @property
     def receive_hwm(self) -> int:
@@ -88,5 +90,7 @@ class ServerConfig:
             raise ValueError(f"the max connections must be in 0..{1 << 20}, got {self.max_connections}")
         if not 0 <= self.max_connections_per_key <= 65536:
             raise ValueError(f"the connections per key must be in 0..65536, got {self.max_connections_per_key}")
+        if self.metrics_bind is not None:
+            parse_bind(self.metrics_bind)
         if min(self.max_pending_bytes, self.max_pending_bytes_per_key) < self.max_message_bytes:
             raise ValueError("the pending bytes budgets (in all and per key) must be at least the max message size")

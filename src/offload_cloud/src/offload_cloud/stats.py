@@ -1,5 +1,6 @@
 """The cloud server's STATS: the counters a STATS request is answered with (the broker's own, so cheap), the
-log line made of them, and the per-client cache counts taken from each reply."""
+log lines made of them, and the per-client cache counts taken from each reply. The Prometheus endpoint
+(metrics_server.py) reads the same dict."""
 import time
 from typing import Optional
 
@@ -22,7 +23,11 @@ def server_stats(server, viewer: Optional[str] = None) -> dict:
                   "evictions": cache.evictions, "maps": len(cache), "bytes": cache.size_bytes,
                   "capacity_bytes": cache.capacity_bytes},
         "queue": {"depth": server.admission.waiting, "bytes": server.queued_bytes, "in_flight": len(server.in_flight),
-                  "max": server.config.max_queued},
+                  "max": server.config.max_queued, "max_bytes": server.config.max_queued_bytes},
+        "busy": dict(server.admission.busy), "refused": dict(server.refused),
+        "dropped": {"abandoned": server.abandoned_dropped, "stale": server.stale_dropped},
+        "seconds": {"plan": server.plan_seconds.to_dict(), "queue": server.queue_seconds.to_dict()},
+        "guard": server.guard.snapshot(),
         "rate_per_client": server.config.rate_per_client, "burst_per_client": server.config.burst_per_client,
         "clients": server.admission.client_stats(lambda name: everyone or name == viewer, cache.bytes_by_owner()),
     }
@@ -49,3 +54,14 @@ def count_cache_use(request, status: str) -> None:
         request.client.cache_misses += 1
     elif planned:
         request.client.cache_hits += 1
+
+
+def serving_line(server) -> str:
+    """The line logged when the server starts serving: its bounds."""
+    config = server.config
+    return (f"serving on {server.endpoint} with {config.workers} workers, map cache {config.cache_bytes >> 20} MiB, "
+            f"max message {config.max_message_bytes >> 20} MiB, queue {config.max_queued} requests / "
+            f"{config.max_queued_bytes >> 20} MiB, pending bytes per connection {server.connection_limit_bytes >> 20} "
+            f"MiB and in all {config.max_pending_bytes >> 20} MiB, at most {server.guard.max_connections} "
+            f"connections (descriptor limit {server.descriptor_limit})"
+            + (f"; metrics on http://{server.metrics.address}/metrics" if server.metrics is not None else ""))

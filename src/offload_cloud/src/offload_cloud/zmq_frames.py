@@ -36,3 +36,14 @@ def readable(socket: zmq.Socket) -> bool:
     """socket.poll(0) != 0 without a Poller: ZMQ_EVENTS, which processes the socket's pending commands as
     zmq_poll does before it answers."""
     return bool(socket.getsockopt(_EVENTS) & _POLLIN)
+
+
+def send_or_drop(socket: zmq.Socket, frames, log) -> None:
+    """send_frames without blocking: a reply its peer cannot take (not reading, gone) is logged and dropped, never
+    fatal for the sender."""
+    try:
+        send_frames(socket, frames, NOBLOCK)
+    except zmq.Again:
+        log.warning("reply dropped: client not reading")
+    except zmq.ZMQError as error:
+        log.warning("reply dropped: %s", error)

@@ -16,7 +16,7 @@ import sys
 import threading
 
 from offload_cloud.cli_args import bounded_float, bounded_int
-from offload_cloud.server_cli import _endpoint
+from offload_cloud.server_cli import _endpoint, metrics_bind
 
 
 def parse_args(argv=None) -> argparse.Namespace:
@@ -48,6 +48,9 @@ def parse_args(argv=None) -> argparse.Namespace:
     serve.add_argument("--rows-burst", type=bounded_float("--rows-burst", 1.0, 1e9), default=2048.0)
     serve.add_argument("--kib-per-s", type=bounded_float("--kib-per-s", 0.0, 1e9), default=256.0)
     serve.add_argument("--burst-mib", type=bounded_float("--burst-mib", 0.01, 1 << 20), default=16.0)
+    serve.add_argument("--metrics-bind", type=metrics_bind, metavar="HOST:PORT",
+                       help="serve Prometheus metrics (the STATS counters) at http://HOST:PORT/metrics; port 0 picks a "
+                            "free one. Unauthenticated: bind a private address (default: off)")
     serve.add_argument("--log-level", default="INFO")
     for name in ("list", "status", "unpin", "rollback", "pin"):
         command = commands.add_parser(name, help=f"{name} (acts on the store)")
@@ -78,7 +81,7 @@ def learner_config(args):
     training = TrainingConfig(args.window_rows, args.holdout, args.min_robot_rows, args.gate_margin_ms / 1000.0,
                               args.epochs, overrides)
     return LearnerConfig(args.bind, args.store, args.pool, args.keys_dir, args.insecure, args.seed_bag,
-                         args.train_every_rows, args.train_every_s, limits, training)
+                         args.train_every_rows, args.train_every_s, limits, training, metrics_bind=args.metrics_bind)
 
 
 def serve(args) -> int:
@@ -91,6 +94,8 @@ def serve(args) -> int:
     try:
         learner = FleetLearner(learner_config(args))
         print(f"listening on {learner.start()}", flush=True)
+        if learner.metrics is not None:
+            print(f"metrics on http://{learner.metrics.address}/metrics", flush=True)
     except (OSError, ValueError, TypeError) as error:
         print(f"error: {error}", file=sys.stderr)
         return 2

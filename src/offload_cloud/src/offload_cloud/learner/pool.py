@@ -175,7 +175,12 @@ class ExperiencePool:
             return [path for path, _, _ in sorted(self._files(robot), key=lambda f: f[2])]
 
     def disk_bytes(self) -> int:
-        return sum(bytes_ for _, bytes_, _ in self._files())
+        return sum(self.disk_bytes_by_robot().values())
+
+    def disk_bytes_by_robot(self) -> Dict[str, int]:
+        """Bytes of each robot's bags; under the lock, so a metrics scrape never stats a bag being evicted."""
+        with self._lock:
+            return {robot: sum(bytes_ for _, bytes_, _ in self._files(robot)) for robot in self.robots()}
 
     def add_seed_bag(self, path: str) -> Optional[str]:
         """Pools a learning run's bag as the robot SEED_ROBOT (once: a restarted learner keeps its copy)."""

@@ -20,6 +20,8 @@ import zmq
 from offload_cloud import protocol, protocol_fleet
 from offload_cloud.auth import RateLimitedLog, curve_server, user_of
 from offload_cloud.frontend import bind
+from offload_cloud.metrics import MetricsEndpoint
+from offload_cloud.learner.metrics import LearnerCollector
 from offload_cloud.learner.pool import ExperiencePool, PoolLimits
 from offload_cloud.learner.store import ModelStore
 from offload_cloud.learner.training import TrainingConfig, training_round
@@ -42,6 +44,7 @@ class LearnerConfig:
     train_every_s: float = 300.0
     limits: PoolLimits = field(default_factory=PoolLimits)
     training: TrainingConfig = field(default_factory=TrainingConfig)
+    metrics_bind: Optional[str] = None    # HOST:PORT of the Prometheus endpoint (GET /metrics); None: off
 
 
 class FleetLearner:
@@ -62,12 +65,15 @@ class FleetLearner:
         self._auth = None
         self._log_limited = RateLimitedLog(LOG)
         self.endpoint = None
+        self.metrics = None   # the Prometheus endpoint, when config.metrics_bind
 
     # --- life ------------------------------------------------------------------------------------------------
     def start(self) -> str:
         if self.config.seed_bag and self.pool.add_seed_bag(self.config.seed_bag):
             LOG.info("seeded the pool with %s", self.config.seed_bag)
             self._new_rows += self.config.train_every_rows
+        if self.config.metrics_bind:   # first: a taken port fails the start before the robots' socket opens
+            self.metrics = MetricsEndpoint(self.config.metrics_bind, LearnerCollector(self.stats))
         socket = self._context.socket(zmq.ROUTER)
         socket.linger = 0
         socket.setsockopt(zmq.MAXMSGSIZE, protocol.MAX_ROWS_BYTES + 4096)
@@ -92,6 +98,8 @@ class FleetLearner:
         self._wake.set()
         for thread in self._threads:
             thread.join(timeout=60)
+        if self.metrics is not None:
+            self.metrics.close()
         self.pool.close()
         if self._auth is not None:
             self._auth.stop()
@@ -169,10 +177,14 @@ class FleetLearner:
         return protocol.encode_json_reply(request_id, answer)
 
     def stats(self, robot: Optional[str] = None) -> dict:
-        keys = {name: counts.to_dict() for name, counts in self.pool.counts.items()}
-        return {"robots": keys, "pool_bytes": self.pool.disk_bytes(), "evicted_bags": self.pool.evicted_bags,
-                "evicted_bytes": self.pool.evicted_bytes, "rounds": self.rounds, "round_errors": self.round_errors,
-                "new_rows": self._new_rows, "store": self.store.summary()}
+        """The counters STATS answers with and the metrics endpoint serves (from its own thread: list() copies the
+        robots while the service thread may add one)."""
+        keys = {name: counts.to_dict() for name, counts in list(self.pool.counts.items())}
+        by_robot, limits = self.pool.disk_bytes_by_robot(), self.config.limits
+        return {"robots": keys, "pool_bytes": sum(by_robot.values()), "pool_bytes_by_robot": by_robot,
+                "pool_budget_bytes": limits.total_bytes, "robot_budget_bytes": limits.robot_bytes,
+                "evicted_bags": self.pool.evicted_bags, "evicted_bytes": self.pool.evicted_bytes, "rounds": self.rounds,
+                "round_errors": self.round_errors, "new_rows": self._new_rows, "store": self.store.summary()}
 
     # --- training --------------------------------------------------------------------------------------------
     def _train(self) -> None:
