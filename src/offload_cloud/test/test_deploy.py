@@ -220,3 +220,64 @@ def test_haproxy_recipe_on_loopback_refuses_a_flood_from_one_source_and_serves_r
         haproxy.wait(10)
         server.stop()
     assert open_ones == 8, open_ones
+
+
+@pytest.mark.timeout(60)
+def test_haproxy_recipe_exports_prometheus_metrics_of_its_robots_and_planners(key_root, tmp_path):
+    """The recipe's exporter stanza, run on loopback: after a robot's ping through HAProxy, /metrics shows the
+    robots frontend's connection and the planners backend's one live server."""
+    from metrics_helpers import scrape, value
+
+    server = start_server(key_root / "server")
+    port, metrics_port = free_port(), free_port()
+    text = haproxy_recipe().replace("bind :5555", f"bind 127.0.0.1:{port}")
+    assert "bind 127.0.0.1:8405" in text and "use-service prometheus-exporter" in text
+    text = text.replace("bind 127.0.0.1:8405", f"bind 127.0.0.1:{metrics_port}")
+    text = re.sub(r"(    server cloud\d .*\n)+", f"    server cloud0 127.0.0.1:{server.endpoint.rsplit(':', 1)[1]} check\n",
+                  text)
+    (tmp_path / "haproxy.cfg").write_text(text)
+    haproxy = subprocess.Popen([shutil.which("haproxy") or "/usr/sbin/haproxy", "-f", str(tmp_path / "haproxy.cfg"),
+                                "-db"], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.monotonic() + 10
+        while True:
+            try:
+                figures = scrape(f"127.0.0.1:{metrics_port}")
+                if value(figures, "haproxy_backend_active_servers", proxy="planners") == 1:
+                    break
+            except OSError:
+                pass
+            assert time.monotonic() < deadline, "HAProxy's exporter never showed the planner up"
+            time.sleep(0.2)
+        with CloudClient(f"tcp://127.0.0.1:{port}", keys_dir=str(key_root / "robot"), timeout_s=5.0) as robot:
+            robot.ping()
+        figures = scrape(f"127.0.0.1:{metrics_port}")
+    finally:
+        haproxy.terminate()
+        haproxy.wait(10)
+        server.stop()
+    assert value(figures, "haproxy_frontend_connections_total", proxy="robots") >= 1
+    assert value(figures, "haproxy_server_status", proxy="planners", server="cloud0", state="UP") == 1
+    # The Grafana dashboard's HAProxy panels query names this exporter has.
+    dashboard = (DEPLOY / "grafana" / "offload-cloud.json").read_text()
+    used = set(re.findall(r"\b(haproxy_[a-z_]+)", dashboard))
+    assert used and used <= {name for name, _ in figures}, used - {name for name, _ in figures}
+
+
+@pytest.mark.parametrize("which", ["server", "learner"])
+def test_kubernetes_scrape_annotations_point_at_the_metrics_endpoint(which):
+    """Prometheus' kubernetes-pods job scrapes the annotated port and path: the one the container's
+    --metrics-bind serves, on all addresses of the pod, and declared as a container port."""
+    from offload_cloud.learner.cli import parse_args as learner_args
+    from offload_cloud.metrics import parse_bind
+
+    deployment = (manifests if which == "server" else learner_manifests)()[0]
+    template = deployment["spec"]["template"]
+    container = template["spec"]["containers"][0]
+    args = server_args(container["args"]) if which == "server" else learner_args(container["args"])
+    host, port = parse_bind(args.metrics_bind)
+    annotations = template["metadata"]["annotations"]
+    assert annotations["prometheus.io/scrape"] == "true" and annotations["prometheus.io/path"] == "/metrics"
+    assert int(annotations["prometheus.io/port"]) == port and host == "0.0.0.0"
+    assert {"name": "metrics", "containerPort": port} in [{k: p[k] for k in ("name", "containerPort")}
+                                                          for p in container["ports"]]
