@@ -209,6 +209,7 @@ def test_status_codes_and_the_request_contract_are_not_retyped_in_python():
 ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-yaml", "PIL": "python3-pil",
                "scipy": "python3-scipy", "matplotlib": "python3-matplotlib", "torch": "python3-torch",
                "rosbags": "python3-rosbags-pip", "tqdm": "python3-tqdm", "rospy": "rospy", "rosbag": "rosbag",
+               "prometheus_client": "python3-prometheus-client",
                "roslaunch": "roslaunch", "rostest": "rostest", "tf2_ros": "tf2_ros", "genpy": "genpy",
                "nav_msgs": "nav_msgs", "geometry_msgs": "geometry_msgs", "std_msgs": "std_msgs",
                "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp", "offload_cloud": "offload_cloud",

@@ -6,8 +6,16 @@ from prometheus_client.core import CounterMetricFamily as Counter, GaugeMetricFa
 
 from offload_cloud.metrics import MetricsEndpoint, Snapshots, by_label, client_id, counter, gauge, histogram, \
     labelled
+from offload_cloud.protocol import Status
 
 SNAPSHOT_TIMEOUT_S = 2.0   # the broker answers within one poll period (25 ms) while it runs
+# Every reason the server counts, shown from 0: a series that first appears at 1 is taken by Prometheus' rate() to
+# have started there, so the first BUSY or cut would not show. Counted in admission.py and server.py (BUSY),
+# server.py (refused) and connection_guard.py (cuts); test_cloud_metrics.py checks these against those modules.
+BUSY_REASONS = ("rate_limit", "fair_share", "displaced", "queue_full", "expected_wait", "waited")
+REFUSALS = ("unknown_key", "handshake_failed", "revoked_key", "too_many_frames")
+CUT_REASONS = ("message_bytes", "first_message", "unidentified_bytes", "key_bytes", "all_bytes", "key_connections",
+               "max_connections", "revoked")
 # A client's counters: STATS field -> (metric, help).
 _CLIENT_COUNTERS = {
     "requests": ("offload_cloud_client_requests", "PLAN and UPLOAD messages of a client (hashed name)"),
@@ -51,11 +59,12 @@ def server_families(stats: dict) -> Iterator:
     yield counter("offload_cloud_pings", "PING messages answered", stats["pings"])
     yield counter("offload_cloud_stats_requests", "STATS messages received", stats["stats"])
     yield by_label(Counter, "offload_cloud_replies", "replies to plans, uploads and malformed messages by status",
-                   "status", stats["replies"])
+                   "status", from_zero(Status.__members__, stats["replies"]))
     yield by_label(Counter, "offload_cloud_busy", "BUSY replies by reason (rate_limit, fair_share, displaced, "
-                   "queue_full, expected_wait, waited)", "reason", stats["busy"])
+                   "queue_full, expected_wait, waited)", "reason", from_zero(BUSY_REASONS, stats["busy"]))
     yield by_label(Counter, "offload_cloud_refused", "connections and messages refused without a reply, by reason "
-                   "(unknown_key, handshake_failed, revoked_key, too_many_frames)", "reason", stats["refused"])
+                   "(unknown_key, handshake_failed, revoked_key, too_many_frames)", "reason",
+                   from_zero(REFUSALS, stats["refused"]))
     yield by_label(Counter, "offload_cloud_dropped_requests", "requests dropped unanswered: their connection had "
                    "closed (abandoned while queued, stale when read)", "reason", stats["dropped"])
     yield histogram("offload_cloud_plan_seconds", "a worker's time on a PLAN, from the broker's dispatch to its "
@@ -78,8 +87,12 @@ def server_families(stats: dict) -> Iterator:
                 guard["max_connections"])
     yield counter("offload_cloud_connections_accepted", "TCP connections accepted", guard["accepted"])
     yield by_label(Counter, "offload_cloud_guard_cuts", "connections the guard cut, by the bound", "reason",
-                   guard["cuts"])
+                   from_zero(CUT_REASONS, guard["cuts"]))
     yield from client_families(stats["clients"])
+
+
+def from_zero(names, counts: dict) -> dict:
+    return {**dict.fromkeys(names, 0), **counts}
 
 
 def budgets(cache: dict, queue: dict, guard: dict) -> Iterator:
