@@ -98,6 +98,28 @@ def test_a_request_expected_to_wait_too_long_is_refused_at_once():
         adm.admit(adm.client("robot1"), 10, queue, 0.5, False, None)
 
 
+def test_each_busy_is_counted_under_its_reason():
+    """The BUSY reasons STATS and the metrics show: one count per BUSY reply, under the rule that refused it."""
+    adm, queue = admission(), collections.deque()
+    for _ in range(8):
+        wait(adm, queue, "robot1")
+    wait(adm, queue, "robot1")                                  # the queue is full
+    assert adm.busy == {"queue_full": 1}
+    for _ in range(4):
+        wait(adm, queue, "robot2")                              # each takes robot1's newest place: robot1 gets BUSY
+    assert adm.busy == {"queue_full": 1, "displaced": 4}
+    wait(adm, queue, "robot2")                                  # robot2 holds its share, 4 of 8
+    assert adm.busy == {"queue_full": 1, "displaced": 4, "fair_share": 1}
+    adm, queue = admission(max_wait_s=1.0, rate_per_client=1.0, burst_per_client=1), collections.deque()
+    for _ in range(3):
+        wait(adm, queue, "robot1", idle=True)                   # the token, then two over the rate with one waiting
+    with pytest.raises(ProtocolError):
+        adm.admit(adm.client("robot1"), 10, queue, 2.0, False, None)   # 1 waiting x 2 s of work > 1 s
+    with pytest.raises(ProtocolError):
+        adm.charge_stats(adm.client("robot1"))
+    assert adm.busy == {"rate_limit": 3, "expected_wait": 1}
+
+
 def test_dequeued_and_resized_keep_the_accounting():
     adm, queue = admission(), collections.deque()
     wait(adm, queue, "robot1", nbytes=500)

@@ -184,3 +184,20 @@ def test_every_reason_counted_is_shown_from_zero():
     assert busy == set(metrics_server.BUSY_REASONS)
     assert refused == set(metrics_server.REFUSALS)
     assert cuts == set(metrics_server.CUT_REASONS)
+
+
+def test_histogram_buckets_follow_prometheus_le():
+    """A value equal to a bound counts in that bound's bucket (Prometheus' "le"); buckets come out cumulative, +Inf
+    last, with the sum; bounds must increase."""
+    from offload_cloud.histogram import Histogram
+    from offload_cloud.metrics import histogram
+
+    seconds = Histogram((0.001, 0.01, 0.1))
+    for observed in (0.0005, 0.001, 0.001, 0.005, 0.1, 3.0):
+        seconds.observe(observed)
+    family = histogram("x_seconds", "x", seconds.to_dict())
+    assert {s.labels["le"]: s.value for s in family.samples if s.name == "x_seconds_bucket"} == \
+        {"0.001": 3, "0.01": 4, "0.1": 5, "+Inf": 6}
+    assert [s.value for s in family.samples if s.name == "x_seconds_sum"] == [pytest.approx(3.1075)]
+    with pytest.raises(ValueError):
+        Histogram((0.1, 0.01))

@@ -79,3 +79,17 @@ def test_the_learner_endpoint_is_off_by_default():
     assert cli.learner_config(args).metrics_bind == "0.0.0.0:9465"
     with pytest.raises(SystemExit):
         cli.parse_args(["serve", "--insecure", "--store", "s", "--metrics-bind", "9465"])
+
+
+def test_versions_refused_are_the_rounds_not_published():
+    from offload_cloud.learner.metrics import learner_families
+
+    stats = {"robots": {}, "pool_bytes_by_robot": {}, "pool_bytes": 0, "pool_budget_bytes": 1, "robot_budget_bytes": 1,
+             "evicted_bags": 0, "evicted_bytes": 0, "round_errors": 1, "new_rows": 7,
+             "store": {"rounds": 5, "versions": 3, "fleet_pinned": True, "pins": {"a": "v"}}}
+    figures = {s.name: s.value for family in learner_families(stats) for s in family.samples}
+    assert figures["offload_learner_training_rounds_total"] == 5
+    assert figures["offload_learner_versions_published_total"] == 3
+    assert figures["offload_learner_versions_refused_total"] == 2
+    assert figures["offload_learner_training_round_errors_total"] == 1
+    assert figures["offload_learner_fleet_pinned"] == 1 and figures["offload_learner_robots_pinned"] == 1
