@@ -147,6 +147,9 @@ def test_requests_that_waited_past_max_wait_get_busy_instead_of_a_late_plan(key_
         server.stop()
     assert sorted(reply.request_id for reply in replies) == [0, 1, 2]
     assert all(reply.status == Status.BUSY and "--max-wait-s" in reply.message for reply in replies)
+    # STATS and the metrics count them as BUSY for having waited; the upload and the three waited in the queue.
+    assert server.admission.busy == {"waited": 3} and sum(server.queue_seconds.counts) == 4
+    assert sum(server.plan_seconds.counts) == 0   # an upload is no plan
 
 
 def _flood(endpoint, messages, wait_s=60.0):
