@@ -1,5 +1,6 @@
-"""The Grafana dashboard in deploy/grafana: a valid dashboard model whose every query names a metric the cloud
-server or the fleet learner exports (HAProxy's names are checked against its exporter in test_deploy.py)."""
+"""The metric names others rely on are the ones exported: the Grafana dashboard in deploy/grafana (a valid dashboard
+model whose every query names a metric the cloud server or the fleet learner exports; HAProxy's names are checked
+against its exporter in test_deploy.py) and the `curl .../metrics` output README_cloud shows."""
 import json
 import re
 from pathlib import Path
@@ -12,7 +13,8 @@ from offload_cloud.metrics_server import server_families
 
 from cloud_test_helpers import start_server
 
-DASHBOARD = Path(__file__).resolve().parents[1] / "deploy" / "grafana" / "offload-cloud.json"
+PACKAGE = Path(__file__).resolve().parents[1]
+DASHBOARD = PACKAGE / "deploy" / "grafana" / "offload-cloud.json"
 _SUFFIXES = {"counter": ("_total",), "gauge": ("",), "histogram": ("_bucket", "_sum", "_count")}
 
 
@@ -76,3 +78,16 @@ def test_every_query_names_an_exported_metric(offload_names):
 
 def test_the_check_catches_a_misspelt_metric(offload_names):
     assert "offload_cloud_replys_total" not in offload_names and "offload_cloud_replies_total" in offload_names
+
+
+def test_the_readme_shows_exported_metrics_with_their_labels(offload_names):
+    text = (PACKAGE / "README.md").read_text()
+    section = text.split("## Prometheus metrics (`--metrics-bind`)\n", 1)[1].split("\n## ", 1)[0]
+    shown = [line for block in re.findall(r"```\n(.*?)```", section, re.S) for line in block.splitlines()
+             if line.startswith("offload_")]
+    assert len(shown) > 40
+    for line in shown:
+        name = re.match(r"(offload_\w+)(\{[^}]*\})? [-+.e\d]+$", line)
+        assert name and name.group(1) in offload_names, line
+        labels = re.findall(r'(client|robot)="([^"]*)"', line)
+        assert all(re.fullmatch("[0-9a-f]{16}", value) for _, value in labels), line
