@@ -201,3 +201,35 @@ def test_histogram_buckets_follow_prometheus_le():
     assert [s.value for s in family.samples if s.name == "x_seconds_sum"] == [pytest.approx(3.1075)]
     with pytest.raises(ValueError):
         Histogram((0.1, 0.01))
+
+
+def test_a_taken_metrics_port_fails_the_start_and_a_failed_start_leaves_it_free(tmp_path):
+    import socket
+
+    from cloud_test_helpers import free_port
+    from offload_cloud.server import CloudServer
+    from offload_cloud.server_cli import main
+
+    taken = socket.socket()
+    taken.bind(("127.0.0.1", 0))
+    taken.listen()
+    port = taken.getsockname()[1]
+    try:
+        with pytest.raises(OSError):
+            CloudServer(ServerConfig(bind="tcp://127.0.0.1:0", insecure=True, metrics_bind=f"127.0.0.1:{port}"))
+        assert main(["--insecure", "--bind", "tcp://127.0.0.1:0", "--metrics-bind", f"127.0.0.1:{port}"]) == 2
+    finally:
+        taken.close()
+    # The robots' port is taken: the endpoint opened first is closed again, its port free for the next start.
+    metrics_port = free_port()
+    with zmq.Context() as context, context.socket(zmq.ROUTER) as squatter:
+        squatter.bind(f"tcp://127.0.0.1:{free_port()}")
+        endpoint = squatter.last_endpoint.decode()
+        with pytest.raises(zmq.ZMQError):
+            CloudServer(ServerConfig(bind=endpoint, insecure=True, metrics_bind=f"127.0.0.1:{metrics_port}"))
+        squatter.close(0)
+    server = start_server(metrics_bind=f"127.0.0.1:{metrics_port}")
+    try:
+        assert value(scrape(server.metrics.address), "offload_cloud_up") == 1
+    finally:
+        server.stop()

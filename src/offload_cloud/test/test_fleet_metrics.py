@@ -93,3 +93,26 @@ def test_versions_refused_are_the_rounds_not_published():
     assert figures["offload_learner_versions_refused_total"] == 2
     assert figures["offload_learner_training_round_errors_total"] == 1
     assert figures["offload_learner_fleet_pinned"] == 1 and figures["offload_learner_robots_pinned"] == 1
+
+
+def test_a_failed_start_leaves_the_metrics_port_free(tmp_path):
+    import zmq
+
+    from cloud_test_helpers import free_port
+
+    metrics_port = free_port()
+    with zmq.Context() as context, context.socket(zmq.ROUTER) as squatter:
+        squatter.bind(f"tcp://127.0.0.1:{free_port()}")
+        config = LearnerConfig(bind=squatter.last_endpoint.decode(), insecure=True, store=str(tmp_path / "store"),
+                               metrics_bind=f"127.0.0.1:{metrics_port}")
+        with pytest.raises(zmq.ZMQError):
+            FleetLearner(config).start()
+        squatter.close(0)
+    config.bind = "tcp://127.0.0.1:0"
+    service = FleetLearner(config)
+    service.start()
+    try:
+        assert service.metrics.address == f"127.0.0.1:{metrics_port}"
+        assert value(scrape(service.metrics.address), "offload_learner_pool_bytes") == 0
+    finally:
+        service.stop()

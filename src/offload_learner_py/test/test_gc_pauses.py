@@ -47,6 +47,7 @@ def test_the_cloud_bridge_freezes_its_heap_before_it_serves(monkeypatch):
 
 class FakeServer:
     endpoint = "tcp://127.0.0.1:1"
+    metrics = None   # no --metrics-bind
 
     def __init__(self, calls):
         self.calls = calls

@@ -63,6 +63,9 @@ class CloudServer:
         # Bytes a connection may receive beyond its last delivered message: the unread messages libzmq
         # may hold for it (receive HWM), one more being received, and framing.
         self.connection_limit_bytes = (config.receive_hwm + 1) * config.max_message_bytes + GUARD_SLACK_BYTES
+        # The broker hands its counters to a metrics scrape; no endpoint (None) unless --metrics-bind. First: a
+        # taken port fails here, before anything else is open.
+        self.snapshots, self.metrics = open_endpoint(config.metrics_bind)
         self._stop = threading.Event()
         self._reload = threading.Event()
         self._ready = threading.Event()
@@ -89,8 +92,6 @@ class CloudServer:
         self.counts = collections.Counter()     # requests, pings, stats (broker thread only)
         self.refused = collections.Counter()    # connections and messages refused without a reply, by reason
         self.plan_seconds, self.queue_seconds = Histogram(), Histogram()   # dispatch to reply; arrival to dispatch
-        # The broker hands its counters to a metrics scrape; no endpoint (None) unless --metrics-bind.
-        self.snapshots, self.metrics = open_endpoint(config.metrics_bind)
         self.replies = collections.Counter()    # status name -> replies to plans, uploads and bad messages
         self._key_names = {}                    # Z85 public key -> allowlist name (file stem)
         self._idle = ()                         # the broker's idle workers (for the rate limit)
@@ -159,17 +160,18 @@ class CloudServer:
             self._monitor.close(0)
             self._frontend.close(0)
             self.guard.watch.close()
-            if self.metrics is not None:
-                self.metrics.close()
             self._close_context()
             LOG.info("stopped; cache hits %d, misses %d, evictions %d; %s", self.cache.hits, self.cache.misses,
                      self.cache.evictions, self.stats_line(self.stats()))
 
     def _close_context(self) -> None:
+        """Closes what the sockets share: the authenticator, the context, the metrics endpoint."""
         if self._auth is not None:
             self._auth.stop()
             self._auth = None
         self._context.term()
+        if self.metrics is not None:
+            self.metrics.close()
 
     def _do_reload(self) -> None:
         if self._auth is None:

@@ -78,9 +78,17 @@ class FleetLearner:
         socket.linger = 0
         socket.setsockopt(zmq.MAXMSGSIZE, protocol.MAX_ROWS_BYTES + 4096)
         socket.rcvhwm = 8
-        if not self.config.insecure:
-            self._auth = curve_server(self._context, socket, self.config.keys_dir, self._log_limited)
-        self.endpoint = bind(socket, self.config.bind)
+        try:
+            if not self.config.insecure:
+                self._auth = curve_server(self._context, socket, self.config.keys_dir, self._log_limited)
+            self.endpoint = bind(socket, self.config.bind)
+        except BaseException:   # bad keys, a taken port: nothing of this start stays open
+            socket.close(0)
+            if self._auth is not None:
+                self._auth.stop()
+            if self.metrics is not None:
+                self.metrics.close()
+            raise
         self._socket = socket
         for target in (self._serve, self._train):
             thread = threading.Thread(target=target, daemon=True, name=f"learner-{target.__name__}")
