@@ -56,6 +56,10 @@ class Policy(ABC):
     def flush(self) -> Optional[float]:
         return None
 
+    def observe(self, state: State, local_s: Optional[float], cloud_s: Optional[float]) -> None:
+        """The measured latencies of a routed request (None for a side not run or not plannable). Only a rule
+        that predicts latencies reads them."""
+
     @property
     def warming_up(self) -> bool:
         """Still collecting its first transitions: a deployed router probes every request meanwhile."""
@@ -159,6 +163,72 @@ class InputSizeThreshold(Policy):
 
     def decide(self, state):
         return Decision(int(self._actions(state.input_size)), 1.0)
+
+
+class LatencyBound(Policy):
+    """Offload when the predicted cloud latency is below the predicted local one, as FogROS2-LS routes each request
+    to the side with the lowest latency bound. Cloud: the link's last round trip b_t plus the cloud's planning time;
+    local: the robot's planning time, which its CPU budget stretches by 1 / u_t. Each side's planning time is
+    modelled as a rate per unit of d_t (the planning work the state measures), an average over that side's recent
+    measured plans (`observe`, the cloud's less its round trip), so it is the current map's: d_t is normalised by
+    the map's cell count, and after a map change the recent plans are the new map's within a few requests. Until a
+    side has `min_samples` plans it is tried (the one with fewer first): a bound needs a measurement."""
+    name = "latency_bound"
+
+    def __init__(self, recency: float = 0.2, min_samples: int = 3, d_floor: float = 0.05,
+                 u_floor: float = 0.05, name: Optional[str] = None):
+        if not (0.0 < recency <= 1.0 and min_samples >= 1 and d_floor > 0 and 0.0 < u_floor <= 1.0):
+            raise ValueError("latency_bound needs recency in (0, 1], min_samples >= 1, d_floor > 0 and u_floor in "
+                             f"(0, 1], got {recency}, {min_samples}, {d_floor}, {u_floor}")
+        self.recency, self.min_samples, self.d_floor, self.u_floor = recency, min_samples, d_floor, u_floor
+        self.name = name or self.name
+        self.seconds_per_d = {LOCAL: None, CLOUD: None}   # planning s per unit d_t (local: at full CPU)
+        self.samples = {LOCAL: 0, CLOUD: 0}
+        self._lock = threading.Lock()
+
+    def _work(self, input_size: float) -> float:
+        return max(input_size, self.d_floor)
+
+    def _speed(self, cpu_availability: float) -> float:
+        return min(max(cpu_availability, self.u_floor), 1.0)
+
+    def predicted_s(self, state: State) -> Tuple[Optional[float], Optional[float]]:
+        """(local, cloud) predicted latency of a request; None for a side not measured yet."""
+        local, cloud = self.seconds_per_d[LOCAL], self.seconds_per_d[CLOUD]
+        work = self._work(state.input_size)
+        return (None if local is None else local * work / self._speed(state.cpu_availability),
+                None if cloud is None else state.round_trip_s + cloud * work)
+
+    def observe(self, state, local_s, cloud_s):
+        work = self._work(state.input_size)
+        with self._lock:
+            for side, rate in ((LOCAL, None if local_s is None else local_s * self._speed(state.cpu_availability)),
+                               (CLOUD, None if cloud_s is None else max(cloud_s - state.round_trip_s, 0.0))):
+                if rate is None or not math.isfinite(rate):
+                    continue
+                previous = self.seconds_per_d[side]
+                value = rate / work
+                self.seconds_per_d[side] = value if previous is None else previous + self.recency * (value - previous)
+                self.samples[side] += 1
+
+    def _action(self, state) -> int:
+        with self._lock:
+            if min(self.samples.values()) < self.min_samples:
+                return LOCAL if self.samples[LOCAL] <= self.samples[CLOUD] else CLOUD
+            local_s, cloud_s = self.predicted_s(state)
+        return CLOUD if cloud_s < local_s else LOCAL
+
+    def choose(self, table):
+        """Offline: each row decided with the estimates of the rows before it, then its latencies observed."""
+        actions = np.empty(len(table), dtype=np.int64)
+        for k, (state, local_s, cloud_s) in enumerate(zip(table.states, table.local_s, table.cloud_s)):
+            row = State(*state)
+            actions[k] = self._action(row)
+            self.observe(row, float(local_s), float(cloud_s))
+        return actions
+
+    def decide(self, state):
+        return Decision(self._action(state), 1.0)
 
 
 class DQNPolicy(Policy):

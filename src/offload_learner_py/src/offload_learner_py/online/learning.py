@@ -130,6 +130,7 @@ class OnlineLearner:
         if cloud_measured:
             self.models[CLOUD].observe(state, outcome.cloud_s)
         cloud_s = outcome.cloud_s if cloud_measured else None
+        self.policy.observe(outcome.state, local_s, outcome.cloud_s if cloud_ok else None)   # a rule's predictions
         if local_s is None and cloud_s is None:
             return     # nothing measured about planning (a refused request, a stale map, a dead local planner)
         if local_s is None and outcome.local is not None:

@@ -9,11 +9,11 @@ from typing import Optional, Tuple
 from offload_learner_py.core.checkpoint import load_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
-from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, Policy, \
-    RandomPolicy
+from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, LatencyBound, \
+    Policy, RandomPolicy
 from offload_learner_py.online.router_types import DEPLOYED
 
-POLICIES = ("dqn", "local", "cloud", "random", "threshold")
+POLICIES = ("dqn", "local", "cloud", "random", "threshold", "latency_bound")
 LOG = logging.getLogger("offload_learner_py.online.session")
 
 
@@ -66,6 +66,8 @@ def make_policy(config: SessionConfig, log: logging.Logger = LOG) -> Tuple[Polic
         return RandomPolicy(config.seed), None
     if config.policy == "threshold":
         return InputSizeThreshold(config.threshold_input_size, name="threshold"), None
+    if config.policy == "latency_bound":
+        return LatencyBound(), None
     dqn = DQNConfig.from_dict({"seed": config.seed, **config.dqn})
     source = config.checkpoint if config.checkpoint and os.path.exists(config.checkpoint) else config.model
     if source:
