@@ -28,6 +28,8 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
     if len(table):
         figures["probe_oracle_mean_s"] = float(np.minimum(table.local_s, table.cloud_s).mean())
         figures["probe_steps"] = len(table)
+        # Both sides of every probe, for the hindsight threshold search (offload_demos.hindsight); popped by the bench
+        figures["probe_rows"] = (table.input_size, table.local_s, table.cloud_s)
     log = data.log
     answered = np.asarray(log["has_outcome"], dtype=bool)
     delivered_s = np.asarray(log["outcome_delivered_s"], dtype=np.float64)

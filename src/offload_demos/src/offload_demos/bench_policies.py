@@ -10,13 +10,19 @@ every run. (Paced by the answers instead, a slower policy met later, other parts
 - local, cloud: always plan on the robot / always offload (deployed, no probes);
 - hedge: both sides on every request, the caller gets the first good path (learning mode, frozen policy);
 - threshold: offload above the paper's input-size threshold;
+- threshold_best: the same rule at the best threshold in hindsight: the one of an exhaustive grid with the lowest
+  mean latency on the hedge run's probes (both sides measured, offload_demos.hindsight), then run live;
+- latency_bound: offload when the last round trip plus the cloud's recent planning time is below the robot's
+  predicted planning time, as FogROS2-LS routes by a latency bound (deployed, the learner's default probe rate);
 - dqn: the DQN deployed as it ships (at the learner's default probe rate): the robot decides and never trains, a
   fleet learner on the cloud side (offload-cloud-learner) pools its rows, trains and publishes model versions that
   reach the robot as they would in the field. Both start from a learning run on the same map: the robot from its
   checkpoint, the fleet learner from its bag (a first version trained from it before the requests begin);
 - dqn_hedge: the same with the deadline hedge.
 
-It reports, per policy, latency as the caller saw it (mean, p50, p95, p99), robot planning CPU-seconds and
+SCENARIO (--scenario, offload_demos.scenario): the conditions, a named one (stationary, the default and the demo's
+conditions; handover, load-shift, map-switch, drift) or a YAML file; every run, the learning run included, gets the
+same scenario arguments. It reports, per policy, latency as the caller saw it (mean, p50, p95, p99), robot planning CPU-seconds and
 link bytes per request, paths delivered and cloud timeouts, with the oracle measured on the hedge run's
 probes (both sides every request). A second scenario stops the cloud link for 30 s mid-run (the WAN
 emulator drops everything) while the RTT trace jumps, and reports the worst wait and how many requests
@@ -30,20 +36,22 @@ import subprocess
 import sys
 import time
 
-import numpy as np
-
 from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos.bench_measure import measure
-from offload_demos.bench_report import format_table, plot
+from offload_demos.bench_report import format_scenario_table, format_table, plot, scenario_rows
+from offload_demos.hindsight import best_threshold
+from offload_demos.scenario import NAMED, ScenarioError, load_scenario
 from offload_learner_py.online.router_types import RouterConfig
 from offload_demos.driver import LINK_PROFILES
 
-POLICIES = ("local", "cloud", "hedge", "threshold", "dqn", "dqn_hedge")
+POLICIES = ("local", "cloud", "hedge", "threshold", "threshold_best", "latency_bound", "dqn", "dqn_hedge")
 RUNS = {
     "local": ["--policy", "local", "--mode", "deployed", "--probe-rate", "0"],
     "cloud": ["--policy", "cloud", "--mode", "deployed", "--probe-rate", "0"],
     "hedge": ["--policy", "local", "--mode", "learning", "--learn", "false"],
     "threshold": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],
+    "threshold_best": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],   # + its learner config
+    "latency_bound": ["--policy", "latency_bound", "--mode", "deployed"],
     "dqn": ["--policy", "dqn", "--mode", "deployed", "--fleet"],
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--hedge", "--fleet"],
 }
@@ -52,14 +60,36 @@ FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "r
           "robot_workload_cpu_s_per_request", "robot_cpu", "link_bytes_per_request", "cloud_timeouts", "cloud_share")
 
 
+def demo_command(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra) -> list:
+    """The driver's command line of one run."""
+    command = [sys.executable, "-m", "offload_demos.driver", "--launch", launch, "--steps", str(steps),
+               "--seed", str(seed), "--runs-dir", str(runs_dir), "--no-report", *extra]
+    return command + (["--map", map_yaml] if map_yaml else [])
+
+
+def conditions(args, scenario) -> list:
+    """The driver options that set what the requests meet, one list for every run of the bench (the test checks the
+    schedule they make is the same request by request for every policy). The stationary scenario passes only its
+    link, as before scenarios: the demo's conditions, unchanged."""
+    given = ["--scenario", str(scenario.path)] if (scenario.rtt_trace or scenario.load or scenario.maps) else []
+    return given + (["--link", args.link or scenario.link] if not scenario.rtt_trace else []) + [
+        "--goal-rate-hz", f"{args.goal_rate_hz:g}", "--start-lead-s", f"{args.start_lead_s:g}"] + (
+        ["--plan-unknown"] if args.plan_unknown else [])
+
+
+def policy_args(name: str, scenario_args: list, model: list, threshold_config: str = "") -> list:
+    """One policy's driver options: how it routes, then the bench's conditions."""
+    extra = RUNS[name] + (model if name.startswith("dqn") else [])
+    if name == "threshold_best":
+        extra = extra + ["--learner-config", threshold_config]
+    return extra + scenario_args
+
+
 def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra,
              progress: str = "") -> pathlib.Path:
     """One live run of the demo stack; the run directory it wrote. `progress` ("3/8, about 6 min left")
     heads the line that announces it."""
-    command = [sys.executable, "-m", "offload_demos.driver", "--launch", launch, "--steps", str(steps),
-               "--seed", str(seed), "--runs-dir", str(runs_dir), "--no-report", *extra]
-    if map_yaml:
-        command += ["--map", map_yaml]
+    command = demo_command(launch, runs_dir, steps, seed, map_yaml, extra)
     print(f"bench-policies {progress}:" if progress else "bench-policies:", " ".join(command[3:]), flush=True)
     completed = subprocess.run(command, stdout=subprocess.PIPE, stderr=subprocess.STDOUT, text=True)
     (runs_dir / "demo.log").write_text(completed.stdout)
@@ -73,9 +103,12 @@ def main(argv=None) -> int:
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--launch", default="launch/offload_demo.launch")
     parser.add_argument("--map", default="", help="map_server YAML (default: the demo's, the nav2 warehouse)")
-    parser.add_argument("--link", choices=LINK_PROFILES, default="edge", help="the demo's link profile")
+    parser.add_argument("--scenario", default="stationary",
+                        help=f"{', '.join(NAMED)} or a scenario YAML file (offload_demos/scenarios/ shows the form)")
+    parser.add_argument("--link", choices=LINK_PROFILES, help="the demo's link profile (default: the scenario's)")
     parser.add_argument("--plan-unknown", action="store_true", help="plan and draw goals through unknown cells")
-    parser.add_argument("--steps", type=bounded_int("--steps", 10, 100000), default=200)
+    parser.add_argument("--steps", type=bounded_int("--steps", 10, 100000), help="requests per run (default: the "
+                        "scenario's: 200 for stationary)")
     parser.add_argument("--seed", type=int, default=1)
     parser.add_argument("--policies", default=",".join(POLICIES), help="comma list of " + ",".join(POLICIES))
     parser.add_argument("--checkpoint", default="", help="DQN checkpoint to deploy (default: a learning run first)")
@@ -107,19 +140,34 @@ def main(argv=None) -> int:
     outage = [name for name in args.outage_policies.split(",") if name]
     if unknown or set(outage) - set(POLICIES):
         parser.error(f"unknown policies {unknown or sorted(set(outage) - set(POLICIES))}; choose from {','.join(POLICIES)}")
+    if "threshold_best" in policies + outage and "hedge" not in policies[:policies.index("threshold_best")
+                                                                       if "threshold_best" in policies else None]:
+        parser.error("threshold_best is chosen on the hedge run's probes: list hedge before it")
+    try:
+        scenario = load_scenario(args.scenario)
+    except ScenarioError as error:
+        parser.error(str(error))
+    if scenario.rtt_trace and args.link:
+        parser.error(f"scenario {scenario.name} names its own RTT trace: drop --link")
+    if scenario.maps and args.map:
+        parser.error(f"scenario {scenario.name} names its maps: drop --map")
+    args.steps = args.steps or scenario.steps
     out = pathlib.Path(args.runs_dir).resolve() / time.strftime("bench-policies-%Y%m%d-%H%M%S")
     out.mkdir(parents=True)
     map_yaml = os.path.abspath(args.map) if args.map else ""
-    scenario = ["--link", args.link, "--goal-rate-hz", f"{args.goal_rate_hz:g}", "--start-lead-s",
-                f"{args.start_lead_s:g}"] + (["--plan-unknown"] if args.plan_unknown else [])
+    scenario_args = conditions(args, scenario)
+    threshold_config = str(out / "threshold_best_learner.yaml")
     checkpoint = os.path.abspath(args.checkpoint) if args.checkpoint else ""
     seed_bag = os.path.abspath(args.seed_bag) if args.seed_bag else ""
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
         learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
-                            ["--policy", "dqn", "--mode", "learning", *scenario])
+                            ["--policy", "dqn", "--mode", "learning", *scenario_args])
         checkpoint, seed_bag = str(learning / "checkpoint.pt"), seed_bag or str(learning / "offload.bag")
-    results = {"map": map_yaml or "nav2_warehouse (bundled)", "map_name": pathlib.Path(map_yaml).stem or "warehouse",
-               "link": args.link, "plan_unknown": args.plan_unknown,
+    results = {"scenario": scenario.name, "scenario_file": str(scenario.path),
+               "map": " / ".join(path for path, _ in scenario.maps) or map_yaml or "nav2_warehouse (bundled)",
+               "map_name": "+".join(pathlib.Path(path).stem for path, _ in scenario.maps) or pathlib.Path(map_yaml).stem
+               or "warehouse", "link": str(scenario.rtt_trace or args.link or scenario.link),
+               "plan_unknown": args.plan_unknown, "threshold_best": None, "gap_closed": {},
                "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
                "goal_rate_hz": args.goal_rate_hz, "start_lead_s": args.start_lead_s, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
@@ -134,14 +182,26 @@ def main(argv=None) -> int:
     run_dirs = {name: [] for name in policies}
     for repeat in range(args.repeats):
         for index, name in enumerate(policies):
-            extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario
+            extra = policy_args(name, scenario_args, model, threshold_config)
             where = out / name if args.repeats == 1 else out / name / f"repeat{repeat + 1}"
             run_dirs[name].append(run_demo(args.launch, where, args.steps, args.seed, map_yaml, extra,
                                            progress(repeat * len(policies) + index)))
+            if name == "hedge" and repeat == 0:
+                # The best fixed d_t rule on this run's probes, for threshold_best's live runs.
+                probes = measure(run_dirs[name][0], args.cloud_timeout_s).get("probe_rows")
+                if probes is None:
+                    raise RuntimeError(f"the hedge run {run_dirs[name][0]} has no probe with both sides measured")
+                search = best_threshold(*probes)
+                results["threshold_best"] = search.as_dict()
+                pathlib.Path(threshold_config).write_text(f"threshold_input_size: {search.threshold!r}\n")
+                print(f"threshold_best: offload when d_t > {search.threshold:.4g} ({100 * search.cloud_share:.0f} % "
+                      f"offloaded), {1e3 * search.mean_s:.1f} ms on the hedge run's probes, best of "
+                      f"{len(search.grid)} thresholds", flush=True)
             if repeat + 1 < args.repeats:
                 continue
             figures = measure(run_dirs[name], args.cloud_timeout_s)
             results["delivered_s"][name] = figures.pop("delivered_s")
+            figures.pop("probe_rows", None)
             results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
                                          "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
                                          "hedged": figures.get("hedged", 0), "slow_link_local": figures.get("slow_link_local", 0),
@@ -153,23 +213,28 @@ def main(argv=None) -> int:
             print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
     results["outage"] = {}
     for index, name in enumerate(outage, start=args.repeats * len(policies)):
-        extra = RUNS[name] + (model if name.startswith("dqn") else []) + scenario + [
+        extra = policy_args(name, scenario_args, model, threshold_config) + [
             "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
         figures = measure(run_demo(args.launch, out / f"outage-{name}", args.outage_steps, args.seed, map_yaml, extra,
                                    progress(index)), args.cloud_timeout_s)
         figures.pop("delivered_s")
+        figures.pop("probe_rows", None)
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
             "hedged", "breaker_open", "worst_wait_beyond_local_after_trip_s", "max_deadline_s", "run_dir",
             "cloud_failures", "slow_link_local")}
         results["outage"][name].update(outage_at_s=args.outage_at_s, outage_s=args.outage_s,
                                        outage_steps=args.outage_steps)
+    results["scenario_table"] = scenario_rows(results)
+    results["gap_closed"] = {row["policy"]: row["gap_closed"] for row in results["scenario_table"]}
     with open(out / "results.json", "w") as stream:
         json.dump({key: value for key, value in results.items() if key != "delivered_s"}, stream, indent=2)
     if results["policies"]:
         plot(results, out / "policies.png")
     print()
     print(format_table(results))
+    print()
+    print(format_scenario_table(results))
     if args.repeats > 1:
         for name, f in results["policies"].items():
             print(f"{name}: run means " + ", ".join(f"{1e3 * m:.1f}" for m in f["run_means_s"]) + " ms")

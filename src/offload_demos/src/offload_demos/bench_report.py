@@ -3,6 +3,8 @@ import pathlib
 
 import numpy as np
 
+from offload_demos.hindsight import gap_closed
+
 
 def _ms(value, width: int) -> str:
     return f"{'n/a':>{width}}" if value is None else f"{1e3 * value:>{width}.1f}"
@@ -41,11 +43,43 @@ def format_table(results: dict) -> str:
     return "\n".join(lines)
 
 
+def scenario_rows(results: dict) -> list:
+    """The scenario's report, a row per policy: mean, p99, the robot's total CPU per request and the share of the
+    gap between the best threshold in hindsight (its live run) and the oracle (the hedge run's probes) it closes."""
+    best = results["policies"].get("threshold_best", {}).get("mean_s")
+    rows = [{"policy": name, "mean_s": f["mean_s"], "p99_s": f["p99_s"],
+             "robot_total_cpu_s_per_request": f.get("robot_total_cpu_s_per_request"),
+             "gap_closed": gap_closed(best, f["mean_s"], results.get("oracle_mean_s"))}
+            for name, f in results["policies"].items()]
+    if results.get("oracle_mean_s") is not None:
+        rows.append({"policy": "oracle", "mean_s": results["oracle_mean_s"], "p99_s": None,
+                     "robot_total_cpu_s_per_request": None, "gap_closed": 1.0 if best is not None else None})
+    return rows
+
+
+def format_scenario_table(results: dict) -> str:
+    pick = results.get("threshold_best") or {}
+    lines = [f"scenario {results.get('scenario', 'stationary')}: {'policy':<15}{'mean ms':>9}{'p99 ms':>9}"
+             f"{'robot CPU ms/req':>18}{'gap closed':>12}   (gap: threshold_best's live mean to the oracle's; 1 is the "
+             "oracle, 0 the best fixed d_t rule, below 0 worse than it)"]
+    indent = " " * len(f"scenario {results.get('scenario', 'stationary')}: ")
+    for row in scenario_rows(results):
+        gap = row["gap_closed"]
+        lines.append(f"{indent}{row['policy']:<15}{_ms(row['mean_s'], 9)}{_ms(row['p99_s'], 9)}"
+                     f"{_ms(row['robot_total_cpu_s_per_request'], 18)}"
+                     f"{'n/a' if gap is None else f'{100 * gap:.0f} %':>12}")
+    if pick:
+        lines.append(f"{indent}threshold_best: d_t > {pick['threshold']:.4g} ({100 * pick['cloud_share']:.0f} % "
+                     f"offloaded), {1e3 * pick['hindsight_mean_s']:.1f} ms on the hedge run's probes (best of "
+                     f"{pick['grid_size']} thresholds)")
+    return "\n".join(lines)
+
+
 def plot(results: dict, path: pathlib.Path) -> None:
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
-    fig, (cdf, cpu) = plt.subplots(1, 2, figsize=(12, 4.5))
+    fig, (cdf, cpu, gap) = plt.subplots(1, 3, figsize=(18, 4.5))
     names = list(results["policies"])
     for name in names:
         values = np.sort(np.asarray(results["delivered_s"][name])) * 1e3
@@ -67,6 +101,23 @@ def plot(results: dict, path: pathlib.Path) -> None:
     cpu.set_ylabel("robot CPU per request (ms)")
     cpu.set_title("robot CPU per request (the workload's apart)")
     cpu.legend(fontsize="small")
+    rows = [row for row in scenario_rows(results) if row["policy"] != "oracle"]
+    means = [1e3 * row["mean_s"] for row in rows]
+    gap.bar(np.arange(len(rows)), means, 0.6, color="tab:blue", label="mean")
+    gap.plot(np.arange(len(rows)), [1e3 * row["p99_s"] for row in rows], "v", color="tab:red", label="p99")
+    for reference, label, style in ((results.get("oracle_mean_s"), "oracle (probes)", "--"),
+                                    (results["policies"].get("threshold_best", {}).get("mean_s"), "threshold_best", ":")):
+        if reference is not None:
+            gap.axhline(1e3 * reference, linestyle=style, color="black", label=label)
+    for k, row in enumerate(rows):
+        if row["gap_closed"] is not None:
+            gap.annotate(f"{100 * row['gap_closed']:.0f} %", (k, means[k]), ha="center", va="bottom", fontsize="small")
+    gap.set_xticks(np.arange(len(rows)))
+    gap.set_xticklabels([row["policy"] for row in rows], rotation=30)
+    gap.set_yscale("log")
+    gap.set_ylabel("delivered latency (ms)")
+    gap.set_title(f"scenario {results.get('scenario', 'stationary')}: share of the hindsight-threshold-to-oracle gap closed")
+    gap.legend(fontsize="small")
     fig.tight_layout()
     fig.savefig(path, dpi=110)
     plt.close(fig)

@@ -101,6 +101,17 @@ def check_options(args) -> str:
         return f"MODEL {args.model}: no such file"
     if args.fleet and (args.policy != "dqn" or args.mode != "deployed"):
         return "--fleet is the deployed DQN's: pass --policy dqn --mode deployed"
+    learner_config, scenario_name = getattr(args, "learner_config", ""), getattr(args, "scenario", "")
+    if learner_config and not os.path.isfile(learner_config):
+        return f"--learner-config {learner_config}: no such file"
+    if scenario_name:
+        from offload_demos.scenario import ScenarioError, load_scenario
+        try:
+            scenario = load_scenario(scenario_name)
+        except ScenarioError as error:
+            return str(error)
+        if scenario.maps and args.map:
+            return f"scenario {scenario.name} names its maps: drop MAP"
     if args.fleet_seed_bag and not os.path.isfile(args.fleet_seed_bag):
         return f"--fleet-seed-bag {args.fleet_seed_bag}: no such file"
     return ""
@@ -144,7 +155,8 @@ def analyse(out_dir: pathlib.Path, policy: str) -> dict:
     return summary
 
 
-def main(argv=None) -> int:
+def build_parser() -> argparse.ArgumentParser:
+    """The driver's command line (bench-policies' tests read back the runs' conditions with it)."""
     parser = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     parser.add_argument("--launch", required=True, help="launch/offload_demo.launch")
     parser.add_argument("--steps", type=bounded_int("--steps", 1, 10_000_000),
@@ -182,6 +194,9 @@ def main(argv=None) -> int:
     parser.add_argument("--robot-core", default="0")
     parser.add_argument("--cloud-core", default="1")
     parser.add_argument("--rtt-profile", default="")
+    parser.add_argument("--scenario", default="",
+                        help="a bench-policies scenario (a name or a YAML file): its RTT trace, load schedule and maps")
+    parser.add_argument("--learner-config", default="", help="the learner's YAML in place of launch/config/learner.yaml")
     parser.add_argument("--goal-rate-hz", type=bounded_float("--goal-rate-hz", 0.0, 1000.0),
                         help="open-loop requests at this rate (unset or 0: the goal generator's pause after each "
                              "answer)")
@@ -190,7 +205,11 @@ def main(argv=None) -> int:
                              "the launch (time for every node to come up; 0: each on its own)")
     parser.add_argument("--rviz", action="store_true")
     parser.add_argument("--analyse-only", metavar="RUN_DIR", help="summarise an existing run directory")
-    args = parser.parse_args(argv)
+    return parser
+
+
+def main(argv=None) -> int:
+    args = build_parser().parse_args(argv)
     if args.analyse_only:
         analyse(pathlib.Path(args.analyse_only), args.policy)
         return 0
@@ -229,6 +248,18 @@ def main(argv=None) -> int:
         launch_args.append(f"map:={os.path.abspath(args.map)}")
     if args.model:
         launch_args.append(f"model:={os.path.abspath(args.model)}")
+    if args.scenario:
+        from offload_demos.scenario import load_scenario
+        scenario = load_scenario(args.scenario)
+        launch_args.append(f"scenario:={scenario.path}")
+        if scenario.maps:
+            launch_args.append("publish_map:=false")
+        if scenario.rtt_trace and not args.rtt_profile:
+            args.rtt_profile = str(scenario.rtt_trace)
+        elif scenario.link and not args.link:
+            launch_args.append(f"link:={scenario.link}")
+    if args.learner_config:
+        launch_args.append(f"learner_config:={os.path.abspath(args.learner_config)}")
     if args.rtt_profile:
         launch_args.append(f"rtt_profile:={os.path.abspath(args.rtt_profile)}")
     if args.fleet:

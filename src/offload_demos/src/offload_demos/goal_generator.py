@@ -10,7 +10,7 @@ from dataclasses import dataclass
 import numpy as np
 import rospy
 from geometry_msgs.msg import PoseStamped
-from nav_msgs.msg import OccupancyGrid
+from nav_msgs.msg import MapMetaData, OccupancyGrid
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 from rospy.numpy_msg import numpy_msg
 
@@ -59,6 +59,10 @@ class GoalGeneratorConfig:
     demo's clean end."""
     end_delay_s: float = 6.0
     """before that, time for the last outcome to be recorded."""
+    scenario: str = ""
+    """a bench-policies scenario file (offload_demos.scenario) whose map list this node publishes and follows: each
+    map for its requests, cycled, the pause before a new map's first request in the open-loop schedule; "": the
+    map topic's one map."""
 
 
 PARAMETERS = {name: (GoalGeneratorConfig, name) for name in GoalGeneratorConfig.__dataclass_fields__}
@@ -73,9 +77,61 @@ def pose(frame_id: str, xy) -> PoseStamped:
     return msg
 
 
+class GoalTarget:
+    """One map's goal draws: its frame, the seeded sampler over its start's reachable free cells, the start."""
+
+    def __init__(self, frame, sampler: GoalSampler, start_xy, frame_id: str):
+        self.frame, self.sampler, self.start_xy, self.frame_id = frame, sampler, start_xy, frame_id
+
+
+def goal_target(grid_msg, config: GoalGeneratorConfig, index: int = 0) -> GoalTarget:
+    """The goal draws on one map (ValueError when it is unusable). Map `index` of a scenario draws from its own
+    seeded stream, so each map's goals are the same in every run whatever the other maps are."""
+    info = grid_msg.info
+    q = info.origin.orientation
+    checked, frame = check_map(info.width, info.height, len(grid_msg.data), info.resolution,
+                               info.origin.position.x, info.origin.position.y, (q.x, q.y, q.z, q.w))
+    if not checked.ok:
+        raise ValueError(f"the map is unusable: {checked.message}")
+    grid = np.ascontiguousarray(grid_msg.data, dtype=np.int8).reshape(info.height, info.width)
+    free = free_cells(grid, config.lethal_threshold, config.unknown_is_obstacle)
+    start_cell = None
+    if math.isfinite(config.start_x) and math.isfinite(config.start_y):
+        start_cell = frame.world_to_cell(config.start_x, config.start_y)
+        if start_cell is None:
+            raise ValueError(f"~start_x, ~start_y ({config.start_x}, {config.start_y}) m is off the map")
+    start_cell = default_start_cell(free, start_cell)
+    seed = config.seed if index == 0 else [config.seed, index]
+    sampler = GoalSampler(free, start_cell, seed, config.min_distance_m / info.resolution)
+    return GoalTarget(frame, sampler, frame.cell_to_world(*start_cell), grid_msg.header.frame_id or "map")
+
+
+def scenario_maps(config: GoalGeneratorConfig):
+    """The scenario and its maps as OccupancyGrid messages ((None, []) without a scenario or a map list)."""
+    if not config.scenario:
+        return None, []
+    from offload_demos.scenario import load_scenario
+    from offload_planner_cpp.maps import load_map
+    from offload_planner_cpp.nodes.map_publisher import to_message
+
+    scenario = load_scenario(config.scenario)
+    return scenario, [to_message(load_map(path), "map", rospy.Time.now()) for path, _ in scenario.maps]
+
+
+def publish_map(publishers, msg) -> float:
+    """Publish a scenario's map as in force from now (a fresh load time, which the learner's stale-map check
+    compares the planners' answers with); the CLOCK_MONOTONIC second it went out."""
+    map_pub, meta_pub = publishers
+    msg.header.stamp = msg.info.map_load_time = rospy.Time.now()
+    meta_pub.publish(msg.info)
+    map_pub.publish(msg)
+    return time.monotonic()
+
+
 def main():
     """Goal generator node: its parameters are GoalGeneratorConfig's fields.
-    Topics: subscribes map (nav_msgs/OccupancyGrid, once); publishes ~goal (geometry_msgs/PoseStamped).
+    Topics: subscribes map (nav_msgs/OccupancyGrid, once); publishes ~goal (geometry_msgs/PoseStamped); with a
+    ~scenario's map list, publishes map and map_metadata (latched) instead of subscribing.
     """
     rospy.init_node("goal_generator")
     config = GoalGeneratorConfig(**params.read(lambda name, default: rospy.get_param("~" + name, default),
@@ -85,36 +141,28 @@ def main():
     try:
         if not (math.isfinite(rate_hz) and rate_hz >= 0 and math.isfinite(epoch) and epoch >= 0):
             raise ValueError(f"~rate_hz and ~epoch must be finite and >= 0, got {rate_hz}, {epoch}")
-        grid_msg = rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=config.map_wait_s)
-        info = grid_msg.info
-        q = info.origin.orientation
-        checked, frame = check_map(info.width, info.height, len(grid_msg.data), info.resolution,
-                                   info.origin.position.x, info.origin.position.y, (q.x, q.y, q.z, q.w))
-        if not checked.ok:
-            raise ValueError(f"the map is unusable: {checked.message}")
-        grid = np.ascontiguousarray(grid_msg.data, dtype=np.int8).reshape(info.height, info.width)
-        free = free_cells(grid, config.lethal_threshold, config.unknown_is_obstacle)
-        start_x, start_y = config.start_x, config.start_y
-        start_cell = None
-        if math.isfinite(start_x) and math.isfinite(start_y):
-            start_cell = frame.world_to_cell(start_x, start_y)
-            if start_cell is None:
-                raise ValueError(f"~start_x, ~start_y ({start_x}, {start_y}) m is off the map")
-        start_cell = default_start_cell(free, start_cell)
-        sampler = GoalSampler(free, start_cell, config.seed, config.min_distance_m / info.resolution)
+        scenario, maps = scenario_maps(config)
+        targets = [goal_target(grid_msg, config, k) for k, grid_msg in enumerate(maps)] or \
+            [goal_target(rospy.wait_for_message("map", numpy_msg(OccupancyGrid), timeout=config.map_wait_s), config)]
+        publishers = None
+        if maps:   # this node is the map's publisher (the launch's map_publisher is off), latched as map_publisher's
+            publishers = (rospy.Publisher("map", numpy_msg(OccupancyGrid), queue_size=1, latch=True),
+                          rospy.Publisher("map_metadata", MapMetaData, queue_size=1, latch=True))
+            publish_map(publishers, maps[0])    # before the service: the learner serves once it has a map
         rospy.wait_for_service(service, timeout=config.service_wait_s)
     except (ValueError, rospy.ROSException) as error:
         rospy.logfatal("%s", error)
         raise SystemExit(1) from None
-    frame_id = grid_msg.header.frame_id or "map"
-    start_xy = frame.cell_to_world(*start_cell)
-    rospy.loginfo("goal generator: %s requests from (%.2f, %.2f) to random goals among %d reachable cells -> %s",
-                  count or "unbounded", start_xy[0], start_xy[1], sampler.reachable_cells, service)
+    for target in targets:
+        rospy.loginfo("goal generator: %s requests from (%.2f, %.2f) to random goals among %d reachable cells -> %s",
+                      count or "unbounded", *target.start_xy, target.sampler.reachable_cells, service)
+    current = 0
     goal_pub = rospy.Publisher("~goal", PoseStamped, queue_size=10, latch=True)
     plan = rospy.ServiceProxy(service, PlanPath, persistent=True)
     tolerance = config.tolerance
     sent = delivered = 0
     began = epoch if epoch > 0 else time.monotonic()
+    offsets = scenario.request_times(count, rate_hz) if maps and rate_hz > 0 and count > 0 else None
     if epoch > 0 and time.monotonic() > epoch + (1.0 / rate_hz if rate_hz > 0 else 0.0):
         rospy.logwarn("goal generator: ready %.1f s after the run's epoch: the first requests go at once to catch "
                       "up, and meet other moments of the run's schedules than in a run that started in time",
@@ -126,10 +174,21 @@ def main():
             rospy.sleep(left)
     while not rospy.is_shutdown() and (count <= 0 or sent < count):
         try:
-            wait_until(began + sent / rate_hz if rate_hz > 0 else began)
+            index = scenario.map_index(sent) if maps else 0
+            if index != current:
+                current = index
+                switched = publish_map(publishers, maps[index])
+                if offsets is None:    # paced by the answers: the pause alone
+                    wait_until(switched + scenario.map_settle_s)
+            if offsets is not None:
+                wait_until(began + offsets[sent])
+            else:
+                wait_until(began + sent / rate_hz if rate_hz > 0 else began)
         except rospy.ROSInterruptException:
             break
-        goal = pose(frame_id, frame.cell_to_world(*sampler.draw()))
+        target = targets[current]
+        frame_id, start_xy = target.frame_id, target.start_xy
+        goal = pose(frame_id, target.frame.cell_to_world(*target.sampler.draw()))
         goal_pub.publish(goal)
         try:
             response = plan(PlanPathRequest(start=pose(frame_id, start_xy), goal=goal, tolerance=tolerance))

@@ -27,6 +27,9 @@ class WorkloadNodeConfig:
     epoch: float = 0.0
     """CLOCK_MONOTONIC second at which the schedule starts, shared with the run's other schedules (goal
     generator, WAN emulator); 0: this node's start."""
+    scenario: str = ""
+    """a bench-policies scenario file (offload_demos.scenario): its load schedule replaces levels and phase_s
+    (a scenario without one keeps them)."""
 
 
 # robot_workload's ~name -> (dataclass, field), its default the field's.
@@ -83,6 +86,9 @@ def workload_main():
         schedule = LoadSchedule(**params.for_class(values, WORKLOAD_PARAMETERS, LoadSchedule))
         node = WorkloadNodeConfig(**params.for_class(values, WORKLOAD_PARAMETERS, WorkloadNodeConfig))
         budget_cores, processes, epoch = node.budget_cores, node.processes, node.epoch
+        if node.scenario:
+            from offload_demos.scenario import load_scenario
+            schedule = load_scenario(node.scenario).load_schedule(schedule.seed, schedule)
         if not budget_cores > 0 or processes < 1:
             raise ValueError(f"~budget_cores must be positive and ~processes >= 1, got {budget_cores}, {processes}")
         if not (math.isfinite(epoch) and epoch >= 0):
