@@ -38,7 +38,8 @@ help:
 	@echo "                    POLICY=, MODE=, HEDGE=1, SEED=, RVIZ=1, FLEET=1 (with POLICY=dqn MODE=deployed),"
 	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
-	@echo "make bench-policies every routing policy live on the same seeded conditions (MAP=, LINK=, STEPS=, SEED=, POLICIES=)"
+	@echo "make bench-policies every routing policy live on the same seeded conditions (SCENARIO=stationary|handover|load-shift|"
+	@echo "                    map-switch|drift|file.yaml, MAP=, LINK=, STEPS=, SEED=, POLICIES=, REPEATS=)"
 	@echo "make bench-fleet-learning robots that differ learning through one fleet learner vs alone (STEPS=, ROBOTS=, ARMS=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
@@ -130,12 +131,13 @@ demo: demo-options build
 		$(if $(FLEET),--fleet $(if $(SEED_BAG),--fleet-seed-bag $(SEED_BAG))) \
 		$(if $(filter free,$(UNKNOWN)),--plan-unknown)
 
-# Every routing policy live, decisions acting, on the demo's seeded conditions (about 2 min a policy at
-# STEPS=200, plus a learning run for the DQN and the link-failure scenario).
+# Every routing policy live, decisions acting, on the demo's seeded conditions or a SCENARIO's (about 2 min a policy
+# at STEPS=200, 3 min at the changing scenarios' 400-480, plus a learning run for the DQN and the link-failure run).
 bench-policies: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_policies $(if $(filter command line environment,$(origin STEPS)),--steps $(STEPS)) $(if $(SEED),--seed $(SEED)) \
 		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
-		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown) $(if $(REPEATS),--repeats $(REPEATS))
+		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown) $(if $(REPEATS),--repeats $(REPEATS)) \
+		$(if $(SCENARIO),--scenario $(SCENARIO))
 
 # Robots that differ (map, link, CPU budget) learning through one fleet learner against each learning alone, live,
 # one run at a time (STEPS= per run, default 400; ROBOTS=, ARMS=). The fleet arm and the bad model say n/a until

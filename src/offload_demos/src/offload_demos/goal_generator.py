@@ -176,10 +176,14 @@ def main():
         try:
             index = scenario.map_index(sent) if maps else 0
             if index != current:
+                # Half-way through the pause: the previous request's slower side (a probe's, a hedge's) has had
+                # time to start on the map it was drawn on, and the planners have the rest to take the new one.
+                if offsets is not None:
+                    wait_until(began + offsets[sent] - scenario.map_settle_s / 2)
                 current = index
                 switched = publish_map(publishers, maps[index])
                 if offsets is None:    # paced by the answers: the pause alone
-                    wait_until(switched + scenario.map_settle_s)
+                    wait_until(switched + scenario.map_settle_s / 2)
             if offsets is not None:
                 wait_until(began + offsets[sent])
             else:

@@ -9,9 +9,10 @@ How a schedule meets the same request in every policy's run. The link and the lo
 that never see a request (the WAN emulator delays bytes, the workload burns CPU), so they are keyed to the run's
 clock: the driver sets one CLOCK_MONOTONIC epoch for the emulator, the workload and the goal generator, and the
 goal generator sends request k open-loop at its nominal time (`request_times`), whatever the policy's answers
-took. The map is keyed to the request index, by the goal generator that draws the goals: before the first request
-of a new map it publishes that map and pauses `map_settle_s` (a fixed pause, in every run alike, for the planner,
-the bridge and the learner to take it), which the nominal times include. `per_request` is that schedule, request by
+took. The map is keyed to the request index, by the goal generator that draws the goals: a new map's first request
+comes `map_settle_s` later than open-loop arrivals alone would send it (a fixed pause, in every run alike, which the
+nominal times include), and the goal generator publishes the map half-way through it (the previous request's
+slower side has started on its own map; the planners, the bridge and the learner have the rest to take the new one). `per_request` is that schedule, request by
 request: it is what every policy's run is given, and a test checks that bench-policies gives it to each alike."""
 import math
 import pathlib
