@@ -152,3 +152,10 @@ def test_a_load_schedule_loops_after_its_last_step_like_a_trace():
     assert [load.level_at(t) for t in (0, 29.9, 30, 89, 90, 125, 150, 215)] == [0.1, 0.1, 0.85, 0.85, 0.1, 0.1,
                                                                                 0.85, 0.1]
     assert StepLoad(((0.0, 0.4),)).level_at(1e6) == 0.4
+
+
+def test_the_schedule_lag_is_how_late_a_run_kept_the_open_loop_schedule():
+    nominal = [0.0, 0.25, 0.5, 0.75]
+    assert bench_policies.schedule_lag_s([[0.0, 0.25, 0.5, 0.75]], nominal) == pytest.approx(0.0)
+    assert bench_policies.schedule_lag_s([[0.0, 0.25, 0.5, 0.75], [0.0, 0.3, 1.4, 1.5]], nominal) == pytest.approx(0.9)
+    assert bench_policies.schedule_lag_s([], nominal) is None

@@ -54,3 +54,18 @@ def test_its_planning_estimate_follows_a_new_map_within_a_few_requests():
 def test_the_node_builds_it_by_name():
     policy, agent = make_policy(SessionConfig(policy="latency_bound"))
     assert isinstance(policy, LatencyBound) and agent is None and not policy.learns
+
+
+def test_the_online_learner_hands_it_every_measured_latency_and_nothing_else():
+    from routertools import ERROR, OK, STATE, STATUSES
+    from test_learning import outcome
+    from offload_learner_py.online.learning import OnlineLearner
+
+    rule = LatencyBound()
+    learner = OnlineLearner(rule, STATUSES)
+    learner.learn(outcome(local=(OK, 0.2), cloud=(OK, STATE.round_trip_s + 0.05)))      # a probe: both sides
+    learner.learn(outcome(action=LOCAL, local=(OK, 0.1), cloud=None, probe=False))     # deployed: local alone
+    learner.learn(outcome(local=None, cloud=(ERROR, 0.01), probe=False))                # a failed cloud plans nothing
+    assert rule.samples == {LOCAL: 2, CLOUD: 1}
+    work = max(STATE.input_size, rule.d_floor)
+    assert rule.seconds_per_d[CLOUD] == pytest.approx(0.05 / work)

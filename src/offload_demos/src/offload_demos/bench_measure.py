@@ -63,6 +63,10 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
     figures["robot_cpu"] = robot_cpu.pool(runs)
     for name in ("total", "workload"):
         figures[f"robot_{name}_cpu_s_per_request"] = (figures["robot_cpu"] or {}).get(f"{name}_cpu_s_per_request")
+    # Each run's request arrivals at the learner, seconds after its first: how closely they kept the open-loop schedule.
+    stamps = np.asarray(log["stamp_ns"], dtype=np.float64)
+    figures["arrivals_s"] = [((stamps[bag_of == k] - stamps[bag_of == k].min()) / 1e9).tolist()
+                             for k in range(len(order)) if np.any(bag_of == k)]
     if len(run_dirs) > 1:     # each run's mean: the spread between repeats is the noise of the machine
         run = np.asarray(log["bag"])[answered]        # index into the reader's (sorted) bag list
         figures["run_means_s"] = [float(delivered_s[answered][run == order.index(str(run_dir / "offload.bag"))].mean())

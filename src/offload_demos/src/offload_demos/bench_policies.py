@@ -85,6 +85,14 @@ def policy_args(name: str, scenario_args: list, model: list, threshold_config: s
     return extra + scenario_args
 
 
+def schedule_lag_s(arrivals, nominal) -> float:
+    """How late, at most, a run's requests arrived against the open-loop schedule (each run from its first request):
+    above one inter-arrival a policy's answers held its requests back, and they met later moments of the link and
+    the load than the other policies' did."""
+    lags = [arrived - planned + nominal[0] for run in arrivals for arrived, planned in zip(run, nominal)]
+    return max(lags) if lags else None
+
+
 def run_demo(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra,
              progress: str = "") -> pathlib.Path:
     """One live run of the demo stack; the run directory it wrote. `progress` ("3/8, about 6 min left")
@@ -202,10 +210,11 @@ def main(argv=None) -> int:
             figures = measure(run_dirs[name], args.cloud_timeout_s)
             results["delivered_s"][name] = figures.pop("delivered_s")
             figures.pop("probe_rows", None)
+            lag = schedule_lag_s(figures.pop("arrivals_s", []), scenario.request_times(args.steps, args.goal_rate_hz))
             results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
                                          "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
                                          "hedged": figures.get("hedged", 0), "slow_link_local": figures.get("slow_link_local", 0),
-                                         "run_means_s": figures.get("run_means_s")}
+                                         "run_means_s": figures.get("run_means_s"), "schedule_lag_max_s": lag}
             if name == "hedge":
                 results["oracle_mean_s"] = figures.get("probe_oracle_mean_s")
                 results["oracle_cloud_share"] = figures["cloud_share"]
@@ -219,6 +228,7 @@ def main(argv=None) -> int:
                                    progress(index)), args.cloud_timeout_s)
         figures.pop("delivered_s")
         figures.pop("probe_rows", None)
+        figures.pop("arrivals_s", None)
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",
             "hedged", "breaker_open", "worst_wait_beyond_local_after_trip_s", "max_deadline_s", "run_dir",
@@ -235,6 +245,10 @@ def main(argv=None) -> int:
     print(format_table(results))
     print()
     print(format_scenario_table(results))
+    for name, f in results["policies"].items():
+        if f.get("schedule_lag_max_s") is not None and f["schedule_lag_max_s"] > 1.0 / args.goal_rate_hz:
+            print(f"warning: {name}'s requests arrived up to {f['schedule_lag_max_s']:.2f} s behind the open-loop "
+                  "schedule (its answers held them back): they met later moments of the link and the load")
     if args.repeats > 1:
         for name, f in results["policies"].items():
             print(f"{name}: run means " + ", ".join(f"{1e3 * m:.1f}" for m in f["run_means_s"]) + " ms")
