@@ -159,3 +159,10 @@ def test_the_schedule_lag_is_how_late_a_run_kept_the_open_loop_schedule():
     assert bench_policies.schedule_lag_s([[0.0, 0.25, 0.5, 0.75]], nominal) == pytest.approx(0.0)
     assert bench_policies.schedule_lag_s([[0.0, 0.25, 0.5, 0.75], [0.0, 0.3, 1.4, 1.5]], nominal) == pytest.approx(0.9)
     assert bench_policies.schedule_lag_s([], nominal) is None
+
+
+@pytest.mark.parametrize("policies", ["threshold_best", "threshold_best,hedge", "local,threshold_best"])
+def test_threshold_best_needs_the_hedge_run_before_it(policies, tmp_path, capsys):
+    with pytest.raises(SystemExit):
+        bench_policies.main(["--policies", policies, "--runs-dir", str(tmp_path)])
+    assert "list hedge before it" in capsys.readouterr().err

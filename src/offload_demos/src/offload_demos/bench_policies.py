@@ -24,7 +24,7 @@ SCENARIO (--scenario, offload_demos.scenario): the conditions, a named one (stat
 conditions; handover, load-shift, map-switch, drift) or a YAML file; every run, the learning run included, gets the
 same scenario arguments. It reports, per policy, latency as the caller saw it (mean, p50, p95, p99), robot planning CPU-seconds and
 link bytes per request, paths delivered and cloud timeouts, with the oracle measured on the hedge run's
-probes (both sides every request). A second scenario stops the cloud link for 30 s mid-run (the WAN
+probes (both sides every request). A last run stops the cloud link for 30 s mid-run (the WAN
 emulator drops everything) while the RTT trace jumps, and reports the worst wait and how many requests
 waited the cloud timeout. Results go to runs/bench-policies-<time>/results.json, a figure and a table.
 """
@@ -148,8 +148,8 @@ def main(argv=None) -> int:
     outage = [name for name in args.outage_policies.split(",") if name]
     if unknown or set(outage) - set(POLICIES):
         parser.error(f"unknown policies {unknown or sorted(set(outage) - set(POLICIES))}; choose from {','.join(POLICIES)}")
-    if "threshold_best" in policies + outage and "hedge" not in policies[:policies.index("threshold_best")
-                                                                       if "threshold_best" in policies else None]:
+    before = policies[:policies.index("threshold_best")] if "threshold_best" in policies else policies
+    if "threshold_best" in policies + outage and "hedge" not in before:
         parser.error("threshold_best is chosen on the hedge run's probes: list hedge before it")
     try:
         scenario = load_scenario(args.scenario)
