@@ -5,6 +5,7 @@
 #define OFFLOAD_PLANNER_CPP_BEST_FIRST_H
 
 #include "offload_planner_cpp/dijkstra.h"
+#include "diagonal_step.h"
 
 #include <algorithm>
 #include <atomic>
@@ -13,8 +14,6 @@
 #include <utility>
 
 namespace offload_planner {
-
-constexpr double kDiagonal = 1.4142135623730951;  // sqrt(2)
 
 template <class Visit>
 inline void DijkstraPlanner::forEachMove(int i, int x, int y, Visit visit) const {

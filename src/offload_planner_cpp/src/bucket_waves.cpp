@@ -1,17 +1,13 @@
 // The default's uniform-cost search: Dial's bucket queue in waves over padded distance buffers, from one end
 // (search) or from both (searchBidirectional). See dijkstra.h for the buffers and the README for why.
 #include "offload_planner_cpp/dijkstra.h"
+#include "diagonal_step.h"
 
 #include <algorithm>
 #include <cmath>
 #include <limits>
 
 namespace offload_planner {
-namespace {
-
-constexpr double kDiagonal = 1.4142135623730951;  // sqrt(2)
-
-}  // namespace
 
 void DijkstraPlanner::Bucket::reserveMore(std::size_t more) {
   if (size_ + more <= capacity_) return;

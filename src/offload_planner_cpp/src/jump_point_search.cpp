@@ -1,4 +1,5 @@
 #include "offload_planner_cpp/jump_point_search.h"
+#include "diagonal_step.h"
 
 #include <algorithm>
 #include <cmath>
@@ -9,8 +10,6 @@
 
 namespace offload_planner {
 namespace {
-
-constexpr double kDiagonal = 1.4142135623730951;  // sqrt(2)
 
 // The open list's order: smaller f first; on equal f the larger g (the deeper cell), which on open ground
 // walks on towards the goal instead of widening over every cell of equal f.
