@@ -25,6 +25,7 @@ from scipy.sparse import csgraph
 from offload_cloud import keys
 from offload_cloud.server import CloudServer, ServerConfig
 from offload_demos.grid_graph import grid_graph
+from offload_demos.loopback import stop_process
 from offload_planner_cpp.maps import load_map
 
 R = PlanPathResponse
@@ -72,12 +73,9 @@ class CloudBridgeTest(unittest.TestCase):
     @classmethod
     def stop_processes(cls):
         for bridge in cls.bridges:
-            bridge.terminate()
+            bridge.terminate()   # all at once, then each waited for
         for bridge in cls.bridges:
-            try:
-                bridge.wait(10)
-            except subprocess.TimeoutExpired:
-                bridge.kill()
+            stop_process(bridge, grace_s=10.0)
         cls.server.stop()
         cls.keys_dir.cleanup()
 

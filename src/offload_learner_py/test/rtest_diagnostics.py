@@ -13,20 +13,10 @@ import rospy
 import rostest
 from diagnostic_msgs.msg import DiagnosticArray, DiagnosticStatus
 
-from offload_demos.loopback import free_port
+from offload_demos.loopback import free_port, stop_process as stop
 
 OK, WARN, ERROR = DiagnosticStatus.OK, DiagnosticStatus.WARN, DiagnosticStatus.ERROR
 BRIDGE, LEARNER, PLANNER = "cloud_bridge: cloud link", "offload_learner: offload decisions", "planner: planner"
-
-
-def stop(process):
-    if process is not None and process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
 
 
 class DiagnosticsTest(unittest.TestCase):

@@ -17,21 +17,11 @@ from dynamic_reconfigure.msg import Config
 from offload_msgs.msg import LearnerConfig, OffloadDecision
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
-from offload_demos.loopback import free_port
+from offload_demos.loopback import free_port, stop_process as stop
 
 # Cells (170, 200) and (230, 200) of turtlebot3_world (0.05 m, origin -10, -10): between the pillars, where a
 # cost-aware path keeps away from them once the map is inflated (length 63.3 -> 72.7 cells at 0.3 m).
 START, GOAL = (-1.475, 0.025), (1.525, 0.025)
-
-
-def stop(process):
-    if process is not None and process.poll() is None:
-        process.terminate()
-        try:
-            process.wait(20)
-        except subprocess.TimeoutExpired:
-            process.kill()
-            process.wait()
 
 
 def dynparam_set(node: str, name: str, value: str) -> None:

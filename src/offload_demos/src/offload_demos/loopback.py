@@ -1,7 +1,9 @@
-"""Loopback ports for the demo, tests and benchmarks that start servers of their own."""
+"""Loopback ports for the demo, tests and benchmarks that start servers of their own, and stopping those servers."""
 import contextlib
 import socket
+import subprocess
 import time
+from typing import Optional
 
 LOOPBACK = "127.0.0.1"
 
@@ -21,3 +23,16 @@ def wait_for_port(port: int, timeout_s: float) -> bool:
             return True
         time.sleep(0.05)
     return False
+
+
+def stop_process(process: Optional[subprocess.Popen], grace_s: float = 20.0) -> None:
+    """SIGTERM, then SIGKILL after grace_s: a node or server gets the chance to close its bag or sockets, and a
+    hung one still goes. None or an exited process: nothing to do."""
+    if process is None or process.poll() is not None:
+        return
+    process.terminate()
+    try:
+        process.wait(grace_s)
+    except subprocess.TimeoutExpired:
+        process.kill()
+        process.wait()
