@@ -54,3 +54,41 @@ def test_cloud_failures_count_link_failures_not_the_planners_verdicts(tmp_path):
         requests.append((decision, outcome))
     write(tmp_path / "offload.bag", requests)
     assert measure(tmp_path, 5.0)["cloud_failures"] == 2
+
+
+def test_the_live_oracle_replays_each_requests_faster_side_in_request_order(tmp_path):
+    # The hedge run's probes -> each request's faster side -> the learner's replay policy: request k of the oracle's
+    # run takes the side that was faster for request k (a cloud side that timed out loses however short its time).
+    from offload_msgs.srv import PlanPathResponse
+    from offload_demos.hindsight import faster_sides
+    from offload_learner_py.core.policies import ReplayPolicy
+    from offload_learner_py.core.state import State
+    sides = [(0.05, 0.20), (0.30, 0.10), (0.08, 0.09), (0.50, 0.12), (0.40, 0.02), (0.06, 0.07), (0.20, 0.03)]
+    requests = []
+    for i, (local_s, cloud_s) in enumerate(sides):
+        decision, outcome = probe_request(3000 + i, 1.0, 0.5, 0.05, local_s, cloud_s, LOCAL, 1.0,
+                                          reward(LOCAL, local_s, cloud_s))
+        if i == 4:
+            outcome.update(cloud_status=PlanPathResponse.CLOUD_TIMEOUT, cloud_timeout=True)
+        requests.append((decision, outcome))
+    write(tmp_path / "offload.bag", requests)
+    local_s, cloud_s = measure(tmp_path, 5.0)["request_sides_s"]
+    assert local_s == pytest.approx([side[0] for side in sides])
+    actions = faster_sides(local_s, cloud_s)
+    assert actions.tolist() == [LOCAL, CLOUD, LOCAL, CLOUD, LOCAL, LOCAL, CLOUD]
+    (tmp_path / "actions.txt").write_text("".join(f"{action}\n" for action in actions))
+    replay = ReplayPolicy.from_file(str(tmp_path / "actions.txt"))
+    state = State(1.0, 0.5, 0.05, 0.0)
+    replayed = [replay.decide(state).action for _ in sides]
+    chosen = [cloud if action == CLOUD else local for action, (local, cloud) in zip(replayed, sides)]
+    assert replayed == actions.tolist()
+    assert chosen == [min(side) if k != 4 else side[0] for k, side in enumerate(sides)]
+    # past the list's end: local, counted
+    assert replay.decide(state).action == LOCAL and replay.beyond == 1
+
+
+def test_faster_sides_takes_the_measured_side_when_one_is_missing():
+    from offload_demos.hindsight import faster_sides
+    nan = float("nan")
+    assert faster_sides([0.1, nan, 0.3, nan, 0.2], [nan, 0.2, 0.1, nan, 0.2]).tolist() == [LOCAL, CLOUD, CLOUD, LOCAL,
+                                                                                           LOCAL]

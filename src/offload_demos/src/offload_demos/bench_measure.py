@@ -32,6 +32,14 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
         figures["probe_rows"] = (table.input_size, table.local_s, table.cloud_s)
     log = data.log
     answered = np.asarray(log["has_outcome"], dtype=bool)
+    if len(run_dirs) == 1:
+        # Both sides' latencies of every request in request order (NaN: not measured or no path), for the live
+        # oracle's actions (offload_demos.hindsight.faster_sides); popped by the bench.
+        order = np.argsort(np.asarray(log["request_id"]), kind="stable")
+        figures["request_sides_s"] = tuple(np.where(
+            answered & np.asarray(log[f"outcome_{side}_measured"], dtype=bool)
+            & (np.asarray(log[f"outcome_{side}_status"]) == PlanPathResponse.OK),
+            np.asarray(log[f"outcome_{side}_s"], dtype=np.float64), np.nan)[order] for side in ("local", "cloud"))
     delivered_s = np.asarray(log["outcome_delivered_s"], dtype=np.float64)
     # Where both sides ran every request (the hedge run), the side delivered first is the oracle's choice: what
     # the oracle would have offloaded, and the robot planning CPU it would have spent (the local plans that won;

@@ -12,6 +12,10 @@ every run. (Paced by the answers instead, a slower policy met later, other parts
 - threshold: offload above the paper's input-size threshold;
 - threshold_best: the same rule at the best threshold in hindsight: the one of an exhaustive grid with the lowest
   mean latency on the hedge run's probes (both sides measured, offload_demos.hindsight), then run live;
+- oracle: each request's faster side in the hedge run's probes (offload_demos.hindsight.faster_sides), replayed live
+  request by request (the learner's replay policy, deployed, no probes): the gap from threshold_best to the oracle and
+  every policy's share of it are live means on one footing (the probe oracle, both sides at once on the robot's
+  budget, is printed beside it: a one-sided policy can beat it);
 - latency_bound: offload when the last round trip plus the cloud's recent planning time is below the robot's
   predicted planning time, as FogROS2-LS routes by a latency bound (deployed, the learner's default probe rate);
 - dqn: the DQN deployed as it ships (at the learner's default probe rate): the robot decides and never trains, a
@@ -36,21 +40,24 @@ import subprocess
 import sys
 import time
 
+import numpy as np
 from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos.bench_measure import measure
 from offload_demos.bench_report import format_scenario_table, format_table, plot, scenario_rows
-from offload_demos.hindsight import best_threshold
+from offload_demos.hindsight import best_threshold, faster_sides
 from offload_demos.scenario import NAMED, ScenarioError, load_scenario
 from offload_learner_py.online.router_types import RouterConfig
 from offload_demos.driver import LINK_PROFILES
 
-POLICIES = ("local", "cloud", "hedge", "threshold", "threshold_best", "latency_bound", "dqn", "dqn_hedge")
+POLICIES = ("local", "cloud", "hedge", "threshold", "threshold_best", "oracle", "latency_bound", "dqn", "dqn_hedge")
+HINDSIGHT = ("threshold_best", "oracle")     # chosen on the hedge run's probes: hedge runs before them
 RUNS = {
     "local": ["--policy", "local", "--mode", "deployed", "--probe-rate", "0"],
     "cloud": ["--policy", "cloud", "--mode", "deployed", "--probe-rate", "0"],
     "hedge": ["--policy", "local", "--mode", "learning", "--learn", "false"],
     "threshold": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],
     "threshold_best": ["--policy", "threshold", "--mode", "deployed", "--probe-rate", "0"],   # + its learner config
+    "oracle": ["--policy", "replay", "--mode", "deployed", "--probe-rate", "0"],               # + its learner config
     "latency_bound": ["--policy", "latency_bound", "--mode", "deployed"],
     "dqn": ["--policy", "dqn", "--mode", "deployed", "--fleet"],
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--hedge", "--fleet"],
@@ -77,11 +84,11 @@ def conditions(args, scenario) -> list:
         ["--plan-unknown"] if args.plan_unknown else [])
 
 
-def policy_args(name: str, scenario_args: list, model: list, threshold_config: str = "") -> list:
+def policy_args(name: str, scenario_args: list, model: list, threshold_config: str = "", oracle_config: str = "") -> list:
     """One policy's driver options: how it routes, then the bench's conditions."""
     extra = RUNS[name] + (model if name.startswith("dqn") else [])
-    if name == "threshold_best":
-        extra = extra + ["--learner-config", threshold_config]
+    if name in HINDSIGHT:
+        extra = extra + ["--learner-config", threshold_config if name == "threshold_best" else oracle_config]
     return extra + scenario_args
 
 
@@ -148,9 +155,10 @@ def main(argv=None) -> int:
     outage = [name for name in args.outage_policies.split(",") if name]
     if unknown or set(outage) - set(POLICIES):
         parser.error(f"unknown policies {unknown or sorted(set(outage) - set(POLICIES))}; choose from {','.join(POLICIES)}")
-    before = policies[:policies.index("threshold_best")] if "threshold_best" in policies else policies
-    if "threshold_best" in policies + outage and "hedge" not in before:
-        parser.error("threshold_best is chosen on the hedge run's probes: list hedge before it")
+    for name in HINDSIGHT:
+        before = policies[:policies.index(name)] if name in policies else policies
+        if name in policies + outage and "hedge" not in before:
+            parser.error(f"{name} is chosen on the hedge run's probes: list hedge before it")
     try:
         scenario = load_scenario(args.scenario)
     except ScenarioError as error:
@@ -165,6 +173,7 @@ def main(argv=None) -> int:
     map_yaml = os.path.abspath(args.map) if args.map else ""
     scenario_args = conditions(args, scenario)
     threshold_config = str(out / "threshold_best_learner.yaml")
+    oracle_config, oracle_actions = str(out / "oracle_learner.yaml"), out / "oracle_actions.txt"
     checkpoint = os.path.abspath(args.checkpoint) if args.checkpoint else ""
     seed_bag = os.path.abspath(args.seed_bag) if args.seed_bag else ""
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
@@ -178,7 +187,7 @@ def main(argv=None) -> int:
                "plan_unknown": args.plan_unknown, "threshold_best": None, "gap_closed": {},
                "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
                "goal_rate_hz": args.goal_rate_hz, "start_lead_s": args.start_lead_s, "policies": {}, "delivered_s": {},
-               "oracle_mean_s": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
+               "oracle_mean_s": None, "oracle_actions": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
     model = (["--model", checkpoint] if checkpoint else []) + (["--fleet-seed-bag", seed_bag] if seed_bag else [])
     total, began = args.repeats * len(policies) + len(outage), time.monotonic()
 
@@ -190,13 +199,14 @@ def main(argv=None) -> int:
     run_dirs = {name: [] for name in policies}
     for repeat in range(args.repeats):
         for index, name in enumerate(policies):
-            extra = policy_args(name, scenario_args, model, threshold_config)
+            extra = policy_args(name, scenario_args, model, threshold_config, oracle_config)
             where = out / name if args.repeats == 1 else out / name / f"repeat{repeat + 1}"
             run_dirs[name].append(run_demo(args.launch, where, args.steps, args.seed, map_yaml, extra,
                                            progress(repeat * len(policies) + index)))
             if name == "hedge" and repeat == 0:
                 # The best fixed d_t rule on this run's probes, for threshold_best's live runs.
-                probes = measure(run_dirs[name][0], args.cloud_timeout_s).get("probe_rows")
+                hedge_figures = measure(run_dirs[name][0], args.cloud_timeout_s)
+                probes = hedge_figures.get("probe_rows")
                 if probes is None:
                     raise RuntimeError(f"the hedge run {run_dirs[name][0]} has no probe with both sides measured")
                 search = best_threshold(*probes)
@@ -205,11 +215,18 @@ def main(argv=None) -> int:
                 print(f"threshold_best: offload when d_t > {search.threshold:.4g} ({100 * search.cloud_share:.0f} % "
                       f"offloaded), {1e3 * search.mean_s:.1f} ms on the hedge run's probes, best of "
                       f"{len(search.grid)} thresholds", flush=True)
+                # The oracle's actions, request k's faster side, for its live replay.
+                actions = faster_sides(*hedge_figures["request_sides_s"])
+                oracle_actions.write_text("".join(f"{action}\n" for action in actions))
+                pathlib.Path(oracle_config).write_text(f"replay_actions: {str(oracle_actions)!r}\n")
+                results["oracle_actions"] = {"file": str(oracle_actions), "requests": int(len(actions)),
+                                             "cloud_share": float(np.mean(actions)) if len(actions) else None}
             if repeat + 1 < args.repeats:
                 continue
             figures = measure(run_dirs[name], args.cloud_timeout_s)
             results["delivered_s"][name] = figures.pop("delivered_s")
             figures.pop("probe_rows", None)
+            figures.pop("request_sides_s", None)
             lag = schedule_lag_s(figures.pop("arrivals_s", []), scenario.request_times(args.steps, args.goal_rate_hz))
             results["policies"][name] = {**{field: figures.get(field) for field in FIELDS},
                                          "run_dir": figures["run_dir"], "probes": figures.get("probes", 0),
@@ -222,12 +239,13 @@ def main(argv=None) -> int:
             print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
     results["outage"] = {}
     for index, name in enumerate(outage, start=args.repeats * len(policies)):
-        extra = policy_args(name, scenario_args, model, threshold_config) + [
+        extra = policy_args(name, scenario_args, model, threshold_config, oracle_config) + [
             "--wan-args", f"--outage {args.outage_at_s:g}:{args.outage_s:g}", "--rtt-profile", args.jump_trace]
         figures = measure(run_demo(args.launch, out / f"outage-{name}", args.outage_steps, args.seed, map_yaml, extra,
                                    progress(index)), args.cloud_timeout_s)
         figures.pop("delivered_s")
         figures.pop("probe_rows", None)
+        figures.pop("request_sides_s", None)
         figures.pop("arrivals_s", None)
         results["outage"][name] = {key: figures.get(key) for key in (
             "requests", "paths_delivered", "mean_s", "p99_s", "max_s", "waited_the_timeout", "cloud_timeouts",

@@ -5,7 +5,8 @@ latency it would have had on that run is known exactly: cloud_s where d_t > t, l
 such rule is one cut between two neighbouring distinct d_t values (plus "always cloud" and "always local"), so the
 grid of those cuts is exhaustive: the threshold it picks is the best any fixed d_t rule could be on that run. The
 direction is the paper's and the node's `threshold` policy's (cloud above), so bench-policies can run the pick live.
-This is analysis, not a policy a robot could run: it reads the latencies of requests already served."""
+This is analysis, not a policy a robot could run: it reads the latencies of requests already served. So is
+`faster_sides`, the live oracle's actions: each request's faster side in the probes, replayed in a run of its own."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -58,6 +59,17 @@ def best_threshold(input_size, local_s, cloud_s) -> ThresholdSearch:
     best = int(np.argmin(means))
     return ThresholdSearch(float(grid[best]), float(means[best]), grid, means,
                            float(np.mean(d > grid[best])))
+
+
+def faster_sides(local_s, cloud_s) -> np.ndarray:
+    """The oracle's action per request of a probe run, in request order: 1 (cloud) where the cloud side was strictly
+    faster, else 0 (local); a side not measured (NaN: failed, not run) loses to one that was, and with neither
+    measured the request plans locally. bench-policies replays these live (the learner's `replay` policy)."""
+    local = np.asarray(local_s, dtype=np.float64)
+    cloud = np.asarray(cloud_s, dtype=np.float64)
+    if local.shape != cloud.shape or local.ndim != 1:
+        raise ValueError("local_s and cloud_s must be 1-d and of one length")
+    return np.where(np.isnan(cloud), 0, np.where(np.isnan(local), 1, (cloud < local).astype(np.int64))).astype(np.int64)
 
 
 def gap_closed(threshold_mean_s, policy_mean_s, oracle_mean_s):

@@ -56,7 +56,7 @@ class LearnerNodeConfig:
 PARAMETERS = {
     **{name: (SessionConfig, name) for name in (
         "policy", "model", "checkpoint", "checkpoint_every", "learn", "explore", "seed", "dqn",
-        "threshold_input_size", "progress_every", "stats_window")},
+        "threshold_input_size", "replay_actions", "progress_every", "stats_window")},
     **{name: (RouterConfig, name) for name in (
         "mode", "probe_rate", "cloud_timeout_s", "map_wait_s", "hedge", "hedge_deadline_s", "hedge_quantile",
         "hedge_min_s", "hedge_max_s")},

@@ -10,10 +10,10 @@ from offload_learner_py.core.checkpoint import load_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, LatencyBound, \
-    Policy, RandomPolicy
+    Policy, RandomPolicy, ReplayPolicy
 from offload_learner_py.online.router_types import DEPLOYED
 
-POLICIES = ("dqn", "local", "cloud", "random", "threshold", "latency_bound")
+POLICIES = ("dqn", "local", "cloud", "random", "threshold", "latency_bound", "replay")
 LOG = logging.getLogger("offload_learner_py.online.session")
 
 
@@ -29,6 +29,7 @@ class SessionConfig:
     seed: int = 1
     dqn: dict = field(default_factory=dict)   # DQNConfig overrides
     threshold_input_size: float = 1.1
+    replay_actions: str = ""          # the replay policy's file: one action per request, in arrival order
     stats_window: int = 50
     progress_every: int = 25
 
@@ -37,6 +38,8 @@ class SessionConfig:
             raise ValueError(f"~policy must be one of {', '.join(POLICIES)}, got {self.policy!r}")
         if not isinstance(self.dqn, dict):
             raise ValueError(f"~dqn must be a dictionary of DQNConfig fields, got {self.dqn!r}")
+        if self.policy == "replay" and not self.replay_actions:
+            raise ValueError("~policy replay needs ~replay_actions, a file of one action (0 local, 1 cloud) per line")
         self.checkpoint, self.model = os.path.expanduser(self.checkpoint), os.path.expanduser(self.model)
 
 
@@ -68,6 +71,8 @@ def make_policy(config: SessionConfig, log: logging.Logger = LOG) -> Tuple[Polic
         return InputSizeThreshold(config.threshold_input_size, name="threshold"), None
     if config.policy == "latency_bound":
         return LatencyBound(), None
+    if config.policy == "replay":
+        return ReplayPolicy.from_file(os.path.expanduser(config.replay_actions)), None
     dqn = DQNConfig.from_dict({"seed": config.seed, **config.dqn})
     source = config.checkpoint if config.checkpoint and os.path.exists(config.checkpoint) else config.model
     if source:
