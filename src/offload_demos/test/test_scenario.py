@@ -26,7 +26,8 @@ def fake_figures(run_dir, cloud_timeout_s):
     figures = {field: 0.05 for field in bench_policies.FIELDS}
     figures.update(requests=60, paths_delivered=60, cloud_timeouts=0, robot_cpu=None, cloud_share=0.5,
                    first_local_cpu_s_per_request=0.01, probe_oracle_mean_s=0.04, delivered_s=[0.05] * 60,
-                   run_dir=str(run_dir), probe_rows=([0.5, 1.0, 2.0], [0.01, 0.05, 0.3], [0.06, 0.05, 0.07]))
+                   run_dir=str(run_dir), probe_rows=([0.5, 1.0, 2.0], [0.01, 0.05, 0.3], [0.06, 0.05, 0.07]),
+                   request_sides_s=([0.01, 0.05, 0.3], [0.06, 0.05, 0.07]))
     return figures
 
 
