@@ -92,3 +92,11 @@ def test_faster_sides_takes_the_measured_side_when_one_is_missing():
     nan = float("nan")
     assert faster_sides([0.1, nan, 0.3, nan, 0.2], [nan, 0.2, 0.1, nan, 0.2]).tolist() == [LOCAL, CLOUD, CLOUD, LOCAL,
                                                                                            LOCAL]
+
+
+def test_the_learning_run_learns_on_its_own_routing_below_a_probe_rate_of_one():
+    from offload_demos.bench_policies import learning_args
+    from offload_demos.driver import build_parser
+    assert learning_args(1.0) == ["--policy", "dqn", "--mode", "learning"]
+    args = build_parser().parse_args(["--launch", "x.launch"] + learning_args(0.3))
+    assert (args.policy, args.mode, args.learn, args.probe_rate) == ("dqn", "deployed", "true", 0.3)

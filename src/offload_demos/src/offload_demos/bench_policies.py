@@ -92,6 +92,14 @@ def policy_args(name: str, scenario_args: list, model: list, threshold_config: s
     return extra + scenario_args
 
 
+def learning_args(probe_rate: float) -> list:
+    """The learning run's routing: every request a probe (learning mode), or its own greedy choices with a share of
+    probes and learning on (deployed mode: the other side's latency imputed, as a deployed robot that learns)."""
+    if probe_rate >= 1.0:
+        return ["--policy", "dqn", "--mode", "learning"]
+    return ["--policy", "dqn", "--mode", "deployed", "--learn", "true", "--probe-rate", f"{probe_rate:g}"]
+
+
 def schedule_lag_s(arrivals, nominal) -> float:
     """How late, at most, a run's requests arrived against the open-loop schedule (each run from its first request):
     above one inter-arrival a policy's answers held its requests back, and they met later moments of the link and
@@ -130,6 +138,10 @@ def main(argv=None) -> int:
     parser.add_argument("--seed-bag", default="", help="with --checkpoint: the bag the fleet learner starts from "
                                                         "(default: the learning run's; none with --checkpoint)")
     parser.add_argument("--learning-steps", type=bounded_int("--learning-steps", 10, 100000), default=300)
+    parser.add_argument("--learning-probe-rate", type=bounded_float("--learning-probe-rate", 0.0, 1.0, low_open=True),
+                        default=1.0, help="1: the learning run probes every request (learning mode, the paper's); "
+                        "below 1: it routes by its own greedy policy and probes this share (deployed mode, learning "
+                        "on), so it learns the local latencies of the load its own routing leaves on the robot")
     parser.add_argument("--outage-policies", default="dqn_hedge",
                         help="policies run again with the link down for --outage-s mid-run ('' to skip)")
     parser.add_argument("--outage-at-s", type=bounded_float("--outage-at-s", 0.0), default=30.0,
@@ -178,14 +190,14 @@ def main(argv=None) -> int:
     seed_bag = os.path.abspath(args.seed_bag) if args.seed_bag else ""
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
         learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
-                            ["--policy", "dqn", "--mode", "learning", *scenario_args])
+                            learning_args(args.learning_probe_rate) + scenario_args)
         checkpoint, seed_bag = str(learning / "checkpoint.pt"), seed_bag or str(learning / "offload.bag")
     results = {"scenario": scenario.name, "scenario_file": str(scenario.path),
                "map": " / ".join(path for path, _ in scenario.maps) or map_yaml or "nav2_warehouse (bundled)",
                "map_name": "+".join(pathlib.Path(path).stem for path, _ in scenario.maps) or pathlib.Path(map_yaml).stem
                or "warehouse", "link": str(scenario.rtt_trace or args.link or scenario.link),
                "plan_unknown": args.plan_unknown, "threshold_best": None, "gap_closed": {},
-               "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
+               "learning_probe_rate": args.learning_probe_rate, "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
                "goal_rate_hz": args.goal_rate_hz, "start_lead_s": args.start_lead_s, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None, "oracle_actions": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
     model = (["--model", checkpoint] if checkpoint else []) + (["--fleet-seed-bag", seed_bag] if seed_bag else [])
