@@ -100,3 +100,17 @@ def test_the_learning_run_learns_on_its_own_routing_below_a_probe_rate_of_one():
     assert learning_args(1.0) == ["--policy", "dqn", "--mode", "learning"]
     args = build_parser().parse_args(["--launch", "x.launch"] + learning_args(0.3))
     assert (args.policy, args.mode, args.learn, args.probe_rate) == ("dqn", "deployed", "true", 0.3)
+
+
+def test_oracle_agreement_weighs_each_choice_by_what_it_cost_on_the_probes(tmp_path):
+    from offload_demos.oracle_agreement import agreement, request_actions
+    nan = float("nan")
+    local_s, cloud_s = [0.05, 0.30, 0.08, 0.50, nan], [0.20, 0.10, 0.09, 0.12, 0.04]
+    figures = agreement([LOCAL, LOCAL, CLOUD, CLOUD, CLOUD], local_s, cloud_s)
+    assert figures["agree"] == pytest.approx(3 / 5) and figures["oracle_cloud_share"] == pytest.approx(3 / 5)
+    assert figures["probe_regret_s"] == pytest.approx((0.0 + 0.20 + 0.01 + 0.0) / 4)   # both sides measured only
+    # a run's actions come back in request order
+    requests = [probe_request(4000 + i, 1.0, 0.5, 0.05, 0.1, 0.2, action, 1.0, 0.0, probe=False)
+                for i, action in enumerate([CLOUD, LOCAL, LOCAL, CLOUD])]
+    write(tmp_path / "offload.bag", requests)
+    assert request_actions(tmp_path).tolist() == [CLOUD, LOCAL, LOCAL, CLOUD]
