@@ -27,3 +27,13 @@ def test_bad_files_and_a_missing_file_parameter_are_refused(tmp_path):
             ReplayPolicy.from_file(str(path))
     with pytest.raises(ValueError, match="replay_actions"):
         SessionConfig(policy="replay")
+
+
+def test_a_file_over_the_bound_is_refused_before_it_is_read_whole(tmp_path, monkeypatch):
+    monkeypatch.setattr(ReplayPolicy, "MAX_FILE_BYTES", 64)
+    path = tmp_path / "huge.txt"
+    path.write_text("0\n" * 40)   # 80 bytes
+    with pytest.raises(ValueError, match="over"):
+        ReplayPolicy.from_file(str(path))
+    path.write_text("1\n" * 32)   # 64 bytes: at the bound, read
+    assert len(ReplayPolicy.from_file(str(path)).actions) == 32

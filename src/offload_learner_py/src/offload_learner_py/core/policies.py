@@ -248,11 +248,16 @@ class ReplayPolicy(Policy):
         self.beyond = 0
         self._lock = threading.Lock()
 
+    MAX_FILE_BYTES = 16 << 20   # millions of requests; a larger file is a mistake or hostile, not a run
+
     @classmethod
     def from_file(cls, path: str, name: Optional[str] = None) -> "ReplayPolicy":
         """One action per line (0 local, 1 cloud); blank lines and '#' comments skipped."""
-        with open(path) as stream:
-            lines = [line.split("#", 1)[0].strip() for line in stream]
+        with open(path, "rb") as stream:
+            data = stream.read(cls.MAX_FILE_BYTES + 1)
+        if len(data) > cls.MAX_FILE_BYTES:
+            raise ValueError(f"replay actions file {path}: over {cls.MAX_FILE_BYTES >> 20} MiB")
+        lines = [line.split("#", 1)[0].strip() for line in data.decode("utf-8", "replace").splitlines()]
         try:
             return cls([int(line) for line in lines if line], name)
         except ValueError as error:
