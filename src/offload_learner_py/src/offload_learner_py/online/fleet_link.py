@@ -47,10 +47,15 @@ class FleetConfig:
     """rows per send (at most the wire's 512)."""
     send_every_s: float = 1.0
     """a partial batch waits at most this long."""
+    warmup_requests: int = 60
+    """the robot's first requests probe both sides (a DQN learning alone warms up as long: learning_starts), so
+    the fleet learner has its rows to train and judge on; 0: probes at the probe rate only."""
 
     def __post_init__(self):
         if self.period_s <= 0 or self.timeout_s <= 0 or self.send_every_s <= 0:
             raise ValueError("~fleet_period_s, ~fleet_timeout_s and ~fleet_send_every_s must be positive")
+        if not 0 <= self.warmup_requests <= 100000:
+            raise ValueError(f"~fleet_warmup_requests must be in [0, 100000], got {self.warmup_requests}")
         if not 1 <= self.batch_rows <= 512:
             raise ValueError(f"~fleet_batch_rows must be in [1, 512], got {self.batch_rows}")
         if self.buffer_rows < self.batch_rows:

@@ -89,8 +89,9 @@ class OnlineLearner:
     def needs_both_sides(self) -> bool:
         """A learning policy still warming up (an untrained DQN), or a latency model still without its first
         samples (a warm-started DQN on a fresh node): a one-sided request would teach it little or nothing, as
-        there is nothing yet to impute the other side with."""
-        return self.policy.learns and (self.policy.warming_up or not all(m.ready for m in self.models.values()))
+        there is nothing yet to impute the other side with. A fleet robot's policy warms up too (its rows teach
+        the fleet learner), though it does not learn here."""
+        return bool(self.policy.warming_up) or (self.policy.learns and not all(m.ready for m in self.models.values()))
 
     # --- one request ----------------------------------------------------------------------------------------
     def learn(self, outcome: Outcome) -> None:
