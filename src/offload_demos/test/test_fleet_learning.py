@@ -1,6 +1,7 @@
-"""bench-fleet-learning's figures (#30 item 8): the per-request oracle pooled over a robot's runs, requests until
-the trailing mean is within 5 % of the oracle, the first-300 mean, a bad model's cost and rollback, and the
-bench's loop over robots and arms on synthetic runs (no ROS)."""
+"""bench-fleet-learning's figures (#30 item 8): the per-request side table pooled over a robot's runs, each arm's
+decisions scored with it (like with like: never a delivered latency against a side's, never the other side's),
+requests until the trailing mean is within 5 % of the best decisions', the first-300 means, a bad model's cost and
+rollback, and the bench's loop over robots and arms on synthetic runs (no ROS)."""
 import json
 import math
 
@@ -15,31 +16,69 @@ from offload_demos import fleet_metrics
 from offload_demos.bag_writer import probe_request
 
 
-def test_the_oracle_is_the_faster_side_where_some_run_measured_both():
-    a = {"local_s": [0.1, 0.2, np.nan, 0.4], "cloud_s": [0.3, 0.1, 0.2, np.nan],
-         "both_measured": [True, True, False, False]}
-    b = {"local_s": [0.3, np.nan, 0.5], "cloud_s": [0.1, 0.2, 0.6], "both_measured": [True, False, True]}
-    oracle = fleet_metrics.request_oracle([a, b])
-    assert oracle[:3] == pytest.approx([0.1, 0.1, 0.5])      # request 0: the two runs' oracles averaged
-    assert math.isnan(oracle[3])
+def test_the_side_table_averages_each_side_over_the_runs_that_measured_it():
+    a = {"local_s": [0.1, 0.2, np.nan, 0.4], "cloud_s": [0.3, 0.1, 0.2, np.nan]}
+    b = {"local_s": [0.3, np.nan, 0.5], "cloud_s": [0.1, 0.2, 0.6]}
+    table = fleet_metrics.side_table([a, b])
+    assert table[LOCAL, :3] == pytest.approx([0.2, 0.2, 0.5]) and table[CLOUD] == pytest.approx(
+        [0.2, 0.15, 0.4, np.nan], nan_ok=True)
+    assert fleet_metrics.best_latency(table) == pytest.approx([0.2, 0.15, 0.4, np.nan], nan_ok=True)
+    # a decision costs its own side's latency, never the other's
+    assert fleet_metrics.decision_latency([CLOUD, LOCAL, LOCAL, CLOUD], table) == pytest.approx(
+        [0.2, 0.2, 0.5, np.nan], nan_ok=True)
 
 
 def test_requests_to_within_is_the_first_window_that_gets_there():
-    oracle = np.full(200, 0.10)
-    delivered = np.concatenate([np.full(100, 0.20), np.full(100, 0.10)])
+    best = np.full(200, 0.10)
+    decided = np.concatenate([np.full(100, 0.20), np.full(100, 0.10)])
     # the window of 50 ending at k holds (100 - (k - 50)) slow requests: its mean is at most 0.105 from k = 148
-    assert fleet_metrics.requests_to_within(delivered, oracle, 0.05, 50) == 148
-    assert fleet_metrics.requests_to_within(delivered, oracle, 0.05, 10) == 110
-    assert fleet_metrics.requests_to_within(np.full(200, 0.2), oracle) is None
-    # only probes know the oracle: a window with fewer than min_oracle of them cannot be judged
+    assert fleet_metrics.requests_to_within(decided, best, 0.05, 50) == 148
+    assert fleet_metrics.requests_to_within(decided, best, 0.05, 10) == 110
+    assert fleet_metrics.requests_to_within(np.full(200, 0.2), best) is None
+    # only requests with both sides in the table are scored: a window with fewer than min_known cannot be judged
     sparse = np.full(200, np.nan)
     sparse[::20] = 0.10
-    assert fleet_metrics.requests_to_within(np.full(200, 0.1), sparse, window=50, min_oracle=3) == 50
-    assert fleet_metrics.requests_to_within(np.full(200, 0.1), sparse, window=50, min_oracle=4) is None
-    # a shorter oracle (a shorter oracle run) leaves the rest unknown
+    assert fleet_metrics.requests_to_within(np.full(200, 0.1), sparse, window=50, min_known=3) == 50
+    assert fleet_metrics.requests_to_within(np.full(200, 0.1), sparse, window=50, min_known=4) is None
+    # a shorter table (a shorter oracle run) leaves the rest unknown
     assert fleet_metrics.requests_to_within(np.full(200, 0.1), np.full(60, 0.1), window=50) == 50
     with pytest.raises(ValueError):
-        fleet_metrics.requests_to_within(delivered, oracle, tolerance=1.5)
+        fleet_metrics.requests_to_within(decided, best, tolerance=1.5)
+
+
+def two_side_runs(n=200, seed=0):
+    """An oracle run (both sides, local faster: 3 ms against 10 ms) and an arm's run that decided local on every
+    request, on a machine 30 % slower that run, delivered 1 ms of routing over its side."""
+    rng = np.random.default_rng(seed)
+    local_s = 0.003 * (1 + 0.1 * rng.random(n))
+    oracle = {"local_s": local_s, "cloud_s": np.full(n, 0.010), "action": np.full(n, LOCAL),
+              "delivered_s": local_s + 0.001}
+    arm_local = 1.3 * local_s
+    arm = {"local_s": arm_local, "cloud_s": np.full(n, np.nan), "action": np.full(n, LOCAL),
+           "delivered_s": arm_local + 0.001}
+    return oracle, arm
+
+
+def test_an_arm_deciding_as_the_best_decisions_is_within_at_once_whatever_its_delivered_latency():
+    oracle, arm = two_side_runs()
+    table = fleet_metrics.side_table([oracle, arm])
+    figures = fleet_metrics.arm_figures(arm, table, first=300, window=50)
+    assert figures["requests_to_within"] == 50
+    assert figures["first"]["decided_mean_s"] == pytest.approx(figures["first"]["best_mean_s"])
+    assert figures["first"]["mean_s"] == pytest.approx(np.mean(arm["delivered_s"]))   # the live figure, beside it
+    # what the measure of 2026-11-26 did: the delivered mean against the oracle's side latency, never within
+    assert fleet_metrics.requests_to_within(arm["delivered_s"], fleet_metrics.best_latency(table)) is None
+
+
+def test_an_arm_deciding_the_slower_side_is_never_within():
+    oracle, arm = two_side_runs()
+    arm = {**arm, "action": np.full(200, CLOUD), "cloud_s": np.full(200, 0.011), "local_s": np.full(200, np.nan)}
+    table = fleet_metrics.side_table([oracle, arm])
+    assert fleet_metrics.arm_figures(arm, table)["requests_to_within"] is None
+    assert fleet_metrics.arm_figures(arm, table)["first"]["local_share"] == 0.0
+    # scored with the other side's latency it would look perfect
+    swapped = fleet_metrics.decision_latency(1 - arm["action"], table)
+    assert fleet_metrics.requests_to_within(swapped, fleet_metrics.best_latency(table)) == 50
 
 
 def test_the_first_mean_counts_what_there_is():
@@ -47,15 +86,15 @@ def test_the_first_mean_counts_what_there_is():
     assert fleet_metrics.first_mean([1.0, 3.0], 300) == {"mean_s": 2.0, "requests": 2}
 
 
-def test_a_bad_models_cost_is_its_requests_over_the_oracle_until_the_rollback():
+def test_a_bad_models_cost_is_its_decisions_over_the_best_until_the_rollback():
     versions = ["good"] * 10 + ["bad"] * 8 + ["good"] * 5
     delivered = np.full(23, 0.1)
     delivered[10:18] = 0.3
     oracle = np.full(23, 0.1)
-    oracle[12] = np.nan             # not every request's oracle is known
+    oracle[12] = np.nan             # not every request's best decision is known
     cost = fleet_metrics.bad_model_cost(versions, "bad", delivered, oracle, rolled_back_at=18)
     assert cost["requests_under_bad"] == 8 and cost["requests_to_rollback"] == 8 and cost["rolled_back"]
-    assert cost["oracle_known"] == 7
+    assert cost["scored"] == 7
     assert cost["excess_s"] == pytest.approx(7 * 0.2) and cost["excess_s_per_request"] == pytest.approx(0.2)
     never = fleet_metrics.bad_model_cost(versions[:18], "bad", delivered[:18], oracle[:18])
     assert not never["rolled_back"] and never["requests_to_rollback"] is None and never["requests_under_bad"] == 8
@@ -117,12 +156,15 @@ def test_the_bench_loops_over_robots_and_arms_and_reports(tmp_path, monkeypatch,
     assert husky[2].endswith("playpen_map.yaml")
     results = json.loads(next(tmp_path.glob("bench-fleet-learning-*/results.json")).read_text())
     robot = results["robots"]["turtlebot-edge"]
-    assert robot["oracle_mean_s"] == pytest.approx(0.0505, abs=0.001)
+    assert robot["best_mean_s"] == pytest.approx(0.0505, abs=0.001)
     # within 5 % once the last 20 requests are all local: 20 after the switch
     assert robot["arms"]["alone"]["requests_to_within"] == 100
     assert robot["arms"]["fleet"]["requests_to_within"] == 40
     assert robot["arms"]["alone"]["first"]["requests"] == 100
     assert robot["arms"]["alone"]["first"]["mean_s"] == pytest.approx((80 * 0.2 + 20 * 0.0505) / 100, abs=1e-3)
+    assert robot["arms"]["alone"]["first"]["decided_mean_s"] == pytest.approx((80 * 0.2 + 20 * 0.0505) / 100,
+                                                                              abs=1e-3)
+    assert robot["arms"]["alone"]["first"]["local_share"] == 0.2
     assert results["fleet_fewer_requests"] == len(bench.ROBOTS)
     # the bad model decided requests 40-51 (0.2 s each against the oracle's 0.05) and was rolled back at 52
     bad = results["bad_model"]
@@ -130,7 +172,7 @@ def test_the_bench_loops_over_robots_and_arms_and_reports(tmp_path, monkeypatch,
     assert bad["excess_s_per_request"] == pytest.approx(0.2 - 0.0505, abs=0.001)
     out = capsys.readouterr().out
     assert "fleet fewer requests to 5 % than alone: 4 of 4 robots" in out
-    assert "turtlebot-edge: 12 requests to rollback" in out
+    assert "turtlebot-edge: 12 requests to rollback" in out and "delivered live" in out
 
 
 def test_without_the_fleet_pieces_the_fleet_arm_says_why(tmp_path, monkeypatch, capsys):

@@ -5,16 +5,18 @@ Each robot configuration (map, link profile, CPU budget) runs the demo's whole s
 robot's processes on one core inside its budget with the seeded workload, the cloud side on the other core
 behind the WAN emulator, open-loop seeded requests), one run at a time (the machine's two cores are one robot and
 one cloud host). Per robot, the arms:
-- oracle: both sides on every request (learning mode, the policy frozen): request k's faster side, the oracle
-  the others are measured against (request k of every run of a robot meets the same conditions);
+- oracle: both sides on every request (learning mode, the policy frozen): the backbone of the robot's side table
+  every arm's decisions are scored with (request k of every run of a robot meets the same conditions);
 - alone: the DQN deployed on the robot from nothing (probe rate 0.05), learning on the robot from its own rows;
 - fleet: the robot deciding with the fleet learner's models, its rows streamed to the one fleet learner all the
   robots share (needs the fleet learner service and the robot's fleet mode: the arm says n/a until both are
   there).
-It prints, per robot and arm, the requests until the delivered mean over a trailing window is within 5 % of the
-oracle's over the same requests (fleet_metrics.requests_to_within) and the mean over the first 300 requests;
-then the bad model pushed to the fleet (always-cloud, to a robot where local wins): the requests until the
-robot's guard rolls it back and the latency it cost. runs/bench-fleet-learning-<time>/results.json."""
+It prints, per robot and arm, the requests until the arm's decisions over a trailing window are within 5 % of the
+best decisions over the same requests, both scored with one table of the two sides' own latencies per request
+pooled over the robot's runs (fleet_metrics: like with like, free of the routing and of one run's machine noise),
+the decisions' and the best decisions' mean over the first 300 requests and, beside them, the run's live delivered
+mean; then the bad model pushed to the fleet (always-cloud, to a robot where local wins): the requests until the
+robot's guard rolls it back and what its decisions cost over the best ones. runs/bench-fleet-learning-<time>/results.json."""
 import argparse
 import importlib.util
 import json
@@ -80,14 +82,6 @@ def fleet_missing(root: pathlib.Path = ROOT) -> str:
     return "; ".join(missing)
 
 
-def arm_figures(run_dir: pathlib.Path, oracle_s: np.ndarray, first: int, tolerance: float, window: int) -> Dict:
-    arrays = load_run(run_dir)
-    delivered = arrays["delivered_s"]
-    return {"requests": len(delivered), "mean_s": float(np.mean(delivered)),
-            "requests_to_within": fleet_metrics.requests_to_within(delivered, oracle_s, tolerance, window),
-            "first": fleet_metrics.first_mean(delivered, first), "run_dir": str(run_dir)}
-
-
 def load_run(run_dir: pathlib.Path) -> Dict[str, np.ndarray]:
     data = read_bags([str(run_dir / "offload.bag")], workers=1)
     if data.report.failed:
@@ -96,61 +90,74 @@ def load_run(run_dir: pathlib.Path) -> Dict[str, np.ndarray]:
 
 
 def robot_figures(runs: Dict[str, pathlib.Path], first: int, tolerance: float, window: int) -> Dict:
-    """One robot's figures from its arms' run directories: the oracle pooled over every run's both-sides
-    requests, then each learning arm against it."""
+    """One robot's figures from its arms' run directories: the side table pooled over every run (the oracle's
+    both sides on every request, the others' sides and probes), then each learning arm's decisions scored with
+    it (fleet_metrics.arm_figures), and the table itself for the bad model."""
     arrays = {arm: load_run(run_dir) for arm, run_dir in runs.items()}
-    oracle = fleet_metrics.request_oracle(list(arrays.values()))
-    figures = {"oracle_mean_s": float(np.nanmean(oracle)) if np.isfinite(oracle).any() else None,
-               "oracle_known": int(np.isfinite(oracle).sum()), "arms": {}}
+    table = fleet_metrics.side_table(list(arrays.values()))
+    best = fleet_metrics.best_latency(table)
+    figures = {"best_mean_s": float(np.nanmean(best)) if np.isfinite(best).any() else None,
+               "both_sides_known": int(np.isfinite(best).sum()), "arms": {}}
     for arm, run_dir in runs.items():
         if arm != "oracle":
-            figures["arms"][arm] = arm_figures(run_dir, oracle, first, tolerance, window)
-    return figures
+            figures["arms"][arm] = {**fleet_metrics.arm_figures(arrays[arm], table, first, tolerance, window),
+                                    "run_dir": str(run_dir)}
+    return figures, arrays, table
 
 
-def bad_model_figures(runs, robot: Optional[RobotConfig], push: Optional[DelayedPush], store: pathlib.Path,
-                      missing: str) -> Dict:
-    """What the bad model cost `robot` and how soon its guard rolled it back, from its bad_model run's bag and its
-    oracle run (the version pushed: the push's, or on --analyse the store's fleet pin)."""
-    if robot is None or "bad_model" not in runs[robot.name]:
+def bad_model_figures(arrays: Dict[str, Dict], table: Optional[np.ndarray], robot: Optional[RobotConfig],
+                      push: Optional[DelayedPush], store: pathlib.Path, missing: str) -> Dict:
+    """What the bad model's decisions cost `robot` over the best decisions and how soon its guard rolled it back,
+    from its bad_model run and its robot's side table (the version pushed: the push's, or on --analyse the
+    store's fleet pin)."""
+    if robot is None or "bad_model" not in arrays.get(robot.name, {}) or table is None:
         return {"skipped": "not run: " + (missing or "no bad-model robot among the robots run")}
     version = push.version if push else ModelStore(str(store)).state().get("current", "")
     if not version:
         return {"skipped": f"the push failed: {push.error if push else 'no version in the store'}"}
-    arrays = load_run(runs[robot.name]["bad_model"])
-    oracle = fleet_metrics.request_oracle([load_run(runs[robot.name]["oracle"])] if "oracle" in runs[robot.name]
-                                          else [arrays], len(arrays["delivered_s"]))
-    rolled_back_at = fleet_metrics.rollback_index(arrays["model_version"], version)
-    return {"robot": robot.name, "version": version, **fleet_metrics.bad_model_cost(
-        arrays["model_version"], version, arrays["delivered_s"], oracle, rolled_back_at)}
+    run = arrays[robot.name]["bad_model"]
+    rolled_back_at = fleet_metrics.rollback_index(run["model_version"], version)
+    cost = fleet_metrics.bad_model_cost(run["model_version"], version,
+                                        fleet_metrics.decision_latency(run["action"], table),
+                                        fleet_metrics.best_latency(table), rolled_back_at)
+    return {"robot": robot.name, "version": version, **cost}
 
 
 def format_table(results: Dict) -> str:
     window, first = results["window"], results["first"]
-    lines = [f"{'robot':<16}{'map':<24}{'link':>5}{'cores':>6}{'oracle ms':>10}{'arm':>7}{'to 5 %':>8}"
-             f"{f'first {first} ms':>15}   (to 5 %: requests until the mean over the last {window} is within 5 % "
-             "of the oracle's over the same requests; the oracle: the faster side where both were measured)"]
+    within = f"{100 * results['tolerance']:g} %"
+    lines = ["Decisions scored like with like: per request, each side's own latency averaged over all of the robot's runs",
+             "(the oracle run measures both on every request); a decision costs its side's latency there, the best",
+             f"decision the faster side's. to {within}: requests until the mean of the arm's decisions over the last "
+             f"{window}",
+             f"is within {within} of the best decisions' over the same requests. decided, best, local: over the first "
+             f"{first} requests.",
+             "delivered live: the run's own delivered mean (side + routing, under that run's machine load), not the "
+             "decisions' measure.",
+             f"{'robot':<16}{'map':<24}{'link':>5}{'cores':>6}{'arm':>7}{'to ' + within:>8}"
+             f"{'decided ms':>12}{'best ms':>9}{'local':>7}{'delivered live ms':>19}"]
     for name, robot in results["robots"].items():
         config = robot["config"]
-        oracle = robot.get("oracle_mean_s")
-        head = (f"{name:<16}{pathlib.Path(config['map']).stem[:23]:<24}{config['link']:>5}{config['budget_cores']:>6g}"
-                f"{'n/a' if oracle is None else f'{1e3 * oracle:.1f}':>10}")
+        head = f"{name:<16}{pathlib.Path(config['map']).stem[:23]:<24}{config['link']:>5}{config['budget_cores']:>6g}"
         for arm in ("alone", "fleet"):
             f = robot["arms"].get(arm)
             if f is None:
-                lines.append(f"{head}{arm:>7}{'n/a':>8}{'n/a':>15}   ({robot.get('skipped', {}).get(arm, 'not run')})")
+                lines.append(f"{head}{arm:>7}{'n/a':>8}   ({robot.get('skipped', {}).get(arm, 'not run')})")
             else:
-                reached = f["requests_to_within"]
+                reached, head300 = f["requests_to_within"], f["first"]
+                ms = lambda value: "n/a" if value is None else f"{1e3 * value:.1f}"  # noqa: E731
                 lines.append(f"{head}{arm:>7}{'never' if reached is None else reached:>8}"
-                             f"{1e3 * f['first']['mean_s']:>11.1f} ({f['first']['requests']})")
+                             f"{ms(head300['decided_mean_s']):>12}{ms(head300['best_mean_s']):>9}"
+                             f"{100 * head300['local_share']:>6.0f}%{ms(head300['mean_s']):>13} ({head300['requests']})")
             head = " " * len(head)
     bad = results.get("bad_model")
     lines.append("bad model pushed to the fleet: " + (bad["skipped"] if "skipped" in bad else
-                 f"{bad['robot']}: {bad['requests_to_rollback']} requests to rollback, "
-                 f"{1e3 * (bad['excess_s'] or 0.0):.0f} ms cost over the oracle"))
+                 f"{bad['robot']}: {bad['requests_to_rollback']} requests to rollback, its decisions "
+                 f"{1e3 * (bad['excess_s'] or 0.0):.0f} ms over the best decisions in all"))
     fleet_wins = results.get("fleet_fewer_requests")
     if fleet_wins is not None:
-        lines.append(f"fleet fewer requests to 5 % than alone: {fleet_wins} of {len(results['robots'])} robots")
+        lines.append(f"fleet fewer requests to {within} than alone: {fleet_wins} of {len(results['robots'])} "
+                     f"robots")
     return "\n".join(lines)
 
 
@@ -225,15 +232,19 @@ def main(argv=None) -> int:
                                robot=robot.name)
         runs[robot.name][arm] = run_demo(args.launch, where, args.steps, robot.seed, str((ROOT / robot.map).resolve()),
                                          extra, f"{robot.name} {arm}, {done + 1}/{len(plan)}{left}")
+    arrays, tables = {}, {}
     for robot in robots:
         entry: Dict = {"config": asdict(robot), "arms": {}, "skipped": {}}
         if "oracle" in runs[robot.name]:
-            entry.update(robot_figures(runs[robot.name], args.first, args.tolerance, args.window))
+            figures, arrays[robot.name], tables[robot.name] = robot_figures(runs[robot.name], args.first,
+                                                                            args.tolerance, args.window)
+            entry.update(figures)
         if "fleet" in arms and missing:
             entry["skipped"]["fleet"] = f"not run: {missing}"
         results["robots"][robot.name] = entry
     results["fleet_fewer_requests"] = fleet_fewer(results) if "fleet" in arms and not missing else None
-    results["bad_model"] = bad_model_figures(runs, bad_robot, push, store, missing)
+    results["bad_model"] = bad_model_figures(arrays, tables.get(bad_robot.name) if bad_robot else None, bad_robot,
+                                             push, store, missing)
     with open(out / "results.json", "w") as stream:
         json.dump(results, stream, indent=2)
     print()
