@@ -4,9 +4,9 @@ Runs of one robot meet the same conditions request by request (the seeded goals,
 schedule start together and the requests arrive open-loop, as in bench-policies), so request k of every run of a
 robot is the same request. What is scored is the arm's decisions, like with like:
 
-- the side table: per request k, each side's own latency (the planner's, or the cloud's round trip: the side's
-  latency, not the delivered one) averaged over every run of the robot that measured that side on request k (the
-  oracle run measures both on every request, the others the side they took and their probes). Every arm's decision
+- the side table: per request k, both sides' own latencies (the planner's, and the cloud's round trip: the sides'
+  latencies, not the delivered one) averaged over every run of the robot that measured both on request k (the
+  oracle run on every request, the others on their probes). Every arm's decision
   on request k is scored with the table's latency of the side it decided, and the best decision on request k is
   the table's faster side. The delivered latency (the side plus the robot's routing: the learner's service,
   decision, thread and publishes, about 1 ms) and the run's own machine noise (local plans of the same requests
@@ -28,17 +28,18 @@ from offload_learner_py import CLOUD, LOCAL
 
 
 def side_table(runs: Sequence[Dict[str, np.ndarray]], length: Optional[int] = None) -> np.ndarray:
-    """(2, length): per request index, each side's latency (row LOCAL, row CLOUD) averaged over the runs that
-    measured that side on it, NaN where none did. Each run: local_s and cloud_s arrays (NaN where not measured),
-    request index order."""
+    """(2, length): per request index, the two sides' latencies (row LOCAL, row CLOUD) averaged over the runs that
+    measured both sides on it (the oracle run, probes of the others), NaN where none did. A run that measured one
+    side only does not count: each pair is one moment of the machine, so neither side is scored under another
+    run's load. Each run: local_s and cloud_s arrays (NaN where not measured), request index order."""
     length = max(len(run["local_s"]) for run in runs) if length is None else length
-    total, count = np.zeros((2, length)), np.zeros((2, length))
+    total, count = np.zeros((2, length)), np.zeros(length)
     for run in runs:
-        for side, name in ((LOCAL, "local_s"), (CLOUD, "cloud_s")):
-            seconds = np.asarray(run[name], dtype=np.float64)[:length]
-            index = np.nonzero(np.isfinite(seconds))[0]
-            total[side, index] += seconds[index]
-            count[side, index] += 1
+        pair = np.stack([np.asarray(run["local_s"], dtype=np.float64)[:length],
+                         np.asarray(run["cloud_s"], dtype=np.float64)[:length]])
+        index = np.nonzero(np.isfinite(pair).all(axis=0))[0]
+        total[:, index] += pair[:, index]
+        count[index] += 1
     with np.errstate(invalid="ignore", divide="ignore"):
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
 
