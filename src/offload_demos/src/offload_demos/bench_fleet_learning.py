@@ -16,7 +16,8 @@ best decisions over the same requests, both scored with one table of the two sid
 pooled over the robot's runs (fleet_metrics: like with like, free of the routing and of one run's machine noise),
 the decisions' and the best decisions' mean over the first 300 requests and, beside them, the run's live delivered
 mean; then the bad model pushed to the fleet (always-cloud, to a robot where local wins): the requests until the
-robot's guard rolls it back and what its decisions cost over the best ones. runs/bench-fleet-learning-<time>/results.json."""
+robot's guard rolls it back and what its decisions cost over the best ones.
+runs/bench-fleet-learning-<time>/results.json."""
 import argparse
 import importlib.util
 import json
@@ -126,8 +127,8 @@ def bad_model_figures(arrays: Dict[str, Dict], table: Optional[np.ndarray], robo
 def format_table(results: Dict) -> str:
     window, first = results["window"], results["first"]
     within = f"{100 * results['tolerance']:g} %"
-    lines = ["Decisions scored like with like: per request, each side's own latency averaged over all of the robot's runs",
-             "(the oracle run measures both on every request); a decision costs its side's latency there, the best",
+    lines = ["Decisions scored like with like: per request, both sides' own latencies averaged over the robot's runs",
+             "that measured both (the oracle run: every request); a decision costs its side's latency there, the best",
              f"decision the faster side's. to {within}: requests until the mean of the arm's decisions over the last "
              f"{window}",
              f"is within {within} of the best decisions' over the same requests. decided, best, local: over the first "
@@ -148,7 +149,8 @@ def format_table(results: Dict) -> str:
                 ms = lambda value: "n/a" if value is None else f"{1e3 * value:.1f}"  # noqa: E731
                 lines.append(f"{head}{arm:>7}{'never' if reached is None else reached:>8}"
                              f"{ms(head300['decided_mean_s']):>12}{ms(head300['best_mean_s']):>9}"
-                             f"{100 * head300['local_share']:>6.0f}%{ms(head300['mean_s']):>13} ({head300['requests']})")
+                             f"{100 * head300['local_share']:>6.0f}%{ms(head300['mean_s']):>13}"
+                             f" ({head300['requests']})")
             head = " " * len(head)
     bad = results.get("bad_model")
     lines.append("bad model pushed to the fleet: " + (bad["skipped"] if "skipped" in bad else

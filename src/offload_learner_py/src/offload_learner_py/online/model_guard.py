@@ -19,12 +19,13 @@ So a version is rolled back only when it is slower than the reference by more th
 by default) beyond noise (Welch's test at 95 %); a version no worse, or one whose difference the noise cannot
 tell, is kept. With both samples of no spread the test is the margin alone. A version with too small a baseline
 (fewer than `requests // 2` requests of the reference, as after a start with no model) is kept without a test:
-there is nothing live to compare with; its first full window makes it the reference. Each version is judged once; a rolled-back version is never loaded
-again (the fleet learner is told, fleet_link.py).
+there is nothing live to compare with; its first full window makes it the reference. Each version is judged once;
+a rolled-back version is never loaded again (the fleet learner is told, fleet_link.py).
 
 The two samples are the same robot at different moments: a load or a link that changed exactly at the swap is
-counted against (or for) the new version. The margin and a window of 30 keep that from deciding on a few slow
-requests; a real regression of a few percent needs more requests than the window to be seen.
+counted against (or for) the new version, and the reference's window may be older than the version before's
+(it refills whenever the reference decides again, as after a rollback). The margin and a window of 30 keep that from
+deciding on a few slow requests; a real regression of a few percent needs more requests than the window to be seen.
 
 What is compared is the latency the policy's choice cost: on a probe (both sides ran) the decided side's
 latency (a cloud failure costs the timeout), else the delivered latency (waits included)."""
