@@ -277,3 +277,17 @@ def test_a_robots_rollback_pin_gives_way_to_the_next_published_version_but_not_a
     store.pin(v1, robot="r2")                                # an operator's pin holds through publications
     store.record_round({"version": v4, "parent": v3, "rows": {}, "gate": {}}, _model(4))
     assert store.version_for("r2", v1, []) == v1
+
+
+def test_a_robots_rollback_report_does_not_replace_an_operators_pin(tmp_path):
+    """bench-fleet-learning: the bad model pinned for a robot never reached it, because the robot reported a
+    rollback of an older version 0.8 s later and that report replaced the operator's pin with its own."""
+    store = ModelStore(str(tmp_path / "store"))
+    v1, v2, v3 = (model_version(_model(i)) for i in (1, 2, 3))
+    for version, parent, seed in ((v1, "", 1), (v2, v1, 2), (v3, v2, 3)):
+        store.record_round({"version": version, "parent": parent, "rows": {}, "gate": {}}, _model(seed))
+    store.pin(v1, robot="r1")                                  # the operator's word
+    assert store.version_for("r1", v3, [v2]) == v1             # a rollback of another version: the pin stays
+    assert store.state()["pins"]["r1"] == v1 and "r1" not in store.state()["rollback_pins"]
+    assert store.version_for("r1", v3, [v2, v1]) == v3         # it rolled the pinned one back: it keeps its own
+    assert store.state()["pins"]["r1"] == v1                   # and the operator's pin is the operator's to lift

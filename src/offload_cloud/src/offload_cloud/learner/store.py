@@ -148,14 +148,18 @@ class ModelStore:
     def version_for(self, robot: str, current: str, rolled_back: Sequence[str]) -> str:
         """The version `robot` should run: its pin, else the fleet's current, never one it rolled back (then the
         one it runs). A rollback it reports pins it to the version it went back to until the gate publishes a newer
-        fleet version (its guard judges that one live) or an operator pins or unpins it."""
+        fleet version (its guard judges that one live) or an operator pins or unpins it; a robot an operator pinned
+        stays on the operator's pin."""
         state = self.state()
         known = set(state["rolled_back"].get(robot, []))
         new = [v for v in rolled_back if v not in known]
         if new:
             def pin(state):
                 state["rolled_back"][robot] = sorted(known | set(new))[-64:]
-                if current and current not in new:
+                # An operator's pin for this robot outranks its own rollback: the pin stays (a version it
+                # rolled back is still never served to it, below).
+                operator_pinned = robot in state["pins"] and robot not in state["rollback_pins"]
+                if current and current not in new and not operator_pinned:
                     state["pins"][robot] = current
                     state["rollback_pins"][robot] = current
             state = self._update(pin, {"event": "robot_rollback", "robot": robot, "rolled_back": new,
