@@ -1,7 +1,8 @@
 """The robot deployed with a fleet learner (online/fleet.py, fleet_link.py, model_guard.py): rows streamed off the
 request path, bounded, dropped oldest first and counted, kept through an outage and sent when the learner
 returns; new versions fetched, checked (hash, weights-only) and hot-swapped whole; a worse version rolled back by
-the guard, a better one kept; no learning on the robot. A fake FleetClient stands in for the learner."""
+the guard, a better one kept (test_fleet_robot_guard); no learning on the robot. A fake FleetClient stands in for the
+learner (fleettools)."""
 import io
 import pickle
 import threading
@@ -11,91 +12,16 @@ import numpy as np
 import pytest
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.core.model_file import load_model, model_bytes, model_version
-from offload_learner_py.core.normalisation import StateNormalisation
+from offload_learner_py.core.model_file import load_model, model_version
 from offload_learner_py.core.policies import Decision
-from offload_learner_py.core.state import STATE_SIZE
-from offload_learner_py.online.fleet import DeployedModel, FleetPolicy, FleetRobot, make_fleet_robot
+from offload_learner_py.online.fleet import DeployedModel, FleetPolicy, make_fleet_robot
 from offload_learner_py.online.fleet_link import FleetConfig, RowBuffer
 from offload_learner_py.online.learning import OnlineLearner
-from offload_learner_py.online.model_guard import GuardConfig, ModelGuard, welch_worse
-from offload_learner_py.online.router_types import Outcome, RouterConfig
+from offload_learner_py.online.model_guard import GuardConfig
+from offload_learner_py.online.router_types import RouterConfig
 from statetools import paper_state_model_file
 from routertools import STATE, STATUSES, FakePlanner, Recorder, VirtualClock, finish, wired_router
-
-
-class Timeout(Exception):
-    pass
-
-
-class Busy(Exception):
-    pass
-
-
-class Refused(Exception):
-    pass
-
-
-ERRORS = (Timeout, Busy, Refused)
-
-
-def model_file(action: int, q: float = 1.0) -> bytes:
-    """A one-layer model that always prefers `action` by q."""
-    bias = np.zeros(2, np.float32)
-    bias[action] = q
-    return model_bytes([np.zeros((STATE_SIZE, 2), np.float32)], [bias], StateNormalisation.identity())
-
-
-class FakeLearner:
-    """A FleetClient: rows kept per batch, versions offered from `offer`, files from `files`."""
-
-    def __init__(self):
-        self.batches, self.queries, self.fetches = [], [], []
-        self.down = threading.Event()
-        self.busy = False
-        self.offer, self.files = "", {}
-        self.closed = False
-
-    def send_rows(self, definitions, md5, rows):
-        if self.down.is_set():
-            raise Timeout("learner unreachable")
-        if self.busy:
-            raise Busy("over rate")
-        assert definitions == {"d": "def"} and md5 == {"d": "md5"}
-        self.batches.append(list(rows))
-        return len(rows), 0
-
-    def current_version(self, current="", rolled_back=()):
-        if self.down.is_set():
-            raise Timeout("learner unreachable")
-        self.queries.append((current, tuple(rolled_back)))
-        return ("" if self.offer in rolled_back else self.offer), 0
-
-    def fetch(self, version):
-        self.fetches.append(version)
-        return self.files[version]
-
-    def close(self):
-        self.closed = True
-
-    @property
-    def rows(self):
-        return [row for batch in self.batches for row in batch]
-
-
-def wait_for(condition, timeout_s=10.0):
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        assert time.monotonic() < deadline, "condition not met in time"
-        time.sleep(0.005)
-
-
-def fleet(fake, guard=GuardConfig(requests=0), start=True, **config):
-    settings = dict(endpoint="tcp://learner:5557", insecure=True, period_s=0.05, send_every_s=0.01, batch_rows=4,
-                    buffer_rows=8, timeout_s=0.1)
-    settings.update(config)
-    return make_fleet_robot(FleetConfig(**settings), guard, client_factory=lambda: fake, errors=ERRORS,
-                            definitions={"d": "def"}, md5={"d": "md5"}, start=start)
+from fleettools import ERRORS, FakeLearner, fleet, model_file, outcome_of, two_models, wait_for
 
 
 # --- streaming --------------------------------------------------------------------------------------------------
@@ -312,88 +238,6 @@ def test_swaps_under_load_every_decision_names_the_version_that_decided_it():
 
 
 # --- the rollback guard -----------------------------------------------------------------------------------------
-def outcome_of(latency_s, version="", probe=False, action=LOCAL):
-    outcome = Outcome(1, STATE, Decision(action, 1.0, model_version=version), probe, action, latency_s)
-    return outcome
-
-
-def run_versions(robot, old, new, old_ms, new_ms, seed=0):
-    rng = np.random.default_rng(seed)
-    for _ in range(40):
-        robot.on_outcome(outcome_of(rng.normal(old_ms, 3.0) / 1e3, old.version))
-    robot.install(new.version, new.fast)
-    for k in range(60):
-        verdict = robot.on_outcome(outcome_of(rng.normal(new_ms, 3.0) / 1e3, robot.policy.decide(STATE).model_version))
-        if verdict is not None:
-            return k + 1, verdict
-    return None, None
-
-
-def two_models():
-    a, b = model_file(LOCAL), model_file(CLOUD)
-    return DeployedModel(model_version(a), load_model(a)[0]), DeployedModel(model_version(b), load_model(b)[0])
-
-
-def test_a_worse_version_is_rolled_back_within_its_window_and_never_offered_again(caplog):
-    old, new = two_models()
-    fake = FakeLearner()
-    robot = fleet(fake, guard=GuardConfig(requests=30), start=False)
-    robot.policy.swap(old)
-    with caplog.at_level("WARNING"):
-        requests, verdict = run_versions(robot, old, new, old_ms=40, new_ms=55)
-    assert requests == 30 and verdict.worse
-    assert robot.policy.model is old and robot.rolled_back() == (new.version,)
-    assert robot.policy.decide(STATE).model_version == old.version
-    assert any("rolled back" in r.getMessage() and new.version[:12] in r.getMessage() for r in caplog.records)
-    assert robot.stats()["rolled_back"] == [new.version] and robot.stats()["model_version"] == old.version
-    fake.offer = new.version
-    fake.files = {new.version: model_file(CLOUD)}
-    robot.link.start()
-    wait_for(lambda: fake.queries)
-    robot.close()
-    assert fake.queries[0] == (old.version, (new.version,)) and fake.fetches == []   # told, never fetched again
-    robot.install(new.version, new.fast)
-    assert robot.policy.model is old                        # and never installed again
-
-
-@pytest.mark.parametrize("new_ms", [30.0, 40.0, 41.0])
-def test_a_better_or_equal_version_is_kept(new_ms):
-    old, new = two_models()
-    robot = FleetRobot(FleetPolicy(old), ModelGuard(GuardConfig(requests=30)))
-    requests, verdict = run_versions(robot, old, new, old_ms=40, new_ms=new_ms)
-    assert requests == 30 and not verdict.worse
-    assert robot.policy.model.version == new.version and robot.rolled_back() == ()
-
-
-def test_welch_rule():
-    same = [0.040, 0.041, 0.039, 0.040] * 8
-    assert not welch_worse(same, same, 0.05, 0.95)[0]
-    assert welch_worse([x * 1.3 for x in same], same, 0.05, 0.95)[0]
-    assert not welch_worse([x * 1.04 for x in same], same, 0.05, 0.95)[0]      # within the margin
-    noisy = list(np.random.default_rng(1).normal(0.04, 0.04, 30))
-    assert not welch_worse([x + 0.004 for x in noisy], noisy, 0.05, 0.95)[0]   # 10 % worse, lost in noise
-    assert welch_worse([0.05] * 5, [0.04] * 5, 0.05, 0.95)[0]                 # no spread: the margin decides
-
-
-def test_a_version_without_a_baseline_is_kept_untested():
-    old, new = two_models()
-    robot = FleetRobot(FleetPolicy(None), ModelGuard(GuardConfig(requests=30)))
-    robot.install(old.version, old.fast)
-    for _ in range(40):
-        assert robot.on_outcome(outcome_of(10.0, old.version)) is None
-    assert robot.policy.model.version == old.version
-
-
-def test_the_guard_reads_the_decided_sides_latency_on_a_probe():
-    from offload_learner_py.online.fleet import policy_latency_s
-
-    probe = outcome_of(0.020, probe=True, action=CLOUD)
-    probe.local, probe.local_s, probe.cloud, probe.cloud_s = object(), 0.020, object(), 0.090
-    assert policy_latency_s(probe) == 0.090
-    assert policy_latency_s(outcome_of(0.020)) == 0.020
-
-
-# --- what the robot pays: no learning -------------------------------------------------------------------------
 def test_a_fleet_robot_never_learns_and_its_learner_cpu_is_inference_level(monkeypatch):
     old, _ = two_models()
     policy = FleetPolicy(old)
