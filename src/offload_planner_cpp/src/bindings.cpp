@@ -12,6 +12,7 @@
 
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/inflation.h"
+#include "offload_planner_cpp/path_check.h"
 #include "offload_planner_cpp/plan_request.h"
 #include "offload_planner_cpp/planner_options.h"
 
@@ -295,6 +296,32 @@ PYBIND11_MODULE(_core, m) {
       py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
       "Index of the first segment of `path` (N x 2 cells) that leaves the grid, crosses a blocked cell or cuts a "
       "blocked corner (the planner's line-of-sight rule); -1 when every segment is clear.");
+  m.def(
+      "check_path",
+      [](const py::array& grid, const py::array_t<std::int32_t, py::array::c_style | py::array::forcecast>& path,
+         std::pair<int, int> start, std::pair<int, int> reached_goal, bool any_angle, int lethal_threshold,
+         bool unknown_is_obstacle) {
+        static const char* const kNames[] = {"", "leaves_map", "wrong_start", "wrong_end", "repeats_corner",
+                                             "not_8_connected", "blocked"};
+        static_assert(sizeof(Cell) == 2 * sizeof(std::int32_t), "Cell must be two packed ints");
+        const GridView view = viewOf(grid);
+        if (path.ndim() != 2 || path.shape(1) != 2 || path.shape(0) < 1) {
+          throw py::value_error("path must be an N x 2 array of (x, y) cells, N >= 1");
+        }
+        PlannerOptions options;
+        options.lethal_threshold = lethal_threshold;
+        options.unknown_is_obstacle = unknown_is_obstacle;
+        const auto check = offload_planner::checkPath(
+            view.data, view.width, view.height, reinterpret_cast<const Cell*>(path.data()),
+            static_cast<std::size_t>(path.shape(0)), Cell{start.first, start.second},
+            Cell{reached_goal.first, reached_goal.second}, any_angle, options);
+        return py::make_tuple(kNames[static_cast<int>(check.problem)], check.index, check.length_cells);
+      },
+      py::arg("grid"), py::arg("path"), py::arg("start"), py::arg("reached_goal"), py::arg("any_angle"),
+      py::arg("lethal_threshold") = d.lethal_threshold, py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
+      "(problem, segment, length in cells) of a path planned elsewhere, in one pass over its cells (path_check.h): "
+      "problem is '' or one of leaves_map, wrong_start, wrong_end, repeats_corner, not_8_connected, blocked "
+      "(segment: the first blocked one); the length is 0 unless the problem is ''.");
   m.def(
       "inflate",
       [](const py::array& grid, double robot_radius_cells, double inflation_radius_cells, double inflation_decay,
