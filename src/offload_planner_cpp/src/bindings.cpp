@@ -123,10 +123,13 @@ Pose poseOf(const std::vector<double>& v, const char* name) {
   return {v[0], v[1], v[2], v[3], v[4], v[5], v[6]};
 }
 
-py::array_t<double> pathPoses(const MapGeometry& geometry, const py::array_t<std::int32_t, py::array::c_style |
-                                                                                              py::array::forcecast>& path,
-                              const std::vector<double>& start, const std::vector<double>& goal,
-                              bool reached_requested_goal) {
+// N x 7 (x, y, z, qx, qy, qz, qw) poses; with a row prefix, bytes instead: the count (uint32) then every pose's 7
+// doubles after the prefix, little-endian: a serialized array of messages whose rows differ only in their poses (the
+// cloud bridge's PoseStamped rows, path_wire.py), written in one pass instead of a dozen numpy ones per cloud plan.
+py::object pathPoses(const MapGeometry& geometry, const py::array_t<std::int32_t, py::array::c_style |
+                                                                                     py::array::forcecast>& path,
+                     const std::vector<double>& start, const std::vector<double>& goal, bool reached_requested_goal,
+                     const py::object& row_prefix) {
   if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
     throw py::value_error("path must be an N x 2 array of (x, y) cells");
   }
@@ -135,10 +138,28 @@ py::array_t<double> pathPoses(const MapGeometry& geometry, const py::array_t<std
   for (py::ssize_t k = 0; k < path.shape(0); ++k) cells[k] = Cell{p(k, 0), p(k, 1)};
   const std::vector<Pose> poses =
       offload_planner::pathPoses(geometry, cells, poseOf(start, "start"), poseOf(goal, "goal"), reached_requested_goal);
-  py::array_t<double> out({static_cast<py::ssize_t>(poses.size()), static_cast<py::ssize_t>(7)});
   static_assert(sizeof(Pose) == 7 * sizeof(double), "Pose must be seven packed doubles");
-  if (!poses.empty()) std::memcpy(out.mutable_data(), poses.data(), poses.size() * sizeof(Pose));
-  return out;
+  if (row_prefix.is_none()) {
+    py::array_t<double> out({static_cast<py::ssize_t>(poses.size()), static_cast<py::ssize_t>(7)});
+    if (!poses.empty()) std::memcpy(out.mutable_data(), poses.data(), poses.size() * sizeof(Pose));
+    return std::move(out);
+  }
+  static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "rows are written in the host's byte order");
+  const std::string prefix = row_prefix.cast<py::bytes>();
+  const std::size_t row = prefix.size() + sizeof(Pose);
+  if (poses.size() > 0xFFFFFFFFu) throw py::value_error("more poses than a uint32 count holds");
+  const auto count = static_cast<std::uint32_t>(poses.size());
+  PyObject* bytes = PyBytes_FromStringAndSize(nullptr, static_cast<py::ssize_t>(sizeof(count) + count * row));
+  if (bytes == nullptr) throw py::error_already_set();
+  char* out = PyBytes_AS_STRING(bytes);
+  std::memcpy(out, &count, sizeof(count));
+  out += sizeof(count);
+  for (const Pose& pose : poses) {
+    std::memcpy(out, prefix.data(), prefix.size());
+    std::memcpy(out + prefix.size(), &pose, sizeof(Pose));
+    out += row;
+  }
+  return py::reinterpret_steal<py::object>(bytes);
 }
 
 py::object cellOrNone(bool ok, Cell c) { return ok ? py::object(py::make_tuple(c.x, c.y)) : py::object(py::none()); }
@@ -260,8 +281,10 @@ PYBIND11_MODULE(_core, m) {
       py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
       "Boolean [y, x] mask of the cells the planner may enter, by its own rule.");
   m.def("path_poses", &pathPoses, py::arg("geometry"), py::arg("path"), py::arg("start_pose"), py::arg("goal_pose"),
-        py::arg("reached_requested_goal"),
-        "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them.");
+        py::arg("reached_requested_goal"), py::arg("row_prefix") = py::none(),
+        "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them; with "
+        "row_prefix (bytes), bytes instead: the count (uint32) then each pose's 7 doubles after row_prefix, "
+        "little-endian.");
   m.def("plan_raw", &planRaw, py::arg("grid"), py::arg("start"), py::arg("goal"),
         py::arg("lethal_threshold") = d.lethal_threshold, py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
         py::arg("goal_tolerance") = d.goal_tolerance_cells, py::arg("stop_at_goal") = d.stop_at_goal, py::kw_only(),

@@ -7,7 +7,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Optional, Tuple
+from typing import Any, Callable, Optional, Tuple
 
 import numpy as np
 import zmq
@@ -61,6 +61,10 @@ class BridgeResult:
     reachable: bool = True
     bytes_sent: int = 0              # link payload bytes of this request, map re-uploads included
     bytes_received: int = 0
+    # With plan(row_prefix=...): the poses as path_poses' rows (a uint32 count, then each pose's 7 doubles after
+    # the prefix) instead of `poses`, and the prefix they were written with.
+    pose_rows: bytes = b""
+    pose_row_prefix: bytes = b""
 
 
 _DEFAULT = OPTION_DEFAULTS   # the core's (planner_options.h)
@@ -241,9 +245,11 @@ class CloudBridge:
 
     # -- plan -----------------------------------------------------------------------------------------
 
-    def plan(self, start: StampedPose, goal: StampedPose, tolerance_m: float) -> BridgeResult:
+    def plan(self, start: StampedPose, goal: StampedPose, tolerance_m: float,
+             row_prefix: Optional[Callable[[str], bytes]] = None) -> BridgeResult:
         """The PlanPath answer for a request: checked and converted by the core's request contract,
-        planned in the cloud."""
+        planned in the cloud. With row_prefix (the path's frame id -> bytes, called once the path is back), a path's
+        poses come as `pose_rows` for a caller that serializes them (the ROS node), not as `poses`."""
         with self._lock:
             snapshot, rejected = self._map, self._rejected
         if snapshot is None:
@@ -290,7 +296,12 @@ class CloudBridge:
             return result
         result.cost_m = reply.cost_cells * geometry.resolution
         result.reached_goal = tuple(reply.goal) == tuple(request.goal)
-        result.poses = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
+        if row_prefix is None:
+            result.poses = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
+        else:
+            result.pose_row_prefix = row_prefix(snapshot.frame_id)
+            result.pose_rows = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal,
+                                          result.pose_row_prefix)
         return result
 
     def _options(self, resolution: float, tolerance_cells: float) -> PlanOptions:

@@ -108,9 +108,15 @@ Status = enum.IntEnum("Status", [(name, int(code)) for name, code in PlanStatus.
                       [(code.name, code.value) for code in LinkStatus], module=__name__)
 
 
+_FIRST_LINK_STATUS = int(min(LinkStatus))   # once: min() walks the enum (a dozen calls each time)
+# Codes to members by a dict lookup: calling an IntEnum on the link's hot path costs several Python calls a time.
+_KIND_OF = {int(kind): kind for kind in Kind}
+_STATUS_OF = {int(status): status for status in Status}
+
+
 def is_planner_status(status: int) -> bool:
     """True for the planner's own outcomes (the server planned on the map), False for the link's codes."""
-    return status < min(LinkStatus)
+    return status < _FIRST_LINK_STATUS
 
 
 class ProtocolError(ValueError):
@@ -227,12 +233,19 @@ def encode_upload(request_id: int, grid: np.ndarray) -> list:
     return [envelope(Kind.UPLOAD, request_id), map_metadata(grid), *map_frames.split(_buffer_of(grid))]
 
 
+_last_options = (None, b"")   # (PlanOptions, its encoding): one tuple, replaced whole, so safe across threads
+
+
 def encode_plan(request_id: int, map_hash_: bytes, start: Sequence[int], goal: Sequence[int],
                 options: PlanOptions = PlanOptions(), grid: Optional[np.ndarray] = None) -> list:
     """Frames of a plan request; with `grid` the map travels too (its buffer, in frames of at most 1 MiB, is sent
     without a copy)."""
+    global _last_options
+    last = _last_options
+    if last[0] is not options:   # a robot asks with the same (frozen) options object over and over
+        last = _last_options = (options, encode_options(options))
     body = _PLAN_HEAD.pack(map_hash_, int(start[0]), int(start[1]), int(goal[0]), int(goal[1]))
-    frames = [envelope(Kind.PLAN, request_id), body + encode_options(options)]
+    frames = [envelope(Kind.PLAN, request_id), body + last[1]]
     if grid is not None:
         frames += [map_metadata(grid), *map_frames.split(_buffer_of(grid))]
     return frames
@@ -256,11 +269,11 @@ def decode_envelope(frame) -> Tuple[Kind, int]:
                             f"protocol version {frame[4]} is not supported: this server speaks version {VERSION}")
     if len(frame) != ENVELOPE.size:
         raise ProtocolError(Status.BAD_REQUEST, f"envelope is {len(frame)} bytes, expected {ENVELOPE.size}")
-    _, _, kind, request_id = ENVELOPE.unpack(frame)
-    try:
-        return Kind(kind), request_id
-    except ValueError:
-        raise ProtocolError(Status.BAD_REQUEST, f"unknown message kind {kind}") from None
+    _, _, code, request_id = ENVELOPE.unpack(frame)
+    kind = _KIND_OF.get(code)
+    if kind is None:
+        raise ProtocolError(Status.BAD_REQUEST, f"unknown message kind {code}")
+    return kind, request_id
 
 
 def request_id_of(frame) -> int:
@@ -335,10 +348,9 @@ def decode_reply(frames, blob: bool = False):
     path_bytes = memoryview(frames[2 + 1])
     if path_bytes.nbytes % 8 and not blob:
         raise ProtocolError(Status.BAD_REQUEST, "reply path is not whole (x, y) int32 pairs")
-    try:
-        status = Status(status)
-    except ValueError:
-        raise ProtocolError(Status.BAD_REQUEST, f"unknown reply status {status}") from None
+    code, status = status, _STATUS_OF.get(status)
+    if status is None:
+        raise ProtocolError(Status.BAD_REQUEST, f"unknown reply status {code}")
     message = bytes(frames[2]).decode("utf-8", "replace")
     if blob:
         return Reply(request_id, status, message), bytes(path_bytes)

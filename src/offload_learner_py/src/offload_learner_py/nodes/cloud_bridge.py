@@ -6,19 +6,21 @@ from dataclasses import dataclass
 
 import rospy
 import zmq
+from genpy import Time
 from nav_msgs.msg import OccupancyGrid, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
 from offload_msgs.msg import LinkLatency, PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathResponse
 from rospy.numpy_msg import numpy_msg
 
-from offload_cloud.bridge import BridgeConfig, CloudBridge, StampedPose
+from offload_cloud.bridge import BridgeConfig, BridgeResult, CloudBridge, StampedPose
 from offload_cloud.gc_pauses import freeze_startup_heap
 from offload_learner_py.nodes import params
 from offload_learner_py.nodes.bridge_reconfigure import PlannerUpdates
 from offload_learner_py.nodes.diagnostics import NodeDiagnostics
 from offload_learner_py.online.health import LinkHealth
-from offload_learner_py.nodes.path_wire import WirePath, WirePlanPathResponse, pose_count
+from offload_learner_py.nodes.path_wire import (WirePath, WirePlanPathResponse, path_of_rows, pose_count,
+                                                pose_row_prefix)
 from offload_planner_cpp import options_table, validate_options
 
 # A parameter's Python type by the type of its row in the core's options table.
@@ -82,6 +84,32 @@ def read_parameters() -> BridgeConfig:
 
 def read_node_parameters() -> BridgeNodeConfig:
     return BridgeNodeConfig(**params.read(_get, NODE_PARAMETERS))
+
+
+def plan_response(result: BridgeResult, stamp=None) -> WirePlanPathResponse:
+    """The PlanPath response of a bridge result: its path from the result's pose rows (bridge.plan(row_prefix=
+    row_prefix_now): stamped and framed by their prefix), or else from its poses, stamped `stamp`. On the bridge's
+    path of every cloud plan, where each call meets a cold cache (#30's bridge CPU bar): the path is written by the
+    core in one pass, not a genpy PoseStamped per pose, and the fields are set directly, not through genpy's keyword
+    __init__, which checks every keyword and makes a default Path, Header and Times only to drop them."""
+    res = WirePlanPathResponse.__new__(WirePlanPathResponse)
+    res.status = status = int(result.status)
+    if status != PlanPathResponse.OK:
+        res.path = Path()
+    elif result.pose_rows:
+        res.path = path_of_rows(result.pose_row_prefix, result.pose_rows)
+    else:
+        res.path = WirePath.from_poses(result.frame_id, stamp, result.poses)
+    res.message, res.planning_time_s, res.expansions = result.message, result.planning_time_s, result.expansions
+    res.cost_m, res.cpu_s = result.cost_m, 0.0
+    res.map_stamp = result.map_stamp if result.map_stamp is not None else Time()
+    res.bytes_sent, res.bytes_received = result.bytes_sent, result.bytes_received
+    return res
+
+
+def row_prefix_now(frame_id: str) -> bytes:
+    """The pose row prefix of a path stamped now (the path's poses are written when it is back from the cloud)."""
+    return pose_row_prefix(rospy.Time.now(), frame_id)
 
 
 class CloudBridgeNode:
@@ -149,16 +177,8 @@ class CloudBridgeNode:
     def serve(self, req) -> PlanPathResponse:
         started = rospy.get_time()
         cpu_started = time.thread_time()   # this service thread's CPU: the robot's cost of offloading
-        result = self.bridge.plan(stamped_pose(req.start), stamped_pose(req.goal), req.tolerance)
-        # the path written in one numpy pass (path_wire), not a genpy PoseStamped per pose
-        res = WirePlanPathResponse(status=int(result.status), message=result.message,
-                                   planning_time_s=result.planning_time_s, expansions=result.expansions,
-                                   cost_m=result.cost_m, bytes_sent=result.bytes_sent,
-                                   bytes_received=result.bytes_received)
-        if result.map_stamp is not None:
-            res.map_stamp = result.map_stamp
-        if res.status == PlanPathResponse.OK:
-            res.path = WirePath.from_poses(result.frame_id, rospy.Time.now(), result.poses)
+        result = self.bridge.plan(stamped_pose(req.start), stamped_pose(req.goal), req.tolerance, row_prefix_now)
+        res = plan_response(result)
         res.cpu_s = time.thread_time() - cpu_started
         if result.link_round_trip_s is not None:
             self.publish_latency(LinkLatency.REQUEST, result.reachable, result.link_round_trip_s)

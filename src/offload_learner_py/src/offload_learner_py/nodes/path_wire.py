@@ -95,9 +95,33 @@ class WirePath(Path):
         raw = wire[_COUNT.size:].reshape(len(poses), len(header) + 56)
         raw[:, :len(header)] = np.frombuffer(header, np.uint8)
         raw[:, len(header):] = poses.view(np.uint8)
-        path = cls(header=Header(stamp=stamp, frame_id=frame_id))
+        # Built without genpy's keyword __init__ (which validates every keyword and goes through the poses property
+        # twice): on the bridge's path of every cloud plan, where each call meets a cold cache.
+        path = cls.__new__(cls)
+        path.header = Header(0, stamp, frame_id)
+        _POSES_SLOT.__set__(path, [])
         path._poses_wire, path._count = wire.tobytes(), len(poses)
         return path
+
+
+def pose_row_prefix(stamp: Time, frame_id: str) -> bytes:
+    """What precedes each pose of a path stamped `stamp` in `frame_id`: its PoseStamped's header (seq 0)."""
+    frame = frame_id.encode("utf-8")
+    return _HEADER.pack(0, stamp.secs, stamp.nsecs, len(frame)) + frame
+
+
+def path_of_rows(prefix: bytes, rows: bytes) -> WirePath:
+    """The path whose poses are `rows` (offload_planner_cpp.path_poses with `prefix` = pose_row_prefix(stamp,
+    frame_id): a uint32 count, then each pose after the prefix), stamped and framed as its poses, without a copy."""
+    header, _ = _read_header(prefix, 0)
+    path = WirePath.__new__(WirePath)   # as from_poses builds it
+    path.header = header
+    _POSES_SLOT.__set__(path, [])
+    (path._count,) = _COUNT.unpack_from(rows)
+    if len(rows) != _COUNT.size + path._count * (len(prefix) + 56):
+        raise ValueError(f"{len(rows)} bytes are not {path._count} rows after a {len(prefix)}-byte prefix")
+    path._poses_wire = rows
+    return path
 
 
 def pose_count(path: Path) -> int:
