@@ -114,15 +114,26 @@ std::vector<Pose> pathPoses(const MapGeometry& geometry, const std::vector<Cell>
                             const Pose& goal, bool reached_requested_goal) {
   std::vector<Pose> poses(path.size());
   double heading = geometry.origin_yaw;  // of a one-cell path's only step, which never happens
+  double qz = std::sin(0.5 * heading), qw = std::cos(0.5 * heading);
+  int last_dx = 0, last_dy = 0;  // no step yet: (0, 0) is never one
+  const double c = std::cos(geometry.origin_yaw), s = std::sin(geometry.origin_yaw);
   for (std::size_t k = 0; k < path.size(); ++k) {
-    geometry.cellToWorld(path[k], &poses[k].x, &poses[k].y);
+    geometry.cellToWorld(path[k], c, s, &poses[k].x, &poses[k].y);
     if (k + 1 < path.size()) {
       // Steps are between cell centres of the grid, so their world heading is the grid heading plus the
-      // step's angle in cells.
-      heading = geometry.origin_yaw + std::atan2(path[k + 1].y - path[k].y, path[k + 1].x - path[k].x);
+      // step's angle in cells. A run of equal steps (most of an 8-connected path) shares one heading: computed
+      // once per run, the same bits, not an atan2 and a sincos per pose (the robot's bridge writes every cloud path).
+      const int dx = path[k + 1].x - path[k].x, dy = path[k + 1].y - path[k].y;
+      if (dx != last_dx || dy != last_dy) {
+        heading = geometry.origin_yaw + std::atan2(dy, dx);
+        qz = std::sin(0.5 * heading);
+        qw = std::cos(0.5 * heading);
+        last_dx = dx;
+        last_dy = dy;
+      }
     }
-    poses[k].qz = std::sin(0.5 * heading);
-    poses[k].qw = std::cos(0.5 * heading);
+    poses[k].qz = qz;
+    poses[k].qw = qw;
   }
   if (poses.empty()) return poses;
   if (reached_requested_goal) poses.back() = goal;

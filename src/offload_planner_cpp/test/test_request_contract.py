@@ -109,6 +109,31 @@ def test_path_poses():
     assert 2 * np.arctan2(diagonal[1, 5], diagonal[1, 6]) == pytest.approx(math.pi / 4)
 
 
+def test_path_poses_of_a_long_path_and_as_rows():
+    """Every pose as the one rule gives it (cell centre; heading of the step to the next cell), bit for bit, on a rotated
+    map, with runs of equal steps (whose heading is computed once per run); with row_prefix, the same doubles after
+    the prefix in each row, after a uint32 count."""
+    g = geometry(600, 600, 0.05, (1.5, -2.0), (0.0, 0.0, math.sin(0.35), math.cos(0.35)))
+    rng = np.random.default_rng(3)
+    moves = np.array([(1, 0), (1, 1), (0, 1), (-1, 1), (-1, 0), (-1, -1), (0, -1), (1, -1)])
+    steps = moves[np.repeat(rng.integers(0, 8, 40), rng.integers(1, 6, 40))]
+    path = (np.vstack([[0, 0], np.cumsum(steps, axis=0)]) + 200).astype(np.int32)
+    start, goal = (0.0,) * 7, (1.0,) * 7
+    poses = path_poses(g, path, start, goal, False)
+    for k in range(1, len(path)):
+        assert tuple(poses[k, :2]) == g.cell_to_world(*path[k])
+        dx, dy = (path[min(k + 1, len(path) - 1)] - path[k]) if k + 1 < len(path) else (path[k] - path[k - 1])
+        heading = g.origin_yaw + math.atan2(dy, dx)
+        assert tuple(poses[k, 2:]) == (0.0, 0.0, 0.0, math.sin(0.5 * heading), math.cos(0.5 * heading)), k
+    prefix = b"header of a row"
+    rows = path_poses(g, path, start, goal, False, row_prefix=prefix)
+    assert isinstance(rows, bytes) and int.from_bytes(rows[:4], "little") == len(path)
+    table = np.frombuffer(rows[4:], np.uint8).reshape(len(path), len(prefix) + 56)
+    assert all(bytes(row[:len(prefix)]) == prefix for row in table)
+    assert table[:, len(prefix):].copy().view("<f8").tobytes() == poses.astype("<f8").tobytes()
+    assert path_poses(g, path[:0], start, goal, False, row_prefix=prefix) == bytes(4)
+
+
 def test_status_codes_are_the_services_and_the_wires():
     """The codes are typed once, in the C++ core: the generated PlanPath message and the protocol's
     Status agree with the binding's PlanStatus name for name and value."""

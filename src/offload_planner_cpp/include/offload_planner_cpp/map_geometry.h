@@ -39,10 +39,12 @@ struct MapGeometry {
 
   // World coordinates of the cell's centre.
   void cellToWorld(Cell cell, double* wx, double* wy) const {
+    cellToWorld(cell, std::cos(origin_yaw), std::sin(origin_yaw), wx, wy);
+  }
+  // The same with cos and sin of origin_yaw given, for a caller converting many cells (pathPoses).
+  void cellToWorld(Cell cell, double c, double s, double* wx, double* wy) const {
     const double gx = (cell.x + 0.5) * resolution;
     const double gy = (cell.y + 0.5) * resolution;
-    const double c = std::cos(origin_yaw);
-    const double s = std::sin(origin_yaw);
     *wx = origin_x + c * gx - s * gy;
     *wy = origin_y + s * gx + c * gy;
   }
