@@ -7,7 +7,7 @@ import logging
 import threading
 import time
 from dataclasses import dataclass, field, replace
-from typing import Any, Callable, Optional, Tuple
+from typing import Any, Callable, NamedTuple, Optional, Tuple
 
 import numpy as np
 import zmq
@@ -33,9 +33,9 @@ class MapSnapshot:
     map_hash: bytes
 
 
-@dataclass(frozen=True)
-class StampedPose:
-    """A geometry_msgs/PoseStamped in plain types; the orientation only matters for the path's ends."""
+class StampedPose(NamedTuple):
+    """A geometry_msgs/PoseStamped in plain types; the orientation only matters for the path's ends. (A NamedTuple,
+    not a frozen dataclass, whose __init__ sets each field through object.__setattr__: two per cloud plan.)"""
     frame_id: str
     x: float
     y: float
