@@ -3,7 +3,6 @@ decisions scored with it (like with like: never a delivered latency against a si
 requests until the trailing mean is within 5 % of the best decisions', the first-300 means, a bad model's cost and
 rollback, and the bench's loop over robots and arms on synthetic runs (no ROS)."""
 import json
-import math
 
 import numpy as np
 import pytest
