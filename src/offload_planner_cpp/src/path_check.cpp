@@ -1,6 +1,7 @@
 // checkPath (path_check.h): the whole reply check in one pass, so the bridge makes one call per cloud plan rather
 // than a dozen numpy passes (each cheap, but together 0.1-0.2 ms of the robot's CPU on a cold cache).
 #include "offload_planner_cpp/path_check.h"
+#include "diagonal_step.h"
 
 #include <algorithm>
 #include <cmath>
@@ -53,7 +54,7 @@ PathCheck checkPath(const std::int8_t* grid, int width, int height, const Cell* 
     }
   }
   const double steps = static_cast<double>(n - 1);
-  check.length_cells = any_angle ? euclidean : steps - diagonal + std::sqrt(2.0) * diagonal;
+  check.length_cells = any_angle ? euclidean : steps - diagonal + kDiagonal * diagonal;
   return check;
 }
 
