@@ -13,10 +13,11 @@ import pytest
 WORKSPACE = Path(__file__).resolve().parents[1]
 PLANNER = WORKSPACE / "src" / "offload_planner_cpp"
 CORE_SOURCES = [PLANNER / "include" / "offload_planner_cpp" / name
-                for name in ("dijkstra.h", "inflation.h", "jump_point_search.h", "map_geometry.h", "plan_status.h",
-                             "plan_request.h", "planner_options.h")] + \
+                for name in ("dijkstra.h", "inflation.h", "jump_point_search.h", "map_geometry.h", "path_check.h",
+                             "plan_status.h", "plan_request.h", "planner_options.h")] + \
                [PLANNER / "src" / name for name in ("dijkstra.cpp", "any_angle.cpp", "algorithm_choice.cpp",
-                                                    "segment_walk.h", "best_first.h", "bucket_waves.cpp", "inflation.cpp",
+                                                    "segment_walk.h", "best_first.h", "diagonal_step.h", "bucket_waves.cpp",
+                                                    "inflation.cpp", "path_check.cpp",
                                                     "jump_point_search.cpp", "plan_request.cpp", "planner_options.cpp",
                                                     "bindings.cpp", "bindings_options.cpp")]
 ROS_INCLUDE = re.compile(r'#\s*include\s*[<"](ros/|nav_msgs/|geometry_msgs/|std_msgs/|offload_msgs/|tf2)')
