@@ -4,8 +4,11 @@ statuses, keeps serving after them, survives malformed and rapidly changing maps
 map), lets neither a short plan nor a map update wait behind long plans, and publishes ~path and ~timing.
 Expected costs come from the pybind11 module on the same map file."""
 import dataclasses
+import os
 import threading
+import time
 import unittest
+import xmlrpc.client
 
 import numpy as np
 from scipy import ndimage
@@ -17,6 +20,7 @@ from nav_msgs.srv import GetPlan
 from std_msgs.msg import UInt64
 from offload_msgs.msg import PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
+import rosnode
 import rospkg
 
 import offload_planner_cpp
@@ -100,6 +104,24 @@ class PlannerNodeTest(unittest.TestCase):
             # The node's own CPU for the request: at least the core's planning, never the link's bytes.
             self.assertGreater(res.cpu_s, 0.0)
             self.assertEqual((res.bytes_sent, res.bytes_received), (0, 0))
+
+    def test_idle_node_sleeps(self):
+        """Waiting for requests costs the robot next to nothing: the node's threads wake about 36 times a second
+        (roscpp's own poll loops), not the 115 of AsyncSpinner's 0.1 s polls and waitForShutdown's 0.05 s."""
+        api = rosnode.get_api_uri(rospy.get_master(), "/planner")
+        pid = xmlrpc.client.ServerProxy(api).getPid("/rtest_planner_node")[2]
+
+        def wakes():
+            total = 0
+            for task in os.listdir(f"/proc/{pid}/task"):
+                with open(f"/proc/{pid}/task/{task}/status") as status:
+                    total += sum(int(line.split()[1]) for line in status if line.startswith("voluntary_ctxt"))
+            return total
+
+        before, began = wakes(), time.monotonic()
+        time.sleep(3.0)
+        per_s = (wakes() - before) / (time.monotonic() - began)
+        self.assertLess(per_s, 70.0, f"the idle planner node woke {per_s:.0f} times a second")
 
     def test_make_plan_honours_tolerance(self):
         wall = self.wall

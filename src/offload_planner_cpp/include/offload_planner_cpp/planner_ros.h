@@ -116,6 +116,7 @@ class PlannerNode {
   std::unique_ptr<dynamic_reconfigure::Server<offload_planner_cpp::PlannerConfig>> reconfigure_server_;
   std::string planner_name_;
   int planning_threads_ = 4;
+  static constexpr double kSpinnerWaitS = 2.0;   // a spinner thread's wait for work (spin())
   ros::CallbackQueue map_queue_;
   ros::CallbackQueue cancel_queue_;   // its own thread: a cancel must reach a plan while every planning thread is busy
   CancelRegistry cancels_;
