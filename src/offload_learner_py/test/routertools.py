@@ -106,5 +106,7 @@ def make_router(policy, local, cloud, clock, probe_rate=0.0, timeout_s=5.0):
 
 
 def finish(router):
-    assert router.wait_idle(10)
+    # A liveness bound, not a timing: the learning behind a burst of routed requests (a gradient step per transition)
+    # outlasted 10 s on a loaded machine (load average 4.5 on 2 cores).
+    assert router.wait_idle(120)
     router.close()
