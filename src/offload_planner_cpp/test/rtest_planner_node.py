@@ -20,7 +20,7 @@ from nav_msgs.srv import GetPlan
 from std_msgs.msg import UInt64
 from offload_msgs.msg import PlanTiming
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
-import rosnode
+import rosgraph
 import rospkg
 
 import offload_planner_cpp
@@ -108,7 +108,7 @@ class PlannerNodeTest(unittest.TestCase):
     def test_idle_node_sleeps(self):
         """Waiting for requests costs the robot next to nothing: the node's threads wake about 36 times a second
         (roscpp's own poll loops), not the 115 of AsyncSpinner's 0.1 s polls and waitForShutdown's 0.05 s."""
-        api = rosnode.get_api_uri(rospy.get_master(), "/planner")
+        api = rosgraph.Master("/rtest_planner_node").lookupNode("/planner")
         pid = xmlrpc.client.ServerProxy(api).getPid("/rtest_planner_node")[2]
 
         def wakes():
