@@ -1,6 +1,7 @@
 """Fakes for the router's tests: planners with scripted costs on a per-thread virtual clock (no sleeps, no
 timing assertions), a recorder of what the router publishes, and the router built around them with its
 learner, wired as the node wires them."""
+import contextvars
 import threading
 
 
@@ -16,16 +17,17 @@ STATE = State(1.2, 0.6, 0.05, 2e7)
 
 
 class VirtualClock:
-    """Each thread has its own time; a fake planner advances the calling thread's time by its cost."""
+    """Each side call has its own time, from its starter's when it was started (the router's workers run a call in
+    a copy of its starter's context); a fake planner advances the calling side's time by its cost."""
 
     def __init__(self):
-        self.local = threading.local()
+        self.now = contextvars.ContextVar("virtual_now", default=0.0)
 
     def __call__(self):
-        return getattr(self.local, "now", 0.0)
+        return self.now.get()
 
     def advance(self, seconds):
-        self.local.now = self() + seconds
+        self.now.set(self() + seconds)
 
 
 class FakePlanner:

@@ -47,7 +47,7 @@ from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
 from offload_learner_py.online.learning import OnlineLearner, latency_features as _features
 from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
-from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller
+from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller, Workers
 
 OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 
@@ -99,6 +99,7 @@ class OffloadRouter:
         self.breaker = breaker or LinkBreaker(config.breaker)
         self._lanes = {LOCAL: Lane(serial=True), CLOUD: Lane(serial=False)}
         self._caller = SideCaller(statuses, config, clock, sleep, stale, account)
+        self._workers = Workers("offload-side")
         # Call ids start at a random point: a cancel meant for an earlier learner process never hits ours.
         self._call_ids = itertools.count(int.from_bytes(os.urandom(6), "little") + 1)
         self._ids = threading.Lock()
@@ -230,8 +231,7 @@ class OffloadRouter:
         for side in sides:
             self._lanes[side].want(req.outcome.request_id)
         for side in sides:
-            threading.Thread(target=self._side, args=(req, side, request), daemon=True,
-                             name=f"offload-{'cloud' if side == CLOUD else 'local'}").start()
+            self._workers.submit(self._side, req, side, request)
 
     def _side(self, req: _Request, side: int, request) -> None:
         lane = self._lanes[side]

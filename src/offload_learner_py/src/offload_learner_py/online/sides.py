@@ -1,6 +1,9 @@
 """The router's two planner sides without ROS: how a side takes calls (a Lane: the local planner one at a time,
-the cloud concurrently) and one call to a side as the router measures it (SideCaller: the cancelled status, a
-stale map asked again, the serving node's CPU and link accounting), a SideResult."""
+the cloud concurrently), one call to a side as the router measures it (SideCaller: the cancelled status, a
+stale map asked again, the serving node's CPU and link accounting), a SideResult, and the threads that run the
+calls (Workers)."""
+import contextvars
+import queue
 import threading
 from typing import Any, Callable, Optional, Tuple
 
@@ -107,3 +110,44 @@ class SideCaller:
         if self.account is not None and response is not None:
             result.cpu_s, result.bytes_sent, result.bytes_received = self.account(response)
         return result
+
+
+class Workers:
+    """Threads for the router's side calls. A call goes to an idle thread, or to a new one when none is idle (a call
+    may wait out a cloud timeout: calls never wait for each other); a thread idle for `idle_s` leaves. A thread
+    started per call cost the robot about 80 us of CPU per request, and up to 0.4 ms before the call began on a
+    loaded core. Each call runs in a copy of the context it was submitted from (contextvars), as a new thread's
+    call would see its starter's state and not the last call's."""
+
+    def __init__(self, name: str, idle_s: float = 30.0):
+        self.name, self.idle_s = name, idle_s
+        self._tasks = queue.SimpleQueue()
+        self._lock = threading.Lock()
+        self._idle = 0          # threads waiting for a call, less the calls handed to them and not yet taken
+        self.started = 0        # threads started
+
+    def submit(self, function: Callable, *args) -> None:
+        task = (contextvars.copy_context(), function, args)
+        with self._lock:
+            if self._idle > 0:
+                self._idle -= 1
+                self._tasks.put(task)
+                return
+            self.started += 1
+        threading.Thread(target=self._run, args=(task,), daemon=True, name=self.name).start()
+
+    def _run(self, task) -> None:
+        while task is not None:
+            context, function, args = task
+            context.run(function, *args)
+            task = None
+            with self._lock:
+                self._idle += 1
+            try:
+                task = self._tasks.get(timeout=self.idle_s)
+            except queue.Empty:
+                with self._lock:   # a call handed over as the wait ended is taken; else this thread leaves
+                    try:
+                        task = self._tasks.get_nowait()
+                    except queue.Empty:
+                        self._idle -= 1
