@@ -1,7 +1,7 @@
 """Hostile bags read end to end by the command a user runs (`off_policy`), in a process of its own whose peak
-memory is measured: an indexed bag whose one chunk inflates to 1 GiB, and a learner message definition of
-200,000 fields. Each is refused with a line naming the bag and a non-zero exit, within the documented
-256 MiB per bag plus the interpreter (512 MiB in all)."""
+memory is measured: an indexed bag whose one chunk inflates to 1 GiB, a learner message definition of
+200,000 fields, and decisions whose strings inflate to 40 MB each. Each is refused (or its hostile messages
+dropped, the real requests kept), within the documented 256 MiB per bag plus the interpreter (512 MiB in all)."""
 import bz2
 import struct
 import subprocess
@@ -11,7 +11,8 @@ import pytest
 
 from bagtools import make_requests, write
 from hostile_bags import bag_records
-from offload_demos.bag_writer import DECISION_TOPIC, BagWriter, installed_definitions, typestore_for
+from offload_demos.bag_writer import DECISION_TOPIC, BagWriter, installed_definitions, probe_request, \
+    typestore_for, write_requests
 from offload_learner_py.data.bags import DECISION_TYPE
 
 PEAK_RSS_BOUND_MIB = 512
@@ -94,3 +95,24 @@ def test_a_two_hundred_thousand_field_definition_is_refused_in_bounded_memory(tm
     code, output, peak_mib = run_off_policy(bag)
     assert code != 0 and "hostile.bag" in output and "cap" in output, output
     assert peak_mib <= PEAK_RSS_BOUND_MIB, f"peak RSS {peak_mib:.0f} MiB"
+
+
+def test_decisions_with_forty_megabyte_strings_are_dropped_in_bounded_memory(tmp_path):
+    """Found by the fuzzer (an 8 kB input past libFuzzer's 1 GiB): a decision's strings are kept with its
+    request, so twelve lz4 chunks each inflating to a decision with a 40 MB policy name held about 700 MiB.
+    Now a message over the cap is dropped unread and counted, and the real requests around it are kept."""
+    huge = "a" * (40 << 20)
+    requests = make_requests(6)
+    for k in range(12):
+        decision, outcome = probe_request(9000 + k, 0.5, 0.5, 0.03, 0.02, 0.05, 0, 0.5, 0.1)
+        decision["policy"] = huge
+        requests.append((decision, outcome))
+    bag = str(tmp_path / "strings.bag")
+    write_requests(bag, requests, compression="lz4", chunk_bytes=1 << 10)
+    code, output, peak_mib = run_off_policy(bag)
+    assert peak_mib <= PEAK_RSS_BOUND_MIB, f"peak RSS {peak_mib:.0f} MiB"
+    assert code == 0, output
+    from offload_learner_py.data.bags import read_bag
+    columns, report = read_bag(bag)
+    assert report.undecodable == 12 and any("cap" in note for note in report.invalid_examples)
+    assert len(columns["request_id"]) == 6

@@ -39,6 +39,10 @@ BAG_SUFFIXES = (".bag", ".bag.active")
 MAX_DEFINITION_BYTES = 64 * 1024
 MAX_DEFINITION_FIELDS = 256
 MAX_DEFINITIONS = 16
+# A decision or an outcome is a few hundred bytes and the settings a few kB (their strings are names, a hash and a
+# small JSON). A message far larger is damage or hostility: its strings would be kept with the request (a 15 kB bz2
+# bag of six decisions with 40 MB policy names held 364 MiB; the fuzzer's went past 1 GiB), so it is dropped unread.
+MAX_MESSAGE_BYTES = 64 * 1024
 # The learner's latched settings (offload_msgs/LearnerConfig); every field optional.
 CONFIG_DEFAULTS = {"policy": "", "mode": "", "learn": False, "explore": False, "alpha": math.nan, "beta": math.nan,
                    "gamma": math.nan, "epsilon": math.nan, "learning_starts": 0, "probe_rate": math.nan,
@@ -162,6 +166,10 @@ def _pair(messages, report: BagReport, weights: CostWeights, path: str) -> Dict[
                 raise BagReadError(f"{path}: {error}") from None
             decoders[key] = decoder
             report.definitions[connection.msgtype] = connection.md5sum
+        if len(raw) > MAX_MESSAGE_BYTES:
+            report.undecodable += 1
+            report.note(f"a {connection.msgtype} of {len(raw)} bytes, over the {MAX_MESSAGE_BYTES}-byte cap: dropped")
+            continue
         try:
             values, stamp = decoder(raw)
         except Exception as error:   # one damaged message costs that message only
