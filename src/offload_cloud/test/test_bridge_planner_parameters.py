@@ -25,7 +25,7 @@ def test_reconfigured_options_reach_the_next_cloud_plan_and_refused_ones_change_
         bridge.set_map(grid.reshape(-1), 9, 5, RESOLUTION_M, 0.0, 0.0, (0.0, 0.0, 0.0, 1.0), "map", "stamp")
         beside_the_wall = lambda: bridge.plan(point((3, 2)), point((0, 2)), 0.0).status   # noqa: E731
         assert beside_the_wall() == PlanStatus.OK
-        assert bridge.set_planner_parameters({"robot_radius": 0.06, "algorithm": "dijkstra"}) == {"robot_radius": 0.06}
+        assert bridge.set_planner_parameters({"robot_radius": 0.06, "algorithm": "auto"}) == {"robot_radius": 0.06}
         assert beside_the_wall() == PlanStatus.START_BLOCKED, "a 6 cm radius (1.2 cells) blocks the start"
 
         with pytest.raises(ValueError, match=r"^robot_radius must be a finite number >= 0, got -1$"):
@@ -34,7 +34,7 @@ def test_reconfigured_options_reach_the_next_cloud_plan_and_refused_ones_change_
             bridge.set_planner_parameters({"algorithm": "jps", "cost_factor": 2.0})
         with pytest.raises(TypeError, match="no planner node parameter goal_tolerance_cells"):
             bridge.set_planner_parameters({"goal_tolerance_cells": 1.0})
-        assert bridge.config.robot_radius_m == 0.06 and bridge.config.algorithm == "dijkstra"
+        assert bridge.config.robot_radius_m == 0.06 and bridge.config.algorithm == "auto"
         assert beside_the_wall() == PlanStatus.START_BLOCKED
 
         assert bridge.set_planner_parameters({"robot_radius": 0.0}) == {"robot_radius": 0.0}

@@ -159,9 +159,10 @@ def test_killed_server_gives_timeout_in_time_then_reconnects(key_dirs):
     endpoint = f"{LOOPBACK}:{port}"
     process = spawn_server(port, key_dirs[0])
     timeout_s = 2.0
-    bridge = make_bridge(endpoint, key_dirs[1], timeout_s=timeout_s, retries=1)
+    # Dijkstra's waves: a plan long enough to be killed in the middle (jump points cross open ground at once)
+    bridge = make_bridge(endpoint, key_dirs[1], timeout_s=timeout_s, retries=1, algorithm="dijkstra")
     try:
-        grid = np.zeros((2500, 2500), np.int8)   # a plan long enough to be killed in the middle
+        grid = np.zeros((2500, 2500), np.int8)
         give_map(bridge, grid)
         assert bridge.heartbeat()[0]              # starts the map upload
         bridge.wait_for_upload()

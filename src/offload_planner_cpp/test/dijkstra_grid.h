@@ -19,6 +19,11 @@ namespace test {
 
 const double kSqrt2 = std::sqrt(2.0);
 
+// These tests are of the Dijkstra waves: their options ask for them (the default, kAuto, may take jump points).
+struct DijkstraOptions : PlannerOptions {
+  DijkstraOptions() { algorithm = Algorithm::kDijkstra; }
+};
+
 // Rows top to bottom as text: '.' free, '#' occupied (100), '?' unknown (-1), digits d -> 10 * d.
 struct Grid {
   int width = 0, height = 0;
@@ -32,7 +37,7 @@ struct Grid {
       }
     }
   }
-  PlanResult plan(Cell s, Cell g, const PlannerOptions& o = PlannerOptions()) {
+  PlanResult plan(Cell s, Cell g, const PlannerOptions& o = DijkstraOptions()) {
     return planner.plan(data.data(), data.size(), width, height, s, g, o);
   }
   DijkstraPlanner planner;

@@ -13,6 +13,7 @@
 
 using namespace offload_planner;
 
+using test::DijkstraOptions;
 using test::Grid;
 using test::expectValidPath;
 using test::kSqrt2;
@@ -63,7 +64,7 @@ TEST(Dijkstra, NoCornerCutting) {
 TEST(Dijkstra, UnknownCellsAndLethalThreshold) {
   Grid g({"..?..", "###?#", "....."});
   EXPECT_EQ(g.plan({0, 0}, {0, 2}).status, PlanStatus::kNoPath);
-  PlannerOptions unknown_free;
+  DijkstraOptions unknown_free;
   unknown_free.unknown_is_obstacle = false;
   auto r = g.plan({0, 0}, {0, 2}, unknown_free);
   ASSERT_TRUE(r.ok());
@@ -71,13 +72,13 @@ TEST(Dijkstra, UnknownCellsAndLethalThreshold) {
 
   Grid c({"...", "555", "..."});  // occupancy 50 across the middle
   EXPECT_EQ(c.plan({0, 0}, {0, 2}).status, PlanStatus::kNoPath);
-  PlannerOptions high;
+  DijkstraOptions high;
   high.lethal_threshold = 51;
   EXPECT_TRUE(c.plan({0, 0}, {0, 2}, high).ok());
 
   Grid walls({"...", "###", "..."});  // occupancy 100: lethal only below the documented maximum 101
   EXPECT_EQ(walls.plan({0, 0}, {0, 2}).status, PlanStatus::kNoPath);
-  PlannerOptions nothing_lethal;
+  DijkstraOptions nothing_lethal;
   nothing_lethal.lethal_threshold = 101;
   const auto through = walls.plan({0, 0}, {0, 2}, nothing_lethal);
   ASSERT_TRUE(through.ok()) << through.message;
@@ -88,7 +89,7 @@ TEST(Dijkstra, GoalToleranceFindsNearestFreeCell) {
   Grid g({".....",
           "...##",
           "...##"});
-  PlannerOptions o;
+  DijkstraOptions o;
   EXPECT_EQ(g.plan({0, 0}, {4, 2}, o).status, PlanStatus::kGoalBlocked);
   o.goal_tolerance_cells = 1.5;  // all three neighbours are blocked
   EXPECT_EQ(g.plan({0, 0}, {4, 2}, o).status, PlanStatus::kGoalBlocked);
@@ -107,7 +108,7 @@ TEST(Dijkstra, GoalToleranceSkipsUnreachableCandidates) {
           "....###",
           "....#..",
           "....#.."});
-  PlannerOptions o;
+  DijkstraOptions o;
   EXPECT_EQ(g.plan({0, 0}, {6, 4}, o).status, PlanStatus::kNoPath);
   o.goal_tolerance_cells = 2.5;  // only pocket cells lie within 2.5
   EXPECT_EQ(g.plan({0, 0}, {6, 4}, o).status, PlanStatus::kNoPath);
@@ -120,7 +121,7 @@ TEST(Dijkstra, GoalToleranceSkipsUnreachableCandidates) {
 
 TEST(Dijkstra, HugeToleranceIsClampedToTheMap) {
   Grid g({".....", ".....", ".....", "....#", "...##"});
-  PlannerOptions o;
+  DijkstraOptions o;
   for (double tolerance : {1e9, 3e9, 1e18, 1e300}) {
     o.goal_tolerance_cells = tolerance;
     auto r = g.plan({0, 0}, {4, 4}, o);
@@ -133,7 +134,7 @@ TEST(Dijkstra, HugeToleranceIsClampedToTheMap) {
 
 TEST(Dijkstra, ToleranceCostsNothingWhenTheGoalIsReachable) {
   Grid g(std::vector<std::string>(300, std::string(300, '.')));
-  PlannerOptions o;
+  DijkstraOptions o;
   const auto plain = g.plan({150, 150}, {152, 151}, o);
   o.goal_tolerance_cells = 1e6;
   const auto tolerant = g.plan({150, 150}, {152, 151}, o);
@@ -145,7 +146,7 @@ TEST(Dijkstra, ToleranceCostsNothingWhenTheGoalIsReachable) {
 
 TEST(Dijkstra, StopAtGoalSettlesFewerCells) {
   Grid g(std::vector<std::string>(50, std::string(50, '.')));
-  PlannerOptions all;
+  DijkstraOptions all;
   all.stop_at_goal = false;
   const auto early = g.plan({0, 0}, {3, 0});
   const auto full = g.plan({0, 0}, {3, 0}, all);
@@ -189,10 +190,10 @@ TEST(Dijkstra, Errors) {
   r = g.plan({0, 0}, {2, 0});
   EXPECT_EQ(r.status, PlanStatus::kGoalBlocked);
   EXPECT_NE(r.message.find("obstacle"), std::string::npos);
-  PlannerOptions bad;
+  DijkstraOptions bad;
   bad.lethal_threshold = 0;
   EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidRequest);
-  bad = PlannerOptions();
+  bad = DijkstraOptions();
   bad.goal_tolerance_cells = -1;
   EXPECT_EQ(g.plan({0, 0}, {1, 1}, bad).status, PlanStatus::kInvalidRequest);
   bad.goal_tolerance_cells = NAN;
@@ -224,7 +225,7 @@ TEST(Dijkstra, AgreesWithReferenceOnRandomGridsAndReusesBuffers) {
       grid[s.y * w + s.x] = 0;
       grid[g.y * w + g.x] = 0;
       const double expected = referenceCost(grid, w, h, s, g);
-      const auto r = planner.plan(grid.data(), grid.size(), w, h, s, g);
+      const auto r = planner.plan(grid.data(), grid.size(), w, h, s, g, DijkstraOptions());
       if (std::isinf(expected)) {
         EXPECT_EQ(r.status, PlanStatus::kNoPath);
       } else {
@@ -264,7 +265,7 @@ TEST(Dijkstra, RowsFromAnEarlierMapOfTheSameSizeAreNeverRead) {
     grid[g.y * w + g.x] = 0;
     const double expected = referenceCost(grid, w, h, s, g);
     for (const bool stop_at_goal : {true, false}) {
-      PlannerOptions o;
+      DijkstraOptions o;
       o.stop_at_goal = stop_at_goal;
       const auto r = planner.plan(grid.data(), grid.size(), w, h, s, g, o);
       if (std::isinf(expected)) {

@@ -14,6 +14,7 @@
 #include "dijkstra_grid.h"
 
 using namespace offload_planner;
+using test::DijkstraOptions;
 using test::Grid;
 using test::expectValidPath;
 using test::kSqrt2;
@@ -72,7 +73,7 @@ TEST(Dijkstra, AnEnclosedGoalIsProvedUnreachableByItsOwnWave) {
   EXPECT_EQ(r.status, PlanStatus::kNoPath);
   EXPECT_LT(r.expansions, 50u) << "the goal's wave runs dry inside the box; the start's need not cover the map";
   // With a tolerance, the nearest reachable cell needs the start's whole component: still found.
-  PlannerOptions tolerant;
+  DijkstraOptions tolerant;
   tolerant.goal_tolerance_cells = 3.0;
   const auto near = grid.plan({0, 0}, {152, 152}, tolerant);
   ASSERT_TRUE(near.ok()) << near.message;
@@ -89,7 +90,7 @@ TEST(Dijkstra, AStartWaveThatRanDryIsNotRepeatedForTheTolerance) {
   Grid grid(rows);
   const auto plain = grid.plan({10, 50}, {22, 50});
   EXPECT_EQ(plain.status, PlanStatus::kNoPath);
-  PlannerOptions tolerant;
+  DijkstraOptions tolerant;
   tolerant.goal_tolerance_cells = 3.0;
   const auto near = grid.plan({10, 50}, {22, 50}, tolerant);
   ASSERT_TRUE(near.ok()) << near.message;
@@ -101,7 +102,7 @@ TEST(Dijkstra, AStartWaveThatRanDryIsNotRepeatedForTheTolerance) {
 TEST(Dijkstra, ACancelSetBeforehandStopsThePlanAtOnce) {
   Grid g(std::vector<std::string>(50, std::string(50, '.')));
   std::atomic<bool> cancel{true};
-  PlannerOptions o;
+  DijkstraOptions o;
   o.cancel = &cancel;
   const auto r = g.plan({0, 0}, {49, 49}, o);
   EXPECT_EQ(r.status, PlanStatus::kCancelled);
@@ -119,8 +120,8 @@ TEST(Dijkstra, ACancelFromAnotherThreadStopsARunningPlan) {
   const int n = 2000;
   std::vector<std::int8_t> grid(static_cast<std::size_t>(n) * n, 0);
   DijkstraPlanner planner;
-  ASSERT_TRUE(planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {2, 2}).ok());   // buffers allocated
-  PlannerOptions o;
+  ASSERT_TRUE(planner.plan(grid.data(), grid.size(), n, n, {0, 0}, {2, 2}, DijkstraOptions()).ok());   // buffers allocated
+  DijkstraOptions o;
   o.stop_at_goal = false;
   std::atomic<bool> cancel{false};
   o.cancel = &cancel;
@@ -154,8 +155,9 @@ TEST(Dijkstra, ACancelDuringAColdPlannersFirstPlanStopsItAndTheNextPlansStayExac
   // first cells lie.
   const int small = 300;
   std::vector<std::int8_t> open_map(static_cast<std::size_t>(small) * small, 0);
-  ASSERT_TRUE(planner.plan(open_map.data(), open_map.size(), small, small, {0, 0}, {small - 1, small - 1}).ok());
-  PlannerOptions o;
+  ASSERT_TRUE(planner.plan(open_map.data(), open_map.size(), small, small, {0, 0}, {small - 1, small - 1},
+                           DijkstraOptions()).ok());
+  DijkstraOptions o;
   std::atomic<bool> cancel{false};
   o.cancel = &cancel;
   std::thread canceller([&] {
@@ -170,7 +172,7 @@ TEST(Dijkstra, ACancelDuringAColdPlannersFirstPlanStopsItAndTheNextPlansStayExac
   DijkstraPlanner fresh;
   for (const Cell goal : {Cell{n - 1, 0}, Cell{3, 5}, Cell{n - 1, n - 1}}) {
     const auto after = planner.plan(grid.data(), grid.size(), n, n, {0, 0}, goal, o);
-    const auto expected = fresh.plan(grid.data(), grid.size(), n, n, {0, 0}, goal);
+    const auto expected = fresh.plan(grid.data(), grid.size(), n, n, {0, 0}, goal, DijkstraOptions());
     ASSERT_TRUE(after.ok()) << after.message;
     EXPECT_DOUBLE_EQ(after.cost, expected.cost);
     EXPECT_EQ(after.expansions, expected.expansions);

@@ -140,7 +140,7 @@ TEST(JumpPointSearch, OpenGroundExpandsAFewJumpPoints) {
   Grid g(300, 200);
   for (int y = 20; y < 180; ++y) g.at(150, y) = 100;  // one wall across the middle
   DijkstraPlanner planner;
-  const PlanResult d = planOn(planner, g, {10, 100}, {290, 110}, PlannerOptions());
+  const PlanResult d = planOn(planner, g, {10, 100}, {290, 110}, with(Algorithm::kDijkstra));
   const PlanResult j = planOn(planner, g, {10, 100}, {290, 110}, with(Algorithm::kJps));
   expectLegalPath(g, j, {10, 100}, {290, 110}, with(Algorithm::kJps));
   EXPECT_NEAR(j.cost, d.cost, 1e-9);
@@ -151,7 +151,7 @@ TEST(JumpPointSearch, AutoTakesJumpPointsOnOpenGroundAndTheWavesInAMaze) {
   DijkstraPlanner planner;
   Grid open(200, 200);
   for (int y = 50; y < 150; ++y) open.at(100, y) = 100;
-  const PlanResult waves = planOn(planner, open, {5, 100}, {195, 100}, PlannerOptions());
+  const PlanResult waves = planOn(planner, open, {5, 100}, {195, 100}, with(Algorithm::kDijkstra));
   const PlanResult jumps = planOn(planner, open, {5, 100}, {195, 100}, with(Algorithm::kJps));
   const PlanResult open_auto = planOn(planner, open, {5, 100}, {195, 100}, with(Algorithm::kAuto));
   EXPECT_EQ(open_auto.expansions, jumps.expansions);
@@ -162,7 +162,7 @@ TEST(JumpPointSearch, AutoTakesJumpPointsOnOpenGroundAndTheWavesInAMaze) {
   for (int y = 1; y < maze.h; y += 2) {
     for (int x = 1; x < maze.w; x += 2) maze.at(x, y) = 100;
   }
-  const PlanResult maze_waves = planOn(planner, maze, {0, 0}, {200, 200}, PlannerOptions());
+  const PlanResult maze_waves = planOn(planner, maze, {0, 0}, {200, 200}, with(Algorithm::kDijkstra));
   const PlanResult maze_auto = planOn(planner, maze, {0, 0}, {200, 200}, with(Algorithm::kAuto));
   ASSERT_TRUE(maze_waves.ok()) << maze_waves.message;
   EXPECT_EQ(maze_auto.expansions, maze_waves.expansions);
@@ -170,7 +170,7 @@ TEST(JumpPointSearch, AutoTakesJumpPointsOnOpenGroundAndTheWavesInAMaze) {
   // Cost-aware planning is not uniform: auto runs what the default runs, so the same costs.
   PlannerOptions weighted = with(Algorithm::kAuto);
   weighted.cost_factor = 3.0;
-  PlannerOptions weighted_default;
+  PlannerOptions weighted_default = with(Algorithm::kDijkstra);
   weighted_default.cost_factor = 3.0;
   const PlanResult a = planOn(planner, open, {5, 100}, {195, 100}, weighted);
   const PlanResult b = planOn(planner, open, {5, 100}, {195, 100}, weighted_default);
@@ -191,7 +191,7 @@ TEST(JumpPointSearch, ToleranceAndUnreachableGoalsAsTheDefault) {
     // An enclosed goal: no path, and with a tolerance the nearest reachable free cell.
     EXPECT_EQ(planOn(planner, g, {0, 0}, {7, 3}, o).status, PlanStatus::kNoPath);
     o.goal_tolerance_cells = 2.0;
-    PlannerOptions d;
+    PlannerOptions d = with(Algorithm::kDijkstra);
     d.goal_tolerance_cells = 2.0;
     const PlanResult r = planOn(planner, g, {0, 0}, {7, 3}, o);
     const PlanResult expected = planOn(planner, g, {0, 0}, {7, 3}, d);
@@ -219,7 +219,7 @@ TEST(JumpPointSearch, StartAtGoalFullSearchesAndCancel) {
   EXPECT_EQ(same.path.size(), 1u);
   // A full search has no goal to jump to: it is the default's wave, every reachable cell settled.
   o.stop_at_goal = false;
-  PlannerOptions d;
+  PlannerOptions d = with(Algorithm::kDijkstra);
   d.stop_at_goal = false;
   const PlanResult full = planOn(planner, g, {3, 3}, {30, 25}, o);
   EXPECT_EQ(full.expansions, planOn(planner, g, {3, 3}, {30, 25}, d).expansions);

@@ -80,6 +80,7 @@ TEST(PlannerModes, AStarHasDijkstrasCostsAndSettlesFewerCells) {
       g.open(t);
       for (double factor : {0.0, 3.0}) {
         PlannerOptions d;
+        d.algorithm = Algorithm::kDijkstra;
         d.cost_factor = a.cost_factor = factor;
         const auto rd = dijkstra.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, d);
         const auto ra = astar.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, a);

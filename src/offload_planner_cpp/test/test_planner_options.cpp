@@ -47,7 +47,7 @@ const std::vector<Expected>& expectedTable() {
       {"robot_radius_cells", T::kReal, C, false, 0, 0, 10000, false, "cells", "", 0},
       {"inflation_radius_cells", T::kReal, C, false, 0, 0, 10000, false, "cells", "", 0},
       {"inflation_decay", T::kReal, C, false, 0.5, 0, kInf, false, "1/cell", "", 0},
-      {"algorithm", T::kAlgorithm, C, true, 0, 0, 3, false, "", "", 0},
+      {"algorithm", T::kAlgorithm, C, true, 3, 0, 3, false, "", "", 0},   // auto
       {"any_angle", T::kBool, C, true, 0, 0, 1, false, "", "", 0},
       {"robot_radius", T::kReal, M, true, 0, 0, kInf, false, "m", "robot_radius_cells", -1},
       {"inflation_radius", T::kReal, M, true, 0, 0, kInf, false, "m", "inflation_radius_cells", -1},
@@ -104,9 +104,9 @@ TEST(PlannerOptionsTable, EachRowReadsAndWritesItsOwnField) {
   for (const OptionSpec& spec : optionsTable()) {
     SCOPED_TRACE(spec.name);
     PlannerParameters p;
-    const double other = spec.type == OptionType::kBool || spec.type == OptionType::kAlgorithm
-                             ? 1.0 - spec.default_value
-                             : spec.default_value + 1.0;
+    const double other = spec.type == OptionType::kBool        ? 1.0 - spec.default_value
+                         : spec.type == OptionType::kAlgorithm ? (spec.default_value == 0.0 ? 1.0 : 0.0)
+                                                               : spec.default_value + 1.0;
     spec.set(p, other);
     EXPECT_EQ(spec.get(p), other);
     for (const OptionSpec& rest : optionsTable()) {   // nothing else moved

@@ -37,8 +37,10 @@ START, GOAL = (2, 20), (57, 20)
 def test_every_keyword_reaches_the_core():
     grid = corridor_grid()
     base = plan(grid, START, GOAL)
+    waves = plan(grid, START, GOAL, algorithm="dijkstra")
     astar = plan(grid, START, GOAL, algorithm="astar")
-    assert astar.cost == pytest.approx(base.cost) and astar.expansions < base.expansions
+    assert astar.cost == pytest.approx(waves.cost) and astar.expansions < waves.expansions
+    assert base.cost == pytest.approx(waves.cost) and base.expansions < astar.expansions   # auto: jump points
     pulled = plan(grid, START, GOAL, any_angle=True)
     assert pulled.cost < base.cost - 1 and len(pulled.path) < len(base.path)
     aware = plan(grid, START, GOAL, cost_factor=3.0)
@@ -231,7 +233,7 @@ EXPECTED_TABLE = {
     "robot_radius_cells": ("float", "cells", False, 0.0, 0, 10000, False, "cells", None, 0),
     "inflation_radius_cells": ("float", "cells", False, 0.0, 0, 10000, False, "cells", None, 0),
     "inflation_decay": ("float", "cells", False, 0.5, 0, INF, False, "1/cell", None, 0),
-    "algorithm": ("algorithm", "cells", True, "dijkstra", 0, 3, False, "", None, 0),
+    "algorithm": ("algorithm", "cells", True, "auto", 0, 3, False, "", None, 0),
     "any_angle": ("bool", "cells", True, False, 0, 1, False, "", None, 0),
     "robot_radius": ("float", "metres", True, 0.0, 0, INF, False, "m", "robot_radius_cells", -1),
     "inflation_radius": ("float", "metres", True, 0.0, 0, INF, False, "m", "inflation_radius_cells", -1),

@@ -84,6 +84,7 @@ TEST(PlannerReconfigure, ValuesRoundTripThroughTheConfig) {
 TEST(PlannerReconfigure, RefusesWhatTheTableRefusesAndKeepsTheParameters) {
   PlannerParameters in_force;
   in_force.inflation.inflation_radius_m = 0.3;
+  in_force.options.algorithm = Algorithm::kDijkstra;   // not the default: a refused edit must not reset it
   const auto refused = [&](void (*edit)(PlannerConfig*)) {
     PlannerConfig config = PlannerConfig::__getDefault__();
     configFromParameters(in_force, &config);

@@ -42,8 +42,9 @@ struct PlannerOptions {
   // option of the table: a run-time handle.
   const std::atomic<bool>* cancel = nullptr;
   // kAStar settles only the cells the octile heuristic cannot rule out; kJps expands only jump points
-  // (uniform cost only); kAuto picks per plan. Every one returns kDijkstra's costs.
-  Algorithm algorithm = Algorithm::kDijkstra;
+  // (uniform cost only); kAuto, the default, picks jump points or the waves per plan (algorithm_choice.cpp).
+  // Every one returns kDijkstra's costs.
+  Algorithm algorithm = Algorithm::kAuto;
   // Return the corners of a path whose segments may run at any angle (see dijkstra.h).
   bool any_angle = false;
   // 0: every passable cell costs alike (the default; exact on MovingAI). Else cost-aware with

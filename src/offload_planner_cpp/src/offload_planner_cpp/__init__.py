@@ -60,7 +60,8 @@ def plan(grid, start, goal, *, lethal_threshold=_D["lethal_threshold"], unknown_
     both (x, y) cells. `goal_tolerance` is in cells. Raises PlanError (a ValueError) on bad input and
     NoPathError when the goal is unreachable.
 
-    `algorithm` "astar": the same costs, fewer cells settled. `cost_factor` > 0: a move costs its length times
+    `algorithm` "auto" (the default): jump points or the two waves, picked per plan; "dijkstra", "astar",
+    "jps" force one; every one returns the same costs. `cost_factor` > 0: a move costs its length times
     the mean of neutral_cost + cost_factor * occupancy over its two cells (global_planner's model).
     `robot_radius_cells` / `inflation_radius_cells`: inflate a raw map first (see `inflate`). `any_angle`:
     the corners of the optimal path pulled tight along lines of sight, never costlier. Defaults, bounds and
