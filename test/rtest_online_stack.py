@@ -161,11 +161,11 @@ class OnlineStackTest(WaitsForRecords):
             self.assertEqual(o.cloud_status, PlanPathResponse.OK)
             self.assertGreater(o.local_s, 0.0)
             self.assertGreater(o.cloud_s, 0.0)
-        # p_t: "not measured" (0) until the local planner has timed a plan, then its measured rate (cells/s)
+        # p_t: "not measured" (0) until the local planner has timed a plan, then its measured rate (d_t/s)
         rates = [d.local_plan_rate for d in decisions]
         self.assertEqual(rates[0], 0.0)
-        self.assertTrue(all(0.0 <= rate < 1e10 for rate in rates), rates)
-        self.assertTrue(any(rate > 1e5 for rate in rates[1:]), rates)
+        self.assertTrue(all(0.0 <= rate < 1e6 for rate in rates), rates)
+        self.assertTrue(any(rate > 0.0 for rate in rates[1:]), rates)
         # the caller got the first good path: never slower than the slower side
         self.assertTrue(all(o.delivered_s <= max(o.local_s, o.cloud_s) + 0.05 for o in outcomes))
         stop(self.processes.pop("record"))

@@ -4,8 +4,8 @@ import numpy as np
 
 from offload_learner_py.core.state import STATE_SCHEMA
 
-# cells/s: a measured local planning rate of this machine's planner (4e6-7e7 in the demo's bags, 2026-11)
-PLAN_RATE = 2e7
+# d_t/s: a measured local planning rate of this machine's planner (114-746 in the demo's bag, 2026-11)
+PLAN_RATE = 500.0
 
 
 def raw_states(input_size, cpu_availability, round_trip_s, local_plan_rate=PLAN_RATE) -> np.ndarray:

@@ -37,9 +37,21 @@ def test_the_bag_reader_gives_a_bag_without_the_field_its_missing_value_and_one_
     assert np.all(data.transition_table().local_plan_rate == NOT_MEASURED)
     measured = make_requests(30, seed=5)
     for i, (decision, _) in enumerate(measured):
-        decision["local_plan_rate"] = 1e7 + i
+        decision["local_plan_rate"] = 500.0 + i
     table = bags.read_bags([write(tmp_path / "new.bag", measured)]).transition_table()
-    assert table.local_plan_rate.tolist() == [1e7 + i for i in range(30)]
+    assert table.local_plan_rate.tolist() == [500.0 + i for i in range(30)]
+
+
+def test_a_bag_of_the_old_p_t_in_cells_per_second_is_skipped_never_read_as_a_rate(tmp_path):
+    """Bags recorded while p_t counted cells settled per second (4e6-7e7 here) carry the same field: their values
+    lie above the recorded bound of d_t per second, so their requests are skipped and counted, not learned as a
+    robot planning ten thousand times faster."""
+    requests = make_requests(30, seed=6)
+    for i, (decision, _) in enumerate(requests):
+        decision["local_plan_rate"] = 4e6 + 1e6 * i if i < 20 else 300.0 + i
+    data = bags.read_bags([write(tmp_path / "cells_per_second.bag", requests)])
+    assert data.report.bags[0].invalid == 20
+    assert data.transition_table().local_plan_rate.tolist() == [300.0 + i for i in range(20, 30)]
 
 
 def test_retrain_report_and_off_policy_read_a_bag_from_before_the_field(tmp_path, capsys):

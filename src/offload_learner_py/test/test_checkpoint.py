@@ -1,3 +1,5 @@
+import io
+import json
 import os
 
 import numpy as np
@@ -186,3 +188,32 @@ def test_a_checkpoint_of_the_papers_three_field_state_is_refused_with_what_to_do
                        r"of the state \(input_size, cpu_availability, round_trip_s\), this code's state is "
                        r"\(input_size, cpu_availability, round_trip_s, local_plan_rate\); retrain from its bags"):
         load_checkpoint(path)
+
+
+def test_a_checkpoint_or_model_file_of_p_t_in_cells_per_second_is_refused(tmp_path):
+    """Saved while p_t counted cells settled per second (before its unit was saved with the normalisation): the
+    same four fields, another meaning of the fourth. Refused naming the units, never fed d_t per second."""
+    from offload_learner_py.core.model_file import ModelFileError, agent_model_bytes, load_model
+
+    agent, _ = _trained_agent()
+    path = str(tmp_path / "cells.pt")
+    save_checkpoint(agent, path)
+    load_checkpoint(path)                                   # saved with its units: loads
+    payload = torch.load(path, weights_only=True)
+    del payload["normalisation"]["units"]
+    torch.save(payload, path)
+    with pytest.raises(IncompatibleCheckpointError, match=r"cells.pt was trained on another state: .*"
+                       r"local_plan_rate \[cells/s\]\), this code's state is .*local_plan_rate \[d_t/s\]\)"):
+        load_checkpoint(path)
+
+    data = agent_model_bytes(agent)
+    load_model(data)
+    with np.load(io.BytesIO(data), allow_pickle=False) as npz:
+        arrays = {name: npz[name] for name in npz.files}
+    saved = json.loads(str(arrays["normalisation"]))
+    del saved["units"]
+    arrays["normalisation"] = np.array(json.dumps(saved))
+    old = io.BytesIO()
+    np.savez(old, **arrays)
+    with pytest.raises(ModelFileError, match=r"a model of another state: .*local_plan_rate \[cells/s\]"):
+        load_model(old.getvalue())

@@ -48,7 +48,7 @@ def test_the_schema_is_the_papers_state_then_the_robots_plan_rate():
     assert (d.low, d.high, d.recorded_high, d.log_floor) == (0.0, math.inf, 1e6, 1e-6)
     assert (u.low, u.high, u.recorded_high, u.log_floor) == (0.0, 1.0, 1.0, None)
     assert (b.low, b.high, b.recorded_high, b.log_floor, b.unit) == (0.0, math.inf, 3600.0, None, "s")
-    assert (p.low, p.high, p.recorded_high, p.log_floor, p.unit) == (0.0, math.inf, 1e10, 1e5, "cells/s")
+    assert (p.low, p.high, p.recorded_high, p.log_floor, p.unit) == (0.0, math.inf, 1e6, 0.1, "d_t/s")
     assert all(f.missing is None for f in FIELDS[:3])     # the paper's fields are in every recorded decision
     assert p.missing == 0.0                               # p_t was not: "not measured", as before a robot's first plan
     assert [STATE_SCHEMA.index(name) for name in IDS] == [0, 1, 2, 3] and STATE_SCHEMA["round_trip_s"] is b
@@ -105,9 +105,9 @@ def test_a_table_without_a_schema_column_or_with_another_is_refused():
 def test_decision_records_carry_every_field_and_the_table_rows_take_them():
     assert records.DECISION_FIELDS[1:1 + STATE_SIZE] == STATE_FIELDS
     assert {name: records.DECISION_DEFAULTS[name] for name in STATE_FIELDS} == {f.name: f.missing for f in FIELDS}
-    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125, p=4e7)], [outcome(1)])
+    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125, p=400.0)], [outcome(1)])
     table = records.transition_table(log)
-    assert table.states.tolist() == [[0.25, 0.75, 0.125, 4e7]]
+    assert table.states.tolist() == [[0.25, 0.75, 0.125, 400.0]]
 
 
 @pytest.mark.parametrize("f", FIELDS, ids=IDS)
@@ -198,8 +198,8 @@ def test_the_summary_and_the_offline_features_follow_the_schema():
     assert summary.FEATURES == tuple((f.name, f.symbol) for f in FIELDS)
     assert list(summary.oracle_share_by_tercile(_table())) == [f.symbol for f in FIELDS]
     assert FEATURE_COLUMNS == STATE_FIELDS
-    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125, p=4e7)], [outcome(1)])
-    assert off_policy.LoggedSteps.from_log(log).states.tolist() == [[0.25, 0.75, 0.125, 4e7]]
+    log = records.pair_records([decision(1, d=0.25, u=0.75, b=0.125, p=400.0)], [outcome(1)])
+    assert off_policy.LoggedSteps.from_log(log).states.tolist() == [[0.25, 0.75, 0.125, 400.0]]
     k = STATE_SIZE
     assert off_policy._features(np.random.default_rng(3).uniform(0.1, 1, (10, k))).shape == \
         (10, 1 + k + k * (k + 1) // 2)
@@ -226,14 +226,14 @@ def test_a_field_that_cannot_be_validated_is_refused(bad, message):
 
 
 def test_log_scaling_clamps_below_zero_and_leaves_the_other_fields():
-    raw = np.array([[-0.5, 0.25, 0.125, -3.0], [2.0, 0.5, 0.5, 2e7]])
+    raw = np.array([[-0.5, 0.25, 0.125, -3.0], [2.0, 0.5, 0.5, 500.0]])
     columns = [i for i, _ in STATE_SCHEMA.log_columns]
     scaled = STATE_SCHEMA.log_scaled(raw)
     for i, f in enumerate(FIELDS):
         expected = np.log(np.maximum(raw[:, i], 0) + f.log_floor) if i in columns else raw[:, i]
         assert np.array_equal(scaled[:, i], expected)
     assert scaled[0, 0] == math.log(1e-6) and raw[0, 0] == -0.5     # a copy
-    assert scaled[0, 3] == math.log(1e5) and scaled[1, 3] == math.log(2e7 + 1e5)
+    assert scaled[0, 3] == math.log(0.1) and scaled[1, 3] == math.log(500.0 + 0.1)
 
 
 def test_state_documents_its_fields_with_their_units_and_rules():

@@ -41,7 +41,7 @@ def example_states(count: int, seed: int) -> np.ndarray:
     planning rates measured here (4e6-7e7 cells/s)."""
     rng = np.random.default_rng(seed)
     columns = {"input_size": 10.0 ** rng.uniform(-4.5, -0.5, count), "cpu_availability": rng.uniform(0.5, 0.7, count),
-               "round_trip_s": rng.uniform(0.0285, 0.0315, count), "local_plan_rate": 10.0 ** rng.uniform(6.6, 7.8, count)}
+               "round_trip_s": rng.uniform(0.0285, 0.0315, count), "local_plan_rate": 10.0 ** rng.uniform(2.0, 3.0, count)}
     return STATE_SCHEMA.stack(columns.__getitem__)
 
 

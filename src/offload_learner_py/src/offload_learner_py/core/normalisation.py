@@ -1,8 +1,8 @@
 """State normalisation: the network sees each feature of s_t centred and scaled, the fields the state schema
 hints so (d_t, p_t) on a log scale first. It is fitted once on warm-up states and then frozen, because moving it
 would silently change what the learned weights mean; it is saved with every checkpoint for the same reason,
-with the state's field names, so a checkpoint of another state (fields added, removed or reordered) is
-refused rather than fed columns it never learned."""
+with the state's field names and units, so a checkpoint of another state (fields added, removed or reordered, a
+field whose meaning changed: p_t from cells/s to d_t/s) is refused rather than fed columns it never learned."""
 from dataclasses import dataclass
 
 import numpy as np
@@ -16,6 +16,9 @@ MIN_SCALE = 1e-3
 INPUT_SIZE_LOG_FLOOR = STATE_SCHEMA["input_size"].log_floor
 # The fields of a checkpoint saved before they were recorded with its normalisation.
 PAPER_STATE_FIELDS = ("input_size", "cpu_availability", "round_trip_s")
+# The units of a normalisation saved before they were recorded with it: p_t then counted cells settled per
+# second, which jump points collapse; a model fitted on that is of another state (the other fields' units held).
+UNITS_BEFORE_SAVED = {"local_plan_rate": "cells/s"}
 
 
 class OtherStateError(ValueError):
@@ -31,6 +34,10 @@ def _rows(states) -> np.ndarray:
         raise ValueError(f"a raw state has {STATE_SIZE} fields ({', '.join(STATE_FIELDS)}), got an array of shape "
                          f"{states.shape}")
     return rows
+
+
+def _named(fields, units) -> str:
+    return ", ".join(f"{name} [{unit}]" for name, unit in zip(fields, units))
 
 
 @dataclass(frozen=True)
@@ -70,7 +77,7 @@ class StateNormalisation:
 
     def to_dict(self) -> dict:
         return {"mean": list(self.mean), "scale": list(self.scale), "log_input_size": self.log_input_size,
-                "fields": list(STATE_FIELDS)}
+                "fields": list(STATE_FIELDS), "units": list(STATE_SCHEMA.units)}
 
     @classmethod
     def from_dict(cls, values: dict) -> "StateNormalisation":
@@ -80,6 +87,10 @@ class StateNormalisation:
         if tuple(fields) != STATE_FIELDS:
             raise OtherStateError(f"normalisation is of the state ({', '.join(map(str, fields))}), this code's state is "
                              f"({', '.join(STATE_FIELDS)})")
+        units = values.get("units", [UNITS_BEFORE_SAVED.get(name, f.unit) for name, f in zip(fields, STATE_SCHEMA)])
+        if not (isinstance(units, (list, tuple)) and tuple(units) == STATE_SCHEMA.units):
+            raise OtherStateError(f"normalisation is of the state ({_named(fields, units)}), this code's state is "
+                                  f"({_named(STATE_FIELDS, STATE_SCHEMA.units)})")
         mean, scale = tuple(float(v) for v in values["mean"]), tuple(float(v) for v in values["scale"])
         if len(mean) != STATE_SIZE or len(scale) != STATE_SIZE:
             raise ValueError(f"normalisation must have {STATE_SIZE} features, got {len(mean)}")

@@ -16,12 +16,14 @@ import numpy as np
 
 # A latency or a round trip of an hour is no planning request: a recorded one beyond it is damage.
 MAX_LATENCY_S = 3600.0
-# p_t, the local planning rate: this machine's planner settles 4e6-7e7 cells/s (the demo's bags, 2026-11); a
-# recorded rate over 1e10 is a broken timer, not a planner. The log floor sits well below any robot's real rate,
-# so measured rates keep their log spacing and "not measured yet" (0, also the value of records from before the
-# field) lands at log(1e5): apart from every measured robot, not on top of one of them.
-MAX_PLAN_RATE = 1e10
-PLAN_RATE_LOG_FLOOR = 1e5
+# p_t, the local planning rate in d_t per second of local planning (online/plan_rate.py): MEASURED_RATES. d_t is
+# at most ln(cells) (a corner-to-corner request: n is at most the map's cells), under 20 on any map the planner
+# takes, and plans under 10 us are not timed, so a rate over 1e6 is a broken timer or a record of the old p_t
+# (cells settled per second, 4e6-7e7 here): the bag reader skips it, never reads it as a rate. The log floor
+# sits below any robot's real rate, so measured rates keep their log spacing and "not measured yet" (0, also the
+# value of records from before the field) lands at log(floor): apart from every measured robot.
+MAX_PLAN_RATE = 1e6
+PLAN_RATE_LOG_FLOOR = 1e-1
 _RESERVED = ("as_array", "as_tuple", "as_dict", "SCHEMA")   # State's own attributes
 
 
@@ -89,6 +91,7 @@ class StateSchema:
     def __init__(self, fields: Sequence[StateField]):
         self.fields: Tuple[StateField, ...] = tuple(fields)
         self.names: Tuple[str, ...] = tuple(f.name for f in self.fields)
+        self.units: Tuple[str, ...] = tuple(f.unit for f in self.fields)   # part of what a saved model was fitted on
         if not self.fields or len(set(self.names)) != len(self.names):
             raise ValueError(f"a state schema needs distinct field names, got {self.names}")
         self._index = {name: i for i, name in enumerate(self.names)}
@@ -130,8 +133,9 @@ STATE_SCHEMA = StateSchema((
                "arrives", low=0.0, high=1.0),
     StateField("round_trip_s", "b_t", "s", "round-trip latency to the cloud, last measured by the link",
                low=0.0, recorded_max=MAX_LATENCY_S),
-    StateField("local_plan_rate", "p_t", "cells/s", "the robot's own local planning rate: cells its local planner "
-               "settles per second of planning, an EWMA of its recent timed plans (0: not measured yet)",
+    StateField("local_plan_rate", "p_t", "d_t/s", "the robot's own local planning rate: the input size d_t its "
+               "local planner gets through per second of planning, whatever its search, an EWMA of its recent "
+               "local plans (0: not measured yet)",
                low=0.0, recorded_max=MAX_PLAN_RATE, log_floor=PLAN_RATE_LOG_FLOOR, missing=0.0),
 ))
 STATE_FIELDS = STATE_SCHEMA.names

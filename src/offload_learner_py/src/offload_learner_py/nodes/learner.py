@@ -11,7 +11,7 @@ import torch
 from geometry_msgs.msg import PoseStamped, PoseWithCovarianceStamped
 from nav_msgs.msg import MapMetaData, Path
 from nav_msgs.srv import GetPlan, GetPlanResponse
-from offload_msgs.msg import LinkLatency, PlanTiming
+from offload_msgs.msg import LinkLatency
 from offload_msgs.srv import PlanPath, PlanPathRequest, PlanPathResponse
 
 from offload_learner_py.core.checkpoint import IncompatibleCheckpointError
@@ -70,8 +70,6 @@ class LearnerNode:
         rospy.Subscriber("map_metadata", MapMetaData, self.on_map_metadata, queue_size=1)
         latency_topic = node.latency_topic
         rospy.Subscriber(latency_topic, LinkLatency, self.on_latency, queue_size=10)
-        rospy.Subscriber(node.plan_timing_topic, PlanTiming,
-                         lambda msg: self.plan_rate.observe(msg.expansions, msg.planning_time_s), queue_size=100)
         # s_t needs the map's size and a first round trip: serve once both are in (or the wait is over).
         deadline = time.monotonic() + wait_s
         while (self.map_info is None or self.round_trip_s is None) and time.monotonic() < deadline \
@@ -145,6 +143,7 @@ class LearnerNode:
                 rospy.logwarn_throttle(10, "cannot read the robot's CPU budget: %s", error)
         if outcome.state is None:
             return   # not a decision: nothing to pair it with (the planner's status told the caller why)
+        self.plan_rate.observe_outcome(outcome, STATUSES.ok)   # p_t: this request's d_t over its local planning time
         self.outputs.outcome(outcome)
 
     def shutdown(self):

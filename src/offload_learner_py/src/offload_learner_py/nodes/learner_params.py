@@ -28,10 +28,8 @@ class LearnerNodeConfig:
     """the local planner's ~cancel ("": its plans are never cancelled)."""
     cloud_service: str = "/cloud_bridge/plan"
     latency_topic: str = "/cloud_bridge/latency"
-    plan_timing_topic: str = "/planner/timing"
-    """the local planner's ~timing (offload_msgs/PlanTiming): p_t, the robot's own local planning rate."""
     plan_rate_weight: float = 0.2
-    """EWMA weight of the newest timed local plan in p_t (online/plan_rate.py)."""
+    """EWMA weight of the newest timed local plan in p_t, d_t per second of local planning (online/plan_rate.py)."""
     service_wait_s: float = 60.0
     """wait for both planners, the map metadata and a first round trip."""
     cpu_cgroup: str = ""
