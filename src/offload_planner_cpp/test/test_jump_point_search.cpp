@@ -178,6 +178,29 @@ TEST(JumpPointSearch, AutoTakesJumpPointsOnOpenGroundAndTheWavesInAMaze) {
   EXPECT_EQ(a.expansions, b.expansions);
 }
 
+TEST(JumpPointSearch, AutoTakesJumpPointsInAFoldedCorridor) {
+  // A serpentine of 4-cell corridors between 1-cell walls (rows 5, 10, ..., 305), each open at alternate ends.
+  // Its rows are a straight wall or free: corners only at the wall ends, where jump points come from. The
+  // choice samples 32 rows 10 apart here, each on a wall row: the old measure (free/blocked boundaries per free
+  // cell of the sampled rows) read it as solid clutter and ran the waves.
+  DijkstraPlanner planner;
+  Grid folded(400, 311);
+  for (int y = 5, k = 0; y < folded.h - 1; y += 5, ++k) {
+    for (int x = 0; x < folded.w; ++x) folded.at(x, y) = 100;
+    folded.at(k % 2 ? 0 : folded.w - 1, y) = 0;
+  }
+  for (const Cell goal : {Cell{390, 303}, Cell{10, 309}, Cell{200, 201}}) {
+    const PlanResult waves = planOn(planner, folded, {2, 1}, goal, with(Algorithm::kDijkstra));
+    const PlanResult jumps = planOn(planner, folded, {2, 1}, goal, with(Algorithm::kJps));
+    const PlanResult picked = planOn(planner, folded, {2, 1}, goal, with(Algorithm::kAuto));
+    ASSERT_TRUE(waves.ok()) << waves.message;
+    EXPECT_LT(jumps.expansions * 10, waves.expansions);
+    EXPECT_EQ(picked.expansions, jumps.expansions) << "goal " << goal.x << ", " << goal.y;
+    EXPECT_NEAR(picked.cost, waves.cost, 1e-9);
+    expectLegalPath(folded, picked, {2, 1}, goal, with(Algorithm::kAuto));
+  }
+}
+
 TEST(JumpPointSearch, ToleranceAndUnreachableGoalsAsTheDefault) {
   Grid g({"..........",
           "..........",
