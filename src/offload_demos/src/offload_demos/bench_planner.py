@@ -30,6 +30,10 @@ WORKSPACE = HERE.parents[4]
 SHARED_ROS = WORKSPACE.parent / "shared" / "data" / "maps" / "ros"
 BUNDLED = WORKSPACE / "src" / "offload_planner_cpp" / "maps"
 
+# The sections against scipy time the two waves (their expansions per second mean something); the default,
+# auto, takes jump points on open maps (bench_planner_p2p compares the modes).
+WAVES = "dijkstra"
+
 
 def random_grid(size, density, seed):
     rng = np.random.default_rng(seed)
@@ -41,12 +45,12 @@ def random_grid(size, density, seed):
 def bench_random(size, runs):
     grid = random_grid(size, 0.2, seed=0)
     start, goal = (0, 0), (size - 1, size - 1)
-    t_goal, r_goal = median_of(runs, lambda: plan(grid, start, goal))
+    t_goal, r_goal = median_of(runs, lambda: plan(grid, start, goal, algorithm=WAVES))
     # A short plan on the same big map: its cost must follow the path, not the map's size.
     near_start, near_goal = (size // 2, size // 2), (size // 2 + 40, size // 2 + 30)
     grid[near_start[1], near_start[0]] = grid[near_goal[1], near_goal[0]] = 0
-    t_short, r_short = median_of(10 * runs, lambda: plan(grid, near_start, near_goal))
-    t_full, r_full = median_of(runs, lambda: plan(grid, start, goal, stop_at_goal=False))
+    t_short, r_short = median_of(10 * runs, lambda: plan(grid, near_start, near_goal, algorithm=WAVES))
+    t_full, r_full = median_of(runs, lambda: plan(grid, start, goal, stop_at_goal=False, algorithm=WAVES))
     built = time.perf_counter()
     graph = grid_graph(grid)
     t_build = time.perf_counter() - built
@@ -74,7 +78,7 @@ def bench_map(yaml_file, pairs, starts, rng):
     for _ in range(pairs):
         s, g = rng.choice(free, 2, replace=False)
         try:
-            result = plan(grid, cell(s), cell(g))
+            result = plan(grid, cell(s), cell(g), algorithm=WAVES)
         except NoPathError:
             skipped += 1
             continue
@@ -83,7 +87,7 @@ def bench_map(yaml_file, pairs, starts, rng):
     graph = grid_graph(grid)
     full, scipy_times = [], []
     for s in rng.choice(free, starts, replace=False):
-        t_ours, result = median_of(3, lambda: plan(grid, cell(s), cell(s), stop_at_goal=False))
+        t_ours, result = median_of(3, lambda: plan(grid, cell(s), cell(s), stop_at_goal=False, algorithm=WAVES))
         t_scipy, dist = median_of(1, lambda: csgraph.dijkstra(graph, indices=int(s)))
         reached = np.isfinite(dist)
         assert reached.sum() == result.expansions, "planner and scipy disagree on the reachable set"

@@ -22,7 +22,8 @@ RANDOM_INFLATION = dict(robot_radius_cells=0.0, inflation_radius_cells=3.0, infl
 
 def modes(inflation: dict) -> dict:
     return {
-        "dijkstra": {},
+        "dijkstra": dict(algorithm="dijkstra"),
+        "auto (the default)": {},
         "astar": dict(algorithm="astar"),
         "any-angle": dict(any_angle=True),
         "cost-aware + inflation": dict(cost_factor=3.0, **inflation),
@@ -96,7 +97,7 @@ def figure(grid, pair, out: Path, resolution: float) -> None:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
-    shown = {"dijkstra (8-connected)": {}, "any-angle": dict(any_angle=True),
+    shown = {"dijkstra (8-connected)": dict(algorithm="dijkstra"), "any-angle": dict(any_angle=True),
              "cost-aware + inflation": dict(cost_factor=3.0, **INFLATION),
              "cost-aware any-angle + inflation": dict(any_angle=True, cost_factor=3.0, **INFLATION)}
     paths = {name: plan(grid, *pair, **options) for name, options in shown.items()}
