@@ -125,7 +125,7 @@ def test_warm_up_is_uniform_then_epsilon_greedy_with_propensities():
 
 
 def test_normalisation_is_fitted_on_warm_up_states_then_frozen():
-    agent = DQNAgent(DQNConfig(learning_starts=40, batch_size=8))
+    agent = DQNAgent(DQNConfig(learning_starts=40, batch_size=8, normalisation_refit_interval=0))
     states = _states(100)
     for t in range(40):
         agent.observe(states[t], LOCAL, 0.0, states[t + 1])
@@ -134,6 +134,51 @@ def test_normalisation_is_fitted_on_warm_up_states_then_frozen():
     for t in range(40, 99):
         agent.observe(states[t], LOCAL, 0.0, states[t + 1])
     assert agent.normalisation is fitted
+
+
+def _handover_states(n, warm_up, seed=0):
+    """_states whose round trip is the edge's (about 30 ms) for the first `warm_up`, then swings over the WAN's."""
+    states = _states(n, seed)
+    states[warm_up:, B] = np.random.default_rng(seed + 1).uniform(0.02, 0.2, n - warm_up)
+    return states
+
+
+def test_normalisation_refits_over_replay_after_the_warm_up_without_changing_a_q_value():
+    agent = DQNAgent(DQNConfig(learning_starts=40, batch_size=8, normalisation_refit_interval=150))
+    states = _handover_states(201, 40)
+    probe = _handover_states(64, 0, seed=5)
+    for t in range(149):
+        agent.observe(states[t], CLOUD, float(t % 3 - 1), states[t + 1])
+    warm_up_scale = agent.normalisation.scale[B]
+    assert warm_up_scale < 0.02                      # fitted on the edge's round trips alone
+    before = agent.q_values(probe)
+    target_before = agent.target_network(torch.from_numpy(agent.normalisation.apply(probe))).detach().numpy()
+    agent.memory.add(states[149], CLOUD, 0.0, states[150])   # the 150th state, stored as observe() would
+    agent.steps += 1
+    assert agent.refit_due()
+    agent.refit_normalisation()
+    assert agent.normalisation == StateNormalisation.fit(agent.memory.states[:len(agent.memory)])
+    assert agent.normalisation.scale[B] > 2 * warm_up_scale
+    np.testing.assert_allclose(agent.q_values(probe), before, rtol=1e-4, atol=1e-5)
+    target_after = agent.target_network(torch.from_numpy(agent.normalisation.apply(probe))).detach().numpy()
+    np.testing.assert_allclose(target_after, target_before, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(agent.fast_decision().decide(*probe[0])[1:], before[0], rtol=1e-4, atol=1e-5)
+
+
+def test_observe_refits_on_its_cadence_and_never_from_a_near_empty_memory():
+    agent = DQNAgent(DQNConfig(learning_starts=40, batch_size=8, normalisation_refit_interval=50))
+    states = _handover_states(120, 40)
+    for t in range(99):
+        agent.observe(states[t], LOCAL, 0.0, states[t + 1])
+    at_50 = agent.normalisation
+    assert at_50 == StateNormalisation.fit(states[:50].astype(np.float32))
+    agent.observe(states[99], LOCAL, 0.0, states[100])
+    assert agent.normalisation == StateNormalisation.fit(states[:100].astype(np.float32))
+    # Resumed (a checkpoint holds no replay): no re-fit before the memory holds a warm-up's worth of states.
+    resumed = DQNAgent(agent.config, agent.normalisation)
+    resumed.steps = 199
+    resumed.observe(states[0], LOCAL, 0.0, states[1])
+    assert resumed.normalisation == agent.normalisation
 
 
 def test_learns_the_sign_of_a_reward_that_depends_on_cpu_availability():

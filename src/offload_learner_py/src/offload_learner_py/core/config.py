@@ -51,7 +51,12 @@ class DQNConfig:
     """minibatch drawn uniformly from replay memory per gradient step."""
     learning_starts: int = 60
     """warm-up steps of uniformly random actions before the first gradient step; the state
-    normalisation is fitted on these states and then frozen."""
+    normalisation is first fitted on these states."""
+    normalisation_refit_interval: int = 100
+    """environment steps between re-fits of the state normalisation over the replay memory after the warm-up
+    (the network re-expressed so that its Q-values do not change); 0 freezes it after the warm-up. On conditions
+    that change (a link handover), a warm-up inside one regime gave the round trip a scale 7x too small: later
+    states reached 18 standard deviations and the network's inputs were dominated by b_t."""
     train_frequency: int = 1
     """environment steps between gradient steps (a robot's request: each one's two transitions train)."""
     gradient_steps: int = 1
@@ -103,6 +108,8 @@ class DQNConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if self.normalisation_refit_interval < 0:
+            raise ValueError(f"normalisation_refit_interval must be >= 0, got {self.normalisation_refit_interval}")
         if self.learning_starts < 0:
             raise ValueError(f"learning_starts must be >= 0, got {self.learning_starts}")
         if not self.hidden_sizes or min(self.hidden_sizes) < 1:

@@ -109,11 +109,37 @@ class DQNAgent:
                 self.normalisation = StateNormalisation.fit(self.memory.states[:len(self.memory)],
                                                             self.config.log_input_size)
                 self.normalisation_frozen = True
+            elif self.refit_due():   # the warm-up's fit is followed where the states moved since
+                self.refit_normalisation()
             for _ in range(self.config.gradient_steps):
                 loss = self.train_step()
         if self.steps % self.config.target_update_interval == 0:
             self.target_network.load_state_dict(self.q_network.state_dict())
         return loss
+
+    def refit_due(self) -> bool:
+        """A re-fit of the normalisation is due every normalisation_refit_interval steps after the warm-up, once
+        the replay memory holds at least a warm-up's worth of states (an agent resumed from a checkpoint starts
+        with an empty memory: a few states would give a normalisation of those few)."""
+        interval = self.config.normalisation_refit_interval
+        return bool(interval) and self.steps > self.config.learning_starts and self.steps % interval == 0 \
+            and len(self.memory) >= max(self.config.learning_starts, self.config.batch_size)
+
+    def refit_normalisation(self) -> None:
+        """Fit the normalisation to the states in replay and re-express both networks' first layers in it, so
+        every Q-value stays what it was: the inputs x = (f - m) / s become x' = (f - m') / s', and
+        W x + c = (W s' / s) x' + c + W (m' - m) / s. Only the conditioning of later gradient steps changes."""
+        new = StateNormalisation.fit(self.memory.states[:len(self.memory)], self.config.log_input_size)
+        old = self.normalisation
+        old_scale = np.asarray(old.scale, dtype=np.float64)
+        shift = torch.from_numpy(((np.asarray(new.mean) - np.asarray(old.mean)) / old_scale).astype(np.float32))
+        stretch = torch.from_numpy((np.asarray(new.scale) / old_scale).astype(np.float32))
+        with torch.no_grad():
+            for network in (self.q_network, self.target_network):
+                first = network.layers[0]
+                first.bias.add_(first.weight @ shift)
+                first.weight.mul_(stretch)
+        self.normalisation = new
 
     def train_step(self) -> float:
         states, actions, rewards, next_states = self.memory.sample(self.config.batch_size, self.rng)
