@@ -39,7 +39,8 @@ help:
 	@echo "                    HEADLESS=1: RViz on Xvfb, saved as rviz.png); runs/<time>/"
 	@echo "make bench-online   what the learner node adds to a request over calling the planner directly"
 	@echo "make bench-policies every routing policy live on the same seeded conditions (SCENARIO=stationary|handover|load-shift|"
-	@echo "                    map-switch|drift|file.yaml, MAP=, LINK=, STEPS=, SEED=, POLICIES=, REPEATS=, LEARN_PROBE_RATE=)"
+	@echo "                    map-switch|drift|file.yaml, MAP=, LINK=, STEPS=, SEED=, POLICIES=, REPEATS=, LEARN_PROBE_RATE=,"
+	@echo "                    DEPLOY_MODEL=batch|online)"
 	@echo "make bench-fleet-learning robots that differ learning through one fleet learner vs alone (STEPS=, ROBOTS=, ARMS=)"
 	@echo "make bench-offline  bag ingest (transitions/s) and offline DQN training (steps/s, batch 64)"
 	@echo "make mutate         mutation testing: survival rate of reward/state/dqn/protocol, then C++ core mutants"
@@ -137,7 +138,8 @@ bench-policies: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_policies $(if $(filter command line environment,$(origin STEPS)),--steps $(STEPS)) $(if $(SEED),--seed $(SEED)) \
 		$(if $(MAP),--map $(MAP)) $(if $(POLICIES),--policies $(POLICIES)) $(if $(CHECKPOINT),--checkpoint $(CHECKPOINT)) \
 		$(if $(LINK),--link $(LINK)) $(if $(filter free,$(UNKNOWN)),--plan-unknown) $(if $(REPEATS),--repeats $(REPEATS)) \
-		$(if $(SCENARIO),--scenario $(SCENARIO)) $(if $(LEARN_PROBE_RATE),--learning-probe-rate $(LEARN_PROBE_RATE))
+		$(if $(SCENARIO),--scenario $(SCENARIO)) $(if $(LEARN_PROBE_RATE),--learning-probe-rate $(LEARN_PROBE_RATE)) \
+		$(if $(DEPLOY_MODEL),--deploy-model $(DEPLOY_MODEL))
 
 # Robots that differ (map, link, CPU budget) learning through one fleet learner against each learning alone, live,
 # one run at a time (STEPS= per run, default 400; ROBOTS=, ARMS=). The fleet arm and the bad model say n/a until

@@ -114,3 +114,21 @@ def test_oracle_agreement_weighs_each_choice_by_what_it_cost_on_the_probes(tmp_p
                 for i, action in enumerate([CLOUD, LOCAL, LOCAL, CLOUD])]
     write(tmp_path / "offload.bag", requests)
     assert request_actions(tmp_path).tolist() == [CLOUD, LOCAL, LOCAL, CLOUD]
+
+
+def test_the_deployed_model_is_the_learning_runs_rows_trained_as_one_batch(tmp_path):
+    """Every row of the learning run trains it (its normalisation is fitted on them all, not on a warm-up), it acts
+    at once when loaded, and the same bag and seed give the same model."""
+    from offload_learner_py.core.checkpoint import load_checkpoint
+    from offload_learner_py.core.normalisation import StateNormalisation
+    from offload_learner_py.data.bags import read_bags
+    from offload_learner_py.data.records import transition_table
+    from offload_demos.bench_policies import batch_checkpoint
+    write(tmp_path / "offload.bag", make_requests(90, seed=4, probe_every=1))
+    table = transition_table(read_bags([str(tmp_path / "offload.bag")], workers=1).log)
+    assert len(table) == 90
+    agent = load_checkpoint(batch_checkpoint(tmp_path, seed=3))
+    assert agent.normalisation == StateNormalisation.fit(table.states)
+    assert not agent.in_warm_up()
+    again = load_checkpoint(batch_checkpoint(tmp_path, seed=3))
+    np.testing.assert_array_equal(again.q_values(table.states), agent.q_values(table.states))

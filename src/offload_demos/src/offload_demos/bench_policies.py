@@ -100,6 +100,25 @@ def learning_args(probe_rate: float) -> list:
     return ["--policy", "dqn", "--mode", "deployed", "--learn", "true", "--probe-rate", f"{probe_rate:g}"]
 
 
+def batch_checkpoint(learning_run: pathlib.Path, seed: int) -> str:
+    """The learning run's rows trained as one batch (offline/retrain's training, the fleet learner's: every row
+    alike, the normalisation fitted on them all), saved beside the run's online checkpoint. The online DQN samples
+    its replay from the start of the run on, so a row of the first seconds is trained on far more often than one
+    of the last (on handover: the first edge phase), and its normalisation is its warm-up's."""
+    from offload_learner_py.core.checkpoint import save_checkpoint
+    from offload_learner_py.core.config import DQNConfig
+    from offload_learner_py.data.bags import read_bags
+    from offload_learner_py.data.records import transition_table
+    from offload_learner_py.offline.retrain import train_offline
+    data = read_bags([str(learning_run / "offload.bag")], workers=1)
+    table = transition_table(data.log)
+    if not len(table):
+        raise RuntimeError(f"the learning run {learning_run} has no probe with both sides measured")
+    path = learning_run / "checkpoint_batch.pt"
+    save_checkpoint(train_offline(table, DQNConfig(seed=seed)).agent, str(path))
+    return str(path)
+
+
 def schedule_lag_s(arrivals, nominal) -> float:
     """How late, at most, a run's requests arrived against the open-loop schedule (each run from its first request):
     above one inter-arrival a policy's answers held its requests back, and they met later moments of the link and
@@ -142,6 +161,9 @@ def main(argv=None) -> int:
                         default=1.0, help="1: the learning run probes every request (learning mode, the paper's); "
                         "below 1: it routes by its own greedy policy and probes this share (deployed mode, learning "
                         "on), so it learns the local latencies of the load its own routing leaves on the robot")
+    parser.add_argument("--deploy-model", choices=("batch", "online"), default="batch",
+                        help="the DQN the robot starts from: its learning run's rows trained as one batch (the fleet "
+                             "learner's training) or the learning run's online checkpoint")
     parser.add_argument("--outage-policies", default="dqn_hedge",
                         help="policies run again with the link down for --outage-s mid-run ('' to skip)")
     parser.add_argument("--outage-at-s", type=bounded_float("--outage-at-s", 0.0), default=30.0,
@@ -191,13 +213,15 @@ def main(argv=None) -> int:
     if not checkpoint and {"dqn", "dqn_hedge"} & set(policies + outage):
         learning = run_demo(args.launch, out / "learning", args.learning_steps, args.seed, map_yaml,
                             learning_args(args.learning_probe_rate) + scenario_args)
-        checkpoint, seed_bag = str(learning / "checkpoint.pt"), seed_bag or str(learning / "offload.bag")
+        checkpoint = str(learning / "checkpoint.pt") if args.deploy_model == "online" else \
+            batch_checkpoint(learning, args.seed)
+        seed_bag = seed_bag or str(learning / "offload.bag")
     results = {"scenario": scenario.name, "scenario_file": str(scenario.path),
                "map": " / ".join(path for path, _ in scenario.maps) or map_yaml or "nav2_warehouse (bundled)",
                "map_name": "+".join(pathlib.Path(path).stem for path, _ in scenario.maps) or pathlib.Path(map_yaml).stem
                or "warehouse", "link": str(scenario.rtt_trace or args.link or scenario.link),
                "plan_unknown": args.plan_unknown, "threshold_best": None, "gap_closed": {},
-               "learning_probe_rate": args.learning_probe_rate, "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
+               "learning_probe_rate": args.learning_probe_rate, "deploy_model": args.deploy_model, "steps": args.steps, "seed": args.seed, "repeats": args.repeats, "checkpoint": checkpoint, "seed_bag": seed_bag,
                "goal_rate_hz": args.goal_rate_hz, "start_lead_s": args.start_lead_s, "policies": {}, "delivered_s": {},
                "oracle_mean_s": None, "oracle_actions": None, "oracle_cloud_share": None, "oracle_robot_cpu_s_per_request": None}
     model = (["--model", checkpoint] if checkpoint else []) + (["--fleet-seed-bag", seed_bag] if seed_bag else [])
