@@ -161,9 +161,9 @@ def main(argv=None) -> int:
                         default=1.0, help="1: the learning run probes every request (learning mode, the paper's); "
                         "below 1: it routes by its own greedy policy and probes this share (deployed mode, learning "
                         "on), so it learns the local latencies of the load its own routing leaves on the robot")
-    parser.add_argument("--deploy-model", choices=("batch", "online"), default="batch",
-                        help="the DQN the robot starts from: its learning run's rows trained as one batch (the fleet "
-                             "learner's training) or the learning run's online checkpoint")
+    parser.add_argument("--deploy-model", choices=("batch", "online"), default="online",
+                        help="the DQN the robot starts from: the learning run's online checkpoint, or its rows trained "
+                             "as one batch (the fleet learner's training; on handover 2026-11-27 not better live)")
     parser.add_argument("--outage-policies", default="dqn_hedge",
                         help="policies run again with the link down for --outage-s mid-run ('' to skip)")
     parser.add_argument("--outage-at-s", type=bounded_float("--outage-at-s", 0.0), default=30.0,
