@@ -106,8 +106,7 @@ class DQNAgent:
         loss = None
         if self.steps >= max(self.config.learning_starts, 1) and self.steps % self.config.train_frequency == 0:
             if not self.normalisation_frozen:
-                self.normalisation = StateNormalisation.fit(self.memory.states[:len(self.memory)],
-                                                            self.config.log_input_size)
+                self.normalisation = self._fit_to_replay()
                 self.normalisation_frozen = True
             elif self.refit_due():   # the warm-up's fit is followed where the states moved since
                 self.refit_normalisation()
@@ -125,11 +124,14 @@ class DQNAgent:
         return bool(interval) and self.steps > self.config.learning_starts and self.steps % interval == 0 \
             and len(self.memory) >= max(self.config.learning_starts, self.config.batch_size)
 
+    def _fit_to_replay(self) -> StateNormalisation:
+        return StateNormalisation.fit(self.memory.states[:len(self.memory)], self.config.log_input_size)
+
     def refit_normalisation(self) -> None:
         """Fit the normalisation to the states in replay and re-express both networks' first layers in it, so
         every Q-value stays what it was: the inputs x = (f - m) / s become x' = (f - m') / s', and
         W x + c = (W s' / s) x' + c + W (m' - m) / s. Only the conditioning of later gradient steps changes."""
-        new = StateNormalisation.fit(self.memory.states[:len(self.memory)], self.config.log_input_size)
+        new = self._fit_to_replay()
         old = self.normalisation
         old_scale = np.asarray(old.scale, dtype=np.float64)
         shift = torch.from_numpy(((np.asarray(new.mean) - np.asarray(old.mean)) / old_scale).astype(np.float32))

@@ -1,6 +1,7 @@
 """State normalisation: the network sees each feature of s_t centred and scaled, the fields the state schema
-hints so (d_t, p_t) on a log scale first. It is fitted once on warm-up states and then frozen, because moving it
-would silently change what the learned weights mean; it is saved with every checkpoint for the same reason,
+hints so (d_t, p_t) on a log scale first. It is fitted on warm-up states; moving it alone would silently change what
+the learned weights mean, so a DQN that re-fits it later (normalisation_refit_interval) re-expresses its first
+layer in the new one at the same time (core/dqn.py). It is saved with every checkpoint for the same reason,
 with the state's field names and units, so a checkpoint of another state (fields added, removed or reordered, a
 field whose meaning changed: p_t from cells/s to d_t/s) is refused rather than fed columns it never learned."""
 from dataclasses import dataclass
