@@ -112,3 +112,18 @@ def test_a_link_the_heartbeat_found_down_closes_when_the_heartbeat_finds_it_back
     breaker.record_heartbeat(False, 5.0)           # the link itself is down: its return may close the breaker
     breaker.record_heartbeat(True, 0.02)
     assert breaker.admit() == CLOSED
+
+
+def test_a_cloud_answers_round_trip_reads_like_a_heartbeats_and_a_missing_answer_is_left_to_the_calls():
+    """The bridge rests its heartbeat while plans measure the link: a slow link seen only by the plans' answers
+    must still open the breaker, and a healthy answer close one the round trip opened; a plan the cloud did not
+    answer is one failed call (record_call), never an unreachable heartbeat that opens at once."""
+    breaker = LinkBreaker(BreakerConfig(max_round_trip_s=0.5, failures_to_open=3), clock=Clock())
+    breaker.record_round_trip(False, False, 5.0)   # a request's timeout
+    assert breaker.admit() == CLOSED
+    breaker.record_round_trip(False, True, 0.7)    # a request's answer over a slow link
+    assert breaker.admit() == OPEN and "round trip 0.700 s" in breaker.reason
+    breaker.record_round_trip(False, True, 0.1)
+    assert breaker.admit() == CLOSED
+    breaker.record_round_trip(True, False, 1.0)    # a heartbeat nobody answered
+    assert breaker.admit() == OPEN and "unreachable" in breaker.reason

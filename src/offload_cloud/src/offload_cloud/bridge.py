@@ -129,6 +129,7 @@ class CloudBridge:
         self._last_heartbeat_at: Optional[float] = None
         self._heartbeat_period_s = 1.0                  # measured between heartbeat() calls
         self._non_pong_warned = False
+        self._measured: Optional[Tuple[float, float]] = None   # (monotonic time, link round trip) of the last answer
         self.upload_attempts = 0                        # map uploads started by the heartbeat (for tests)
         self._last_options = None                       # (config, (resolution, tolerance cells), PlanOptions)
 
@@ -196,6 +197,17 @@ class CloudBridge:
                         reply.message)
         self._upload_if_due()
         return True, round_trip_s
+
+    def recent_round_trip(self, within_s: float) -> Optional[float]:
+        """The link round trip a cloud answer to a plan measured within the last `within_s` seconds, else None.
+        The heartbeat skips its ping then: at a few cloud requests a second the ping only repeats what the plans
+        measure, and costs the robot a round trip, a publish and the learner's decoding of it (#30). Never while the
+        cloud lacks the current map: the ping is what uploads it beside the plans."""
+        measured, snapshot = self._measured, self.map
+        if measured is None or time.monotonic() - measured[0] > within_s or \
+                (snapshot is not None and snapshot.map_hash not in self._known_maps):
+            return None
+        return measured[1]
 
     def _upload_if_due(self) -> None:
         snapshot = self.map
@@ -283,6 +295,7 @@ class CloudBridge:
         reply = outcome.reply
         # The link's share of the round trip: what the learner's b_t measures.
         result.link_round_trip_s = max(0.0, outcome.round_trip_s - reply.planning_time_s)
+        self._measured = (time.monotonic(), result.link_round_trip_s)   # one assignment: thread safe
         if not protocol.is_planner_status(reply.status):
             result.status = PlanStatus.CLOUD_ERROR
             result.message = f"cloud planner refused the request ({reply.status.name}): {reply.message}"

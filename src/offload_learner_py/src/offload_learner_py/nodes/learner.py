@@ -96,8 +96,10 @@ class LearnerNode:
 
     def on_latency(self, msg):
         self.round_trip_s = msg.round_trip_s
-        if msg.source == LinkLatency.HEARTBEAT:
-            self.router.breaker.record_heartbeat(msg.reachable, msg.round_trip_s)
+        breaker = self.router.breaker
+        was_open = breaker.is_open
+        breaker.record_round_trip(msg.source == LinkLatency.HEARTBEAT, msg.reachable, msg.round_trip_s)
+        if breaker.is_open != was_open:
             self.outputs.diagnostics.changed()   # a breaker that opened or closed: shown at once
 
     def build_state(self, request):

@@ -3,7 +3,8 @@
 Closed (normal): cloud calls go ahead. It opens after `failures_to_open` cloud failures in a row (a timeout,
 a link error, or an answer slower than `slow_call_s`: a cloud that pings fine but plans slowly; never a request
 the planner refused), or when a heartbeat says the cloud is unreachable or its round trip exceeds
-`max_round_trip_s` (a link that cannot beat the deadline). While open, the router plans locally without
+`max_round_trip_s` (a link that cannot beat the deadline; a cloud answer's measured round trip counts too, as the
+bridge rests its heartbeat while plans measure the link). While open, the router plans locally without
 touching the link, so no request pays the cloud timeout. Opened by a heartbeat, it closes on the first heartbeat
 (the bridge's periodic ping, a few bytes) that is reachable and within `max_round_trip_s`. Opened by failed
 calls, a healthy ping proves nothing about planning (an erroring cloud that pings fine re-closed it at every
@@ -96,6 +97,13 @@ class LinkBreaker:
                 what = "slow or failed cloud calls" if slow else "cloud failures"
                 self._open_locked(f"{self._failures} {what} in a row", by_calls=True)
 
+    def record_round_trip(self, heartbeat: bool, reachable: bool, round_trip_s: float) -> None:
+        """A measured link round trip: the heartbeat's, or a cloud answer's (the bridge skips its heartbeat while
+        plans measure the link, so the round-trip rule reads both). A request the cloud did not answer is
+        record_call's failure, not a heartbeat's."""
+        if heartbeat or reachable:
+            self.record_heartbeat(reachable, round_trip_s)
+
     def record_heartbeat(self, reachable: bool, round_trip_s: float) -> None:
         if not self.enabled:
             return
@@ -103,7 +111,7 @@ class LinkBreaker:
             if not reachable:
                 self._open_locked("heartbeat: cloud unreachable", by_calls=False)
             elif not round_trip_s <= self.config.max_round_trip_s:
-                self._open_locked(f"heartbeat: round trip {round_trip_s:.3f} s over {self.config.max_round_trip_s:g} s",
+                self._open_locked(f"link round trip {round_trip_s:.3f} s over {self.config.max_round_trip_s:g} s",
                                   by_calls=False)
             elif self._open and not self._opened_by_calls:
                 self._close_locked()
