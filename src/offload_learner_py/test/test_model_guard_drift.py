@@ -108,3 +108,39 @@ def test_a_fleet_robot_probes_both_sides_on_its_first_requests():
         asked.append(learner.needs_both_sides())
     assert asked == [True, True, True, False, False]
     assert not OnlineLearner(FleetPolicy(version_model(0)), STATUSES).needs_both_sides()   # 0: no warm-up
+
+
+def test_a_robot_started_from_its_own_learning_runs_checkpoint_warms_up_only_for_what_that_run_lacked(tmp_path):
+    """The warm-up gives the fleet the robot's both-sides rows; a learning run's checkpoint (every request measured
+    on both sides) counts towards it, so a restarted deployed robot does not plan twice for 60 requests again. A
+    model file (the fleet's pooled model) does not count."""
+    import pytest
+    from offload_learner_py.core.checkpoint import save_checkpoint
+    from offload_learner_py.core.config import DQNConfig
+    from offload_learner_py.core.dqn import DQNAgent
+    from offload_learner_py.core.model_file import agent_model_bytes
+    from offload_learner_py.online.fleet import make_fleet_robot
+    from offload_learner_py.online.fleet_link import FleetConfig
+    from fleettools import ERRORS, FakeLearner
+    from statetools import raw_states
+
+    def robot_from(path):
+        robot = make_fleet_robot(FleetConfig(endpoint="tcp://x:1", insecure=True, warmup_requests=60), model=path,
+                                 client_factory=FakeLearner, errors=ERRORS, start=False)
+        return robot.policy.warmup_requests
+
+    agent = DQNAgent(DQNConfig(seed=1, learning_starts=10, batch_size=8))
+    states = raw_states(np.linspace(1e-3, 0.2, 26), np.full(26, 0.6), np.full(26, 0.03))
+    for t in range(25):
+        agent.observe(states[t], t % 2, 0.1, states[t + 1])
+    save_checkpoint(agent, str(tmp_path / "short.pt"))
+    assert robot_from(str(tmp_path / "short.pt")) == 60 - 25       # topped up to 60
+    for t in range(50):
+        agent.observe(states[t % 25], t % 2, 0.1, states[t % 25 + 1])
+    save_checkpoint(agent, str(tmp_path / "run.pt"))
+    assert robot_from(str(tmp_path / "run.pt")) == 0               # 75 requests: none
+    (tmp_path / "fleet.npz").write_bytes(agent_model_bytes(agent))
+    assert robot_from(str(tmp_path / "fleet.npz")) == 60           # a model file: the whole warm-up
+    assert robot_from("") == 60
+    with pytest.raises(ValueError):
+        FleetConfig(endpoint="tcp://x:1", warmup_requests=-1)

@@ -160,17 +160,25 @@ class FleetRobot:
 def initial_model(path: str, dqn_config=None) -> Optional[DeployedModel]:
     """The model a fleet robot starts with: ~model as a model file (.npz, loaded weights-only) or a learner
     checkpoint (its greedy network, versioned by the model file it makes); None for no path."""
+    return load_initial(path, dqn_config)[0]
+
+
+def load_initial(path: str, dqn_config=None) -> Tuple[Optional[DeployedModel], int]:
+    """initial_model's model, and the requests it learned from on a robot: a learner checkpoint's steps (a
+    learning run's, each request measured on both sides), 0 for a model file (the fleet's pooled model) or none."""
     if not path:
-        return None
+        return None, 0
     with open(path, "rb") as handle:
         data = handle.read()
+    steps = 0
     if not data.startswith(b"PK") or path.endswith(".pt"):
         from offload_learner_py.core.checkpoint import load_checkpoint
         from offload_learner_py.core.config import DQNConfig
 
-        data = agent_model_bytes(load_checkpoint(path, dqn_config or DQNConfig()))
+        agent = load_checkpoint(path, dqn_config or DQNConfig())
+        data, steps = agent_model_bytes(agent), int(agent.steps)
     fast, _ = load_model(data)
-    return DeployedModel(model_version(data), fast)
+    return DeployedModel(model_version(data), fast), steps
 
 
 def make_fleet_robot(config: FleetConfig, guard: GuardConfig = GuardConfig(), model: str = "",
@@ -181,8 +189,15 @@ def make_fleet_robot(config: FleetConfig, guard: GuardConfig = GuardConfig(), mo
     """A fleet robot: its policy from `model` (see initial_model), the guard, and (with an endpoint) the link to
     the fleet learner through offload_cloud's FleetClient, or `client_factory` with the `errors` it raises
     (timeout, busy, refused) for tests and benchmarks."""
-    robot = FleetRobot(FleetPolicy(initial_model(model), config.warmup_requests if config.enabled else 0),
-                       ModelGuard(guard), log)
+    start_model, learned = load_initial(model)
+    # The warm-up gives the fleet this robot's both-sides measurements; a robot started from its own learning run's
+    # checkpoint measured both sides on that run's requests (the run whose bag seeds the fleet learner): those
+    # count, so a restart of a deployed robot does not pay the warm-up's double plans again.
+    warmup = max(0, config.warmup_requests - learned) if config.enabled else 0
+    if config.enabled and warmup < config.warmup_requests:
+        log.info("started from a checkpoint that learned from %d requests: %d warm-up requests of %d", learned,
+                 warmup, config.warmup_requests)
+    robot = FleetRobot(FleetPolicy(start_model, warmup), ModelGuard(guard), log)
     if config.enabled:
         if client_factory is None:
             from offload_cloud.client import CloudTimeout

@@ -49,7 +49,8 @@ class FleetConfig:
     """a partial batch waits at most this long."""
     warmup_requests: int = 60
     """the robot's first requests probe both sides (a DQN learning alone warms up as long: learning_starts), so
-    the fleet learner has its rows to train and judge on; 0: probes at the probe rate only."""
+    the fleet learner has its rows to train and judge on; less the requests a learner checkpoint given as ~model
+    learned from (the robot's learning run, which measured both sides); 0: probes at the probe rate only."""
 
     def __post_init__(self):
         if self.period_s <= 0 or self.timeout_s <= 0 or self.send_every_s <= 0:
