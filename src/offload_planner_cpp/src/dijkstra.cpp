@@ -277,14 +277,17 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
     double cost = 0.0;
     auto passableAt = [&](int i) { return passable(i); };
     for (std::size_t k = 1; k < result.path.size(); ++k) {
-      length += std::hypot(result.path[k].x - result.path[k - 1].x, result.path[k].y - result.path[k - 1].y);
-      if (options.any_angle) {
+      const double dx = result.path[k].x - result.path[k - 1].x;
+      const double dy = result.path[k].y - result.path[k - 1].y;
+      length += std::sqrt(dx * dx + dy * dy);
+      // At uniform cost a segment's cost is its length: no second walk (a tenth of a short any-angle plan).
+      if (options.any_angle && weighted_) {
         walkSegment(result.path[k - 1], result.path[k], width, passableAt,
-                    [&](int i, double part) { cost += weighted_ ? part * weight(i) : part; });
+                    [&](int i, double part) { cost += part * weight(i); });
       }
     }
     result.cost = length;
-    if (options.any_angle) result.weighted_cost = cost;
+    if (options.any_angle) result.weighted_cost = weighted_ ? cost : length;
   }
   result.goal = {reached % width, reached / width};
   return finish(PlanStatus::kOk, "");

@@ -21,7 +21,8 @@ bool walkSegment(Cell a, Cell b, int width, Passable passable, Visit visit) {
   const long long dy = std::llabs(static_cast<long long>(b.y) - a.y);
   const int sx = b.x > a.x ? 1 : -1;
   const int sy = b.y > a.y ? 1 : -1;
-  const double length = std::hypot(static_cast<double>(dx), static_cast<double>(dy));
+  // Exact squares, one rounding (and no libm call, which a walk that only looks would still pay).
+  const double length = std::sqrt(static_cast<double>(dx * dx + dy * dy));
   // The k-th vertical boundary is crossed at t = (2k + 1) / (2 dx), the k-th horizontal at (2k + 1) / (2 dy).
   long long kx = 0;
   long long ky = 0;

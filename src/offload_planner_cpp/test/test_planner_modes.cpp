@@ -225,6 +225,7 @@ TEST(PlannerModes, AnyAngleCrossesNoBlockedCellAndIsNeverLonger) {
         EXPECT_LE(pulled.weighted_cost, cells.weighted_cost * (1 + 1e-9)) << "never costlier";
         if (factor == 0.0) {
           EXPECT_LE(pulled.cost, cells.cost + 1e-9);
+          EXPECT_EQ(pulled.weighted_cost, pulled.cost) << "at uniform cost, the length itself";
           grid_length += cells.cost;
           pulled_length += pulled.cost;
         }
