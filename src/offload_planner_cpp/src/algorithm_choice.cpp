@@ -1,5 +1,5 @@
-// algorithm auto: which exact point-to-point search a request gets (jump points or the default's two waves),
-// from a sample of the map around its two ends.
+// algorithm auto: which exact point-to-point search a request gets (jump points, A* on buckets or the default's
+// two waves), from a sample of the map around its two ends.
 #include "offload_planner_cpp/dijkstra.h"
 
 #include <algorithm>
@@ -15,12 +15,17 @@ Algorithm DijkstraPlanner::chooseAlgorithm(const PlannerOptions& options, int fr
   // neighbours) with one or three blocked cells or two diagonal ones, on runs of cells sampled from rows around
   // the two ends. (Boundaries per free cell, the measure before, counted every cell along a straight wall: a
   // folded 4-cell corridor read 0.5-0.6, as cluttered as a 15 % random map, and got the waves on 5 of 20 queries
-  // although jump points were 3.9-6.9x faster on every one.) Measured, corners per free cell and time of the two
-  // waves over jump point search, per query (min of 2 runs): folded corridors 0.0000-0.0011, 3.9-15x; ROS,
-  // MovingAI street and room maps 0.003-0.17, 0.5-43x (median over 4); random maps at 5/10/15 % 0.18/0.35/0.48,
-  // 0.9-9.1x/2.9-9.1x/1.9-2.8x; at 20 % 0.61, 1.1-2.0x on 800 x 800 random pairs but 0.43x corner to corner on
-  // 2000 x 2000; 25-35 % 0.72-0.92, 0.2-1.4x; maze512-1-0 0.75, 0.24-0.72x. Below 0.55 it is jump point search.
-  constexpr double kMaxCornersPerFreeCell = 0.55;
+  // although jump points were 3.9-6.9x faster on every one.)
+  // Measured over whole maps (harness, min of 3 runs, 20 queries a map): every street, room, ROS and corridor
+  // map of the shared and held-out sets reads 0.000-0.171, and jump points beat A* on buckets there on all but
+  // two (1.3-11.5x; 0.77x and 0.86x on husky_playpen and turtlebot3_world). Random clutter reads 0.19 (5 %),
+  // 0.35 (10 %), 0.49 (15 %), 0.61 (20 %), 0.72 (25 %), 0.82 (30 %), 0.92 (35 %): A* on buckets, its band
+  // along the straight line, beat jump points 2-4x at every density there (binding, 500 and 2000 a side,
+  // corner to corner and 6 random pairs) and the waves up to 20 % (2000 corner to corner: 45 against 89 ms at
+  // 15 %, 54 against 72 at 20 %), tied at 25 % and lost beyond (72 against 55 ms at 30 %), and on maze512-1-0
+  // (0.75, 1-cell corridors the octile distance says nothing about) it took 3.2x the waves' time.
+  constexpr double kJumpPointsBelow = 0.26;  // midway between 0.17 (structured) and 0.35 (10 % random)
+  constexpr double kAStarBelow = 0.68;       // midway between 0.61 (20 % random) and 0.72 (25 %, a tie)
   // At most 32 rows of 4 runs of 32 cells: a few microseconds, whatever the distance.
   constexpr int kSampledRows = 32;
   constexpr int kRunsPerRow = 4;
@@ -61,8 +66,10 @@ Algorithm DijkstraPlanner::chooseAlgorithm(const PlannerOptions& options, int fr
   }
   // free counts the cells of both rows of each window: a sampled row that is all wall (rows sampled at a
   // corridor's period) still sees the free row below it, not zero free cells.
-  return static_cast<double>(corners) < kMaxCornersPerFreeCell * 0.5 * static_cast<double>(free) ? Algorithm::kJps
-                                                                                                : Algorithm::kDijkstra;
+  const double windows_per_free_cell = 0.5 * static_cast<double>(free);
+  const double counted = static_cast<double>(corners);
+  if (counted < kJumpPointsBelow * windows_per_free_cell) return Algorithm::kJps;
+  return counted < kAStarBelow * windows_per_free_cell ? Algorithm::kAStar : Algorithm::kDijkstra;
 }
 
 }  // namespace offload_planner

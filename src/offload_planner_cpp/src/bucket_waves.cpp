@@ -243,9 +243,13 @@ void DijkstraPlanner::traceWave(int goal, std::vector<Cell>* path, const Labels&
     double best_dist = std::numeric_limits<double>::infinity();
     for (int k = 0; k < 8; ++k) {
       const double label = dist[p + kDy[k] * s + kDx[k]];
-      // Blocked (-inf) and unsettled (positive) neighbours are no predecessors.
-      if (!legal[k] || label == kBlocked || !std::signbit(label)) continue;
-      const double through = -label + (k < 4 ? 1.0 : kDiagonal);
+      // Blocked (-inf) and unsettled (positive) neighbours are no predecessors. Where the search reopens
+      // cells, every finite label is the cost of a path from the source through a cell labelled at least that
+      // much less, so the step to the least of them still goes down, to the source, along an optimal path.
+      if (!legal[k] || label == kBlocked || (labels.trace_unsettled ? std::isinf(label) : !std::signbit(label))) {
+        continue;
+      }
+      const double through = std::fabs(label) + (k < 4 ? 1.0 : kDiagonal);
       if (through < best_dist) {
         best_dist = through;
         best = k;

@@ -218,6 +218,8 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
   // Uniform-cost Dijkstra to one cell runs from both ends: two waves of half the radius settle about half
   // the cells of one on open ground. It proves an unreachable goal as soon as either wave runs dry.
   const bool both_ends = !jump && !weighted_ && !astar_ && options.stop_at_goal && from != target;
+  // A* at uniform cost to one cell: on buckets, as the waves.
+  const bool bucket_astar = astar_ && !weighted_ && options.stop_at_goal && from != target;
   bool found = false;
   bool jumped = false;
   if (jump) {
@@ -227,6 +229,7 @@ PlanResult DijkstraPlanner::plan(const std::int8_t* data, std::size_t size, int 
     result.expansions = jump_.expansions();
   } else {
     found = both_ends ? searchBidirectional(from, target, options.cancel)
+            : bucket_astar ? searchBucketAStar(from, target, options.cancel)
             : weighted_ || astar_ ? searchHeap(from, target, options.stop_at_goal, options.cancel)
                                   : search(from, target, options.stop_at_goal, options.cancel);
     result.expansions = expansions_;

@@ -111,6 +111,9 @@ class DijkstraPlanner {
     int stride = 0;           // 0: dist is indexed by cell; else a wave's padded buffer
     int row_lo = 0;           // padded rows the wave derived: outside them nothing was labelled
     int row_hi = -1;
+    // A search that reopens cells (A* on buckets) may leave a cell unsettled whose label a rounding error
+    // lowered after its neighbours took theirs from it: its trace also steps to unsettled labelled cells.
+    bool trace_unsettled = false;
     double operator()(int cell) const {
       if (stride == 0) return dist[cell];
       const int y = cell / width;
@@ -142,6 +145,9 @@ class DijkstraPlanner {
   // meet_forward_ -> meet_backward_ and costs meeting_cost_.
   bool searchBidirectional(int start, int target, const std::atomic<bool>* cancel);
   bool searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
+  // A* at uniform cost from start to target on a ring of four buckets over the first wave's buffer (cells
+  // reopened when improved); the labels in last_, the target's unsettled. True when the target was reached.
+  bool searchBucketAStar(int start, int target, const std::atomic<bool>* cancel);
   // Best-first search over heap_ (lazy deletion), used by searchHeap: `estimate(j)` is the
   // heuristic, `relax(i, d, j, length)` offers j a cost through the settled cell i (at cost d) and returns
   // whether it improved dist_[j]. Checks `cancel` every `cancel_check` settled cells.
@@ -211,6 +217,7 @@ class DijkstraPlanner {
   std::size_t wave_cells_[2] = {0, 0};
   Bucket buckets_[3];
   Bucket back_buckets_[3];
+  Bucket astar_buckets_[4];
   Labels last_;                        // the last search's distances (the forward wave's)
   Labels backward_;                    // the last two-wave search's backward distances
   double meeting_cost_ = 0.0;

@@ -1,0 +1,203 @@
+// A* on buckets (algorithm astar at uniform cost, and what auto takes on random clutter) against a textbook
+// Dijkstra written here: the same costs on random grids of every density, with unknown cells and thresholds,
+// and on grids big enough that cells are reopened; every path legal (8-connected steps, no blocked cell, no
+// cut corner, its steps adding up to its cost); unreachable goals, tolerance and cancel as the default's.
+#include <gtest/gtest.h>
+
+#include <atomic>
+#include <cmath>
+#include <random>
+#include <string>
+#include <vector>
+
+#include "offload_planner_cpp/dijkstra.h"
+#include "reference_search.h"
+
+using namespace offload_planner;
+
+namespace {
+
+const double kSqrt2 = std::sqrt(2.0);
+
+struct Grid {
+  int w = 0, h = 0;
+  std::vector<std::int8_t> data;
+  Grid(int width, int height) : w(width), h(height), data(static_cast<std::size_t>(width) * height, 0) {}
+  std::int8_t& at(int x, int y) { return data[static_cast<std::size_t>(y) * w + x]; }
+  bool free(int x, int y, const PlannerOptions& o) const {
+    return x >= 0 && y >= 0 && x < w && y < h && isPassable(data[static_cast<std::size_t>(y) * w + x], o);
+  }
+};
+
+Grid randomGrid(std::mt19937* rng, int w, int h, double density) {
+  Grid g(w, h);
+  std::bernoulli_distribution wall(density), unknown(0.05);
+  for (auto& v : g.data) v = wall(*rng) ? (unknown(*rng) ? -1 : 100) : static_cast<std::int8_t>((*rng)() % 50);
+  return g;
+}
+
+double referenceCost(const Grid& g, Cell s, Cell t, const PlannerOptions& o) {
+  return test::referenceCost(g.w, g.h, s, t, [&](int x, int y) { return g.free(x, y, o); },
+                             [](int, int) { return 1.0; });
+}
+
+// Runs from s to t by legal moves only (no blocked cell, no diagonal past a blocked corner), and its steps
+// add up to its cost.
+void expectLegalPath(const Grid& g, const PlanResult& r, Cell s, Cell t, const PlannerOptions& o) {
+  ASSERT_TRUE(r.ok()) << r.message;
+  ASSERT_FALSE(r.path.empty());
+  EXPECT_EQ(r.path.front(), s);
+  EXPECT_EQ(r.path.back(), t);
+  int straight = 0, diagonal = 0;
+  for (std::size_t k = 0; k < r.path.size(); ++k) {
+    const Cell c = r.path[k];
+    ASSERT_TRUE(g.free(c.x, c.y, o)) << "cell " << k << " (" << c.x << ", " << c.y << ") is blocked";
+    if (k == 0) continue;
+    const Cell p = r.path[k - 1];
+    const int dx = c.x - p.x, dy = c.y - p.y;
+    ASSERT_TRUE(std::abs(dx) <= 1 && std::abs(dy) <= 1 && (dx != 0 || dy != 0)) << "step " << k << " is no move";
+    if (dx != 0 && dy != 0) {
+      ASSERT_TRUE(g.free(p.x + dx, p.y, o) && g.free(p.x, p.y + dy, o))
+          << "step " << k << " from (" << p.x << ", " << p.y << ") cuts a corner";
+      ++diagonal;
+    } else {
+      ++straight;
+    }
+  }
+  EXPECT_NEAR(straight + kSqrt2 * diagonal, r.cost, 1e-9);
+}
+
+PlannerOptions with(Algorithm algorithm) {
+  PlannerOptions o;
+  o.algorithm = algorithm;
+  return o;
+}
+
+PlanResult planOn(DijkstraPlanner& planner, const Grid& g, Cell s, Cell t, const PlannerOptions& o) {
+  return planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
+}
+
+}  // namespace
+
+TEST(BucketAStar, NeverCutsACorner) {
+  Grid g(4, 3);
+  g.at(1, 1) = g.at(2, 1) = 100;  // a diagonal step past either end of the wall would cut its corner
+  DijkstraPlanner planner;
+  const PlanResult r = planOn(planner, g, {0, 0}, {3, 2}, with(Algorithm::kAStar));
+  expectLegalPath(g, r, {0, 0}, {3, 2}, with(Algorithm::kAStar));
+  EXPECT_EQ(r.cost, 5.0);
+  Grid pinch(2, 2);
+  pinch.at(1, 0) = pinch.at(0, 1) = 100;  // two blocks touching at a corner: no move between the free cells
+  EXPECT_EQ(planOn(planner, pinch, {0, 0}, {1, 1}, with(Algorithm::kAStar)).status, PlanStatus::kNoPath);
+}
+
+TEST(BucketAStar, SameCostsAsTheReferenceOnRandomGridsOfEveryDensity) {
+  std::mt19937 rng(5);
+  DijkstraPlanner astar;  // one planner throughout: its buffers are reused across sizes and maps
+  int compared = 0, unreachable = 0;
+  for (int trial = 0; trial < 300; ++trial) {
+    const double density = 0.05 * (trial % 9);  // 0 to 40 %
+    Grid g = randomGrid(&rng, 2 + static_cast<int>(rng() % 70), 2 + static_cast<int>(rng() % 70), density);
+    PlannerOptions o = with(Algorithm::kAStar);
+    o.unknown_is_obstacle = trial % 4 != 0;
+    o.lethal_threshold = trial % 3 == 0 ? 30 : 50;
+    for (int q = 0; q < 5; ++q) {
+      const Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      const Cell t{static_cast<int>(rng() % g.w), static_cast<int>(rng() % g.h)};
+      g.at(s.x, s.y) = g.at(t.x, t.y) = 0;
+      const double expected = referenceCost(g, s, t, o);
+      const PlanResult r = planOn(astar, g, s, t, o);
+      if (std::isinf(expected)) {
+        EXPECT_EQ(r.status, PlanStatus::kNoPath) << "trial " << trial;
+        ++unreachable;
+        continue;
+      }
+      expectLegalPath(g, r, s, t, o);
+      EXPECT_NEAR(r.cost, expected, 1e-9) << "trial " << trial;
+      EXPECT_EQ(r.weighted_cost, r.cost);
+      ++compared;
+    }
+  }
+  EXPECT_GT(compared, 800);
+  EXPECT_GT(unreachable, 20);
+}
+
+// Long paths through clutter, where a cell taken from a bucket is often improved later through another cell of
+// the same bucket: a search that did not reopen it, or stopped before every f below the best cost was taken,
+// returns a longer path here.
+TEST(BucketAStar, ExactOnLongPathsThroughClutter) {
+  std::mt19937 rng(21);
+  DijkstraPlanner astar, waves;
+  int compared = 0;
+  for (int trial = 0; trial < 12; ++trial) {
+    const double density = 0.1 + 0.05 * (trial % 5);  // 10 to 30 %
+    Grid g = randomGrid(&rng, 300, 240, density);
+    for (int q = 0; q < 3; ++q) {
+      const Cell s{static_cast<int>(rng() % 40), static_cast<int>(rng() % g.h)};
+      const Cell t{g.w - 1 - static_cast<int>(rng() % 40), static_cast<int>(rng() % g.h)};
+      g.at(s.x, s.y) = g.at(t.x, t.y) = 0;
+      const PlannerOptions o = with(Algorithm::kAStar);
+      const double expected = referenceCost(g, s, t, o);
+      if (std::isinf(expected)) continue;
+      const PlanResult r = planOn(astar, g, s, t, o);
+      expectLegalPath(g, r, s, t, o);
+      EXPECT_NEAR(r.cost, expected, 1e-9) << "trial " << trial << " query " << q;
+      const PlanResult d = planOn(waves, g, s, t, with(Algorithm::kDijkstra));
+      EXPECT_LT(r.expansions, d.expansions) << "trial " << trial;  // its band, not the waves' discs
+      ++compared;
+    }
+  }
+  EXPECT_GT(compared, 25);
+}
+
+TEST(BucketAStar, UnreachableGoalsToleranceAndCancelAsTheDefault) {
+  DijkstraPlanner astar, waves;
+  Grid g(60, 40);
+  for (int y = 10; y <= 30; ++y) g.at(30, y) = g.at(50, y) = 100;  // a closed box x 30-50, y 10-30
+  for (int x = 30; x <= 50; ++x) g.at(x, 10) = g.at(x, 30) = 100;
+  const PlanResult shut = planOn(astar, g, {2, 2}, {40, 20}, with(Algorithm::kAStar));
+  EXPECT_EQ(shut.status, PlanStatus::kNoPath);
+  for (double tolerance : {3.0, 12.0}) {
+    PlannerOptions a = with(Algorithm::kAStar), d = with(Algorithm::kDijkstra);
+    a.goal_tolerance_cells = d.goal_tolerance_cells = tolerance;
+    const PlanResult ra = planOn(astar, g, {2, 2}, {40, 20}, a);
+    const PlanResult rd = planOn(waves, g, {2, 2}, {40, 20}, d);
+    ASSERT_EQ(ra.status, rd.status) << ra.message;
+    if (!rd.ok()) continue;
+    EXPECT_EQ(ra.goal, rd.goal);
+    EXPECT_NEAR(ra.cost, rd.cost, 1e-9);
+  }
+  std::atomic<bool> cancel{true};
+  PlannerOptions a = with(Algorithm::kAStar);
+  a.cancel = &cancel;
+  EXPECT_EQ(planOn(astar, g, {2, 2}, {58, 38}, a).status, PlanStatus::kCancelled);
+  cancel = false;
+  const PlanResult after = planOn(astar, g, {2, 2}, {58, 38}, a);
+  ASSERT_TRUE(after.ok()) << after.message;
+  EXPECT_NEAR(after.cost, referenceCost(g, {2, 2}, {58, 38}, a), 1e-9);
+}
+
+// auto: A* on buckets on random clutter (0.61 corners per free cell at 20 %), jump points on structured maps
+// and the waves in a maze (test_jump_point_search.cpp), each with the default's costs.
+TEST(BucketAStar, AutoTakesItOnRandomClutter) {
+  std::mt19937 rng(3);
+  DijkstraPlanner planner;
+  for (double density : {0.1, 0.2}) {
+    Grid g(400, 400);
+    std::bernoulli_distribution wall(density);
+    for (auto& v : g.data) v = wall(rng) ? 100 : 0;
+    g.at(1, 1) = g.at(398, 398) = 0;
+    const PlanResult picked = planOn(planner, g, {1, 1}, {398, 398}, with(Algorithm::kAuto));
+    const PlanResult astar = planOn(planner, g, {1, 1}, {398, 398}, with(Algorithm::kAStar));
+    const PlanResult waves = planOn(planner, g, {1, 1}, {398, 398}, with(Algorithm::kDijkstra));
+    ASSERT_TRUE(waves.ok()) << waves.message;
+    EXPECT_EQ(picked.expansions, astar.expansions) << "density " << density;
+    EXPECT_NEAR(picked.cost, waves.cost, 1e-9);
+    expectLegalPath(g, picked, {1, 1}, {398, 398}, with(Algorithm::kAuto));
+  }
+}
+
+int main(int argc, char** argv) {
+  testing::InitGoogleTest(&argc, argv);
+  return RUN_ALL_TESTS();
+}
