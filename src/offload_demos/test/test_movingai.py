@@ -85,14 +85,14 @@ def test_optimal_lengths(map_file):
 
 
 @pytest.mark.parametrize("map_file", MAP_FILES, ids=lambda p: p.stem)
-def test_jump_point_search_and_auto_are_exact_on_every_query(map_file):
-    """algorithm jps and auto on every query of the file: the optimal length (the default's, which
+def test_jump_point_search_astar_and_auto_are_exact_on_every_query(map_file):
+    """algorithm jps, astar (A* on buckets, which reopens cells) and auto on every query of the file: the optimal length (the default's, which
     test_optimal_lengths and the CLI check) and a legal path (no blocked cell, no cut corner) whose steps add
     up to it; on the bucket spread also the default's own cost, query by query."""
     grid = load_movingai_map(map_file).grid
     every = load_scenarios(Path(str(map_file) + ".scen"))
     for scenario in every:
-        for algorithm in ("jps", "auto"):
+        for algorithm in ("jps", "astar", "auto"):
             result = offload_planner_cpp.plan(grid, scenario.start, scenario.goal, algorithm=algorithm)
             assert abs(result.cost - scenario.optimal_length) <= length_tolerance(scenario), (algorithm, scenario)
             assert tuple(result.path[0]) == scenario.start and tuple(result.path[-1]) == scenario.goal
@@ -102,7 +102,7 @@ def test_jump_point_search_and_auto_are_exact_on_every_query(map_file):
             assert (steps == 1).sum() + np.sqrt(2) * (steps == 2).sum() == pytest.approx(result.cost, abs=1e-9)
     for scenario in bucket_spread(every):
         default = offload_planner_cpp.plan(grid, scenario.start, scenario.goal).cost
-        for algorithm in ("jps", "auto"):
+        for algorithm in ("jps", "astar", "auto"):
             cost = offload_planner_cpp.plan(grid, scenario.start, scenario.goal, algorithm=algorithm).cost
             assert cost == pytest.approx(default, rel=1e-12, abs=1e-12), (algorithm, scenario)
 

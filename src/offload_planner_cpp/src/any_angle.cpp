@@ -34,6 +34,62 @@ double DijkstraPlanner::pathCost(const std::vector<Cell>& path) const {
   return cost;
 }
 
+namespace {
+
+// pullTight at uniform cost on a path of long straight runs (corridors): false, doing nothing, on any other.
+// The cells of one straight run of moves see each other (the path's own moves keep to free cells and pass no
+// blocked corner: the line-of-sight rule), so the far cell is sought among the path's turns first, galloping
+// then bisecting, and then by bisection within the one run where sight ends. Galloping over every cell walked
+// each run of a folded corridor about a dozen times (any-angle took 1.8x the jump points' time on the 4-cell
+// serpentine, 1.3x this way, the same paths). Where runs are short the two ways can stop at different cells
+// (sight along a path is not monotone): on street and random maps this way's paths were up to 0.2 % longer.
+template <class Fits>
+bool pullTightByTurns(const std::vector<Cell>& path, Fits fits, std::vector<Cell>* pulled) {
+  constexpr std::size_t kLongRun = 256;  // cells per run on average
+  const std::size_t n = path.size();
+  auto turns_at = [&](std::size_t k) {
+    return path[k].x - path[k - 1].x != path[k + 1].x - path[k].x || path[k].y - path[k - 1].y != path[k + 1].y - path[k].y;
+  };
+  std::vector<std::size_t> turns;
+  for (std::size_t k = 1; k + 1 < n; ++k) {
+    if (turns_at(k)) turns.push_back(k);
+  }
+  turns.push_back(n - 1);
+  if (n < kLongRun * turns.size()) return false;
+  std::size_t anchor = 0;
+  std::size_t next = 0;  // the first turn after the anchor: the end of the anchor's own run
+  while (anchor + 1 < n) {
+    while (turns[next] <= anchor) ++next;
+    std::size_t good = next;
+    std::size_t bad = turns.size();
+    for (std::size_t step = 1; good + 1 < turns.size(); step *= 2) {
+      const std::size_t t = std::min(good + step, turns.size() - 1);
+      if (!fits(anchor, turns[t])) {
+        bad = t;
+        break;
+      }
+      good = t;
+    }
+    while (bad < turns.size() && bad - good > 1) {
+      const std::size_t mid = good + (bad - good) / 2;
+      (fits(anchor, turns[mid]) ? good : bad) = mid;
+    }
+    std::size_t far = turns[good];
+    if (bad < turns.size()) {
+      std::size_t beyond = turns[bad];  // the cells between are one straight run
+      while (beyond - far > 1) {
+        const std::size_t mid = far + (beyond - far) / 2;
+        (fits(anchor, mid) ? far : beyond) = mid;
+      }
+    }
+    pulled->push_back(path[far]);
+    anchor = far;
+  }
+  return true;
+}
+
+}  // namespace
+
 void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
   const std::size_t n = path->size();
   if (n < 3) return;
@@ -49,8 +105,17 @@ void DijkstraPlanner::pullTight(std::vector<Cell>* path) const {
   std::vector<Cell> pulled{path->front()};
   std::size_t anchor = 0;
   // Cell k may follow the anchor when it is in sight and the segment costs no more than the cells it replaces.
+  // At uniform cost, sight alone. Walked from the far end (sight is symmetric): a segment that fails mostly
+  // fails near it, where the path turns out of sight, so the walk stops early instead of crossing the run first.
+  auto in_sight = [&](std::size_t from, std::size_t k) {
+    return walkSegment((*path)[k], (*path)[from], w, passableAt, [](int, double) {});
+  };
+  if (!weighted_ && pullTightByTurns(*path, in_sight, &pulled)) {
+    path->swap(pulled);
+    return;
+  }
   auto fits = [&](std::size_t k) {
-    if (!weighted_) return walkSegment((*path)[anchor], (*path)[k], w, passableAt, [](int, double) {});
+    if (!weighted_) return in_sight(anchor, k);
     const double cost = segmentCost(index((*path)[anchor]), index((*path)[k]));
     return cost <= prefix[k] - prefix[anchor] + 1e-9 * prefix[k];
   };
@@ -129,7 +194,8 @@ void DijkstraPlanner::refineCorners(std::vector<Cell>* path) const {
           if ((dx == 0 && dy == 0) || c.x < 0 || c.y < 0 || c.x >= w || c.y >= height_ || !passable(index(c))) continue;
           // No segment costs less than its length times the least weight: most candidates end here unwalked.
           if (!(min_weight_ * (length(p[k - 1], c) + length(c, p[k + 1])) < best)) continue;
-          const double in = cost(p[k - 1], c);
+          // Walked from the moved corner (sight is symmetric), where a blocked segment mostly meets its wall.
+          const double in = weighted_ ? cost(p[k - 1], c) : cost(c, p[k - 1]);
           if (!(in < best)) continue;
           const double out = cost(c, p[k + 1]);
           if (in + out < best) {

@@ -293,6 +293,38 @@ TEST(PlannerModes, AnyAngleTouchesNoBlockedCornerAmongPillars) {
   EXPECT_GT(checked, 80);
 }
 
+TEST(PlannerModes, AnyAngleAlongFoldedCorridorsCutsNoCorner) {
+  // A serpentine of 3-cell lanes 1500 cells long, single teeth on the walls: paths of long straight runs,
+  // which are pulled turn by turn (any_angle.cpp), each U-turn a wall end a segment could slip past.
+  DijkstraPlanner planner;
+  std::mt19937 rng(43);
+  RandomGrid g(&rng, 1500, 49, 0.0, false);
+  for (int y = 4; y < g.h; y += 4) {
+    for (int x = 0; x < g.w; ++x) g.data[y * g.w + x] = 100;
+    const int gap = (y / 4) % 2 == 0 ? 0 : g.w - 4;  // the way through, at alternating ends
+    for (int x = gap; x < gap + 4; ++x) g.data[y * g.w + x] = 0;
+    for (int x = 20 + static_cast<int>(rng() % 40); x < g.w - 20; x += 37 + static_cast<int>(rng() % 60)) {
+      g.data[(y - 1) * g.w + x] = 100;  // a tooth under the wall
+    }
+  }
+  int checked = 0;
+  for (int q = 0; q < 16; ++q) {
+    const Cell s{static_cast<int>(rng() % g.w), static_cast<int>(rng() % 3)};
+    const Cell t{static_cast<int>(rng() % g.w), g.h - 4 + static_cast<int>(rng() % 3)};
+    if (!g.free(s.x, s.y) || !g.free(t.x, t.y)) continue;
+    const auto cells = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t);
+    ASSERT_TRUE(cells.ok()) << cells.message;
+    PlannerOptions o;
+    o.any_angle = true;
+    const auto tight = planner.plan(g.data.data(), g.data.size(), g.w, g.h, s, t, o);
+    expectClearPath(g, tight, s, t);
+    EXPECT_LE(tight.cost, cells.cost + 1e-9) << "longer than the 8-connected optimum";
+    EXPECT_LT(tight.path.size() * 200, cells.path.size()) << "pulled to a few corners per fold";
+    ++checked;
+  }
+  EXPECT_GT(checked, 12);
+}
+
 TEST(PlannerModes, AnyAngleIsNoLongerThanThetaStar) {
   // Theta* (the reference in reference_any_angle.h) was this mode's search before the cell path pulled tight
   // with its corners slid replaced it, at 2-100x the time; its paths are the length to keep. On random maps
