@@ -142,8 +142,7 @@ bench-policies: build
 		$(if $(DEPLOY_MODEL),--deploy-model $(DEPLOY_MODEL))
 
 # Robots that differ (map, link, CPU budget) learning through one fleet learner against each learning alone, live,
-# one run at a time (STEPS= per run, default 400; ROBOTS=, ARMS=). The fleet arm and the bad model say n/a until
-# the robot's fleet mode is on this branch.
+# one run at a time (STEPS= per run, default 400; ROBOTS=, ARMS=), then a bad model pushed to the fleet.
 bench-fleet-learning: build
 	@$(ROSENV) $(PY) -m offload_demos.bench_fleet_learning --steps $(if $(filter command line environment,$(origin STEPS)),$(STEPS),400) \
 		$(if $(ROBOTS),--robots $(ROBOTS)) $(if $(ARMS),--arms $(ARMS))
