@@ -236,3 +236,13 @@ def test_bench_measure_reports_the_robots_total_per_request(tmp_path):
     assert figures["robot_workload_cpu_s_per_request"] == pytest.approx(3.6 * window / 6.0 / 20)
     (run / robot_cpu.SAMPLES_FILE).unlink()
     assert measure(run, 5.0)["robot_total_cpu_s_per_request"] is None
+
+
+def test_the_recorder_is_a_robot_process_of_its_own():
+    """rosbag records on the robot (offload_record becomes `rosbag record`, whose C++ recorder is a child): its CPU is
+    the robot's and shows apart, not in `other`."""
+    for cmdline in (["/usr/bin/python3", "/x/offload_record", "--bag", "b", "__name:=offload_record"],
+                    ["/usr/bin/python3", "/usr/bin/rosbag", "record", "-O", "b.bag", "/t"],
+                    ["/usr/lib/rosbag/record", "--buffsize", "256", "-O", "b.bag", "/t"]):
+        assert robot_cpu.group_of(robot_cpu.process_name(cmdline)) == "recorder", cmdline
+    assert robot_cpu.group_of("tool.py") == "other"

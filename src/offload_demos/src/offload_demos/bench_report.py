@@ -31,6 +31,7 @@ def format_table(results: dict) -> str:
             lines.append(f"{name}: robot CPU {1e3 * cpu['total_cpu_s_per_request']:.2f} ms per request by process "
                          f"({cpu['source']}): planner {1e3 * cpu['planner_cpu_s_per_request']:.2f}, bridge "
                          f"{1e3 * cpu['bridge_cpu_s_per_request']:.2f}, learner {1e3 * cpu['learner_cpu_s_per_request']:.2f}, "
+                         f"recorder {1e3 * cpu.get('recorder_cpu_s_per_request', 0.0):.2f}, "
                          f"other {1e3 * cpu['other_cpu_s_per_request']:.2f}, unattributed "
                          f"{1e3 * cpu['unattributed_cpu_s_per_request']:.2f}")
     if results.get("oracle_mean_s") is not None:

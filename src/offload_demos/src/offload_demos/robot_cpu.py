@@ -1,8 +1,8 @@
 """What the robot pays in full: the CPU of everything on the robot's side, not only the planning the nodes
 account for themselves (#30 item 7).
 
-The demo runs every robot process through scripts/robot_confine (planner node, cloud bridge, learner and the
-background workload), inside the cgroup v1 `offload_robot_<pid>` when the robot has a CPU budget. A sampler
+The demo runs every robot process through scripts/robot_confine (planner node, cloud bridge, learner, the
+recorder and the background workload), inside the cgroup v1 `offload_robot_<pid>` when the robot has a CPU budget. A sampler
 thread in the demo driver reads, every `period_s`:
 - the cgroup's cpuacct.usage (nanoseconds of CPU charged to the group since it was made: every process in
   it, threads and children included, and the processes that have exited);
@@ -30,7 +30,9 @@ SAMPLES_FILE = "robot_cpu_samples.json"      # in a demo run's directory: the co
 WORKLOAD_NODES = ("robot_workload",)
 # The robot's nodes by their ROS name (the `__name:=` roslaunch gives them); any other process is "other".
 NODE_GROUPS = {"planner": "planner", "cloud_bridge": "bridge", "offload_learner": "learner",
-               "robot_workload": "workload"}
+               "robot_workload": "workload",
+               # rosbag on the robot: offload_record becomes `rosbag record`, whose C++ recorder is a child process
+               "offload_record": "recorder", "rosbag": "recorder", "record": "recorder"}
 CLOCK_TICKS_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
 
@@ -187,7 +189,7 @@ def robot_cpu(usage: Dict, requests: int) -> Dict:
     figures = {"source": source, "requests": requests, "window_s": usage["window_s"], "total_cpu_s": total_s,
                "workload_cpu_s": workload_s, "unattributed_cpu_s": total_s - processes_s,
                **{f"{group}_cpu_s": spent for group, spent in groups.items()}}
-    for group in ("planner", "bridge", "learner", "other"):
+    for group in ("planner", "bridge", "learner", "recorder", "other"):
         figures.setdefault(f"{group}_cpu_s", 0.0)
     return {**figures, **per_request(figures)}
 
@@ -234,5 +236,6 @@ def format_robot_cpu(figures: Optional[Dict]) -> str:
     ms = lambda name: 1e3 * figures.get(f"{name}_cpu_s_per_request", 0.0)  # noqa: E731
     return (f"robot CPU per request, everything on the robot's side ({figures['source']}, {figures['requests']} "
             f"requests over {figures['window_s']:.1f} s): total {ms('total'):.2f} ms = planner {ms('planner'):.2f} "
-            f"+ bridge {ms('bridge'):.2f} + learner {ms('learner'):.2f} + other {ms('other'):.2f} + unattributed "
+            f"+ bridge {ms('bridge'):.2f} + learner {ms('learner'):.2f} + recorder {ms('recorder'):.2f} + other "
+            f"{ms('other'):.2f} + unattributed "
             f"{ms('unattributed'):.2f}; the workload apart: {ms('workload'):.2f} ms")
