@@ -97,7 +97,7 @@ def test_a_model_of_the_papers_three_field_state_is_refused_naming_both_states(t
     """A fleet model trained before p_t existed (3 inputs): refused rather than fed a state it never learned. A
     robot given it as ~model stops at start with this error (one FATAL line); one offered it by the fleet learner
     keeps the model it has (test_fleet_robot.py)."""
-    from offload_learner_py.online.fleet import initial_model
+    from offload_learner_py.online.fleet import load_initial
 
     message = re.escape(f"normalisation is of the state ({', '.join(PAPER_FIELDS)}), this code's state is "
                         f"({', '.join(STATE_FIELDS)})")
@@ -105,4 +105,4 @@ def test_a_model_of_the_papers_three_field_state_is_refused_naming_both_states(t
         load_model(paper_state_model_file())
     (tmp_path / "old.npz").write_bytes(paper_state_model_file())
     with pytest.raises(ModelFileError, match=message):
-        initial_model(str(tmp_path / "old.npz"))
+        load_initial(str(tmp_path / "old.npz"))

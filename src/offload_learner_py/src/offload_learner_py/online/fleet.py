@@ -157,15 +157,11 @@ class FleetRobot:
             self.link.close()
 
 
-def initial_model(path: str, dqn_config=None) -> Optional[DeployedModel]:
-    """The model a fleet robot starts with: ~model as a model file (.npz, loaded weights-only) or a learner
-    checkpoint (its greedy network, versioned by the model file it makes); None for no path."""
-    return load_initial(path, dqn_config)[0]
-
-
 def load_initial(path: str, dqn_config=None) -> Tuple[Optional[DeployedModel], int]:
-    """initial_model's model, and the requests it learned from on a robot: a learner checkpoint's steps (a
-    learning run's, each request measured on both sides), 0 for a model file (the fleet's pooled model) or none."""
+    """The model a fleet robot starts with: ~model as a model file (.npz, loaded weights-only) or a learner
+    checkpoint (its greedy network, versioned by the model file it makes); None for no path. And the requests it
+    learned from on a robot: a learner checkpoint's steps (a learning run's, each request measured on both sides),
+    0 for a model file (the fleet's pooled model) or none."""
     if not path:
         return None, 0
     with open(path, "rb") as handle:
@@ -186,7 +182,7 @@ def make_fleet_robot(config: FleetConfig, guard: GuardConfig = GuardConfig(), mo
                      definitions: Optional[dict] = None, md5: Optional[dict] = None,
                      errors: Optional[Tuple[type, type, type]] = None, log: logging.Logger = LOG,
                      start: bool = True) -> FleetRobot:
-    """A fleet robot: its policy from `model` (see initial_model), the guard, and (with an endpoint) the link to
+    """A fleet robot: its policy from `model` (see load_initial), the guard, and (with an endpoint) the link to
     the fleet learner through offload_cloud's FleetClient, or `client_factory` with the `errors` it raises
     (timeout, busy, refused) for tests and benchmarks."""
     start_model, learned = load_initial(model)
