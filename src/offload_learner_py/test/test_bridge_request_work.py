@@ -25,8 +25,9 @@ pytestmark = pytest.mark.timeout(120)
 RESOLUTION_M = 0.05
 # Calls of one cloud plan on a cached map as the node makes it (its row prefix and the test's lambda included): 197
 # before the cuts of #30's bridge bar (a dozen numpy passes in the reply check and as many writing the path, IntEnum
-# look-ups, the options encoded per request, genpy's default messages), 123 after.
-MAX_CALLS = 130
+# look-ups, the options encoded per request, genpy's default messages), 123 after; 106 once the request's cells come
+# back from the core as a tuple, the reply is decoded from its Frames and the path's header is set slot by slot.
+MAX_CALLS = 110
 
 
 def poses(count: int) -> np.ndarray:

@@ -221,12 +221,6 @@ PYBIND11_MODULE(_core, m) {
           },
           py::arg("x"), py::arg("y"), "World coordinates of the cell's centre.");
 
-  py::class_<CellRequest>(m, "CellRequest", "A request checked against a map and converted to cells.")
-      .def_readonly("outcome", &CellRequest::outcome)
-      .def_property_readonly("start", [](const CellRequest& r) { return py::make_tuple(r.start.x, r.start.y); })
-      .def_property_readonly("goal", [](const CellRequest& r) { return py::make_tuple(r.goal.x, r.goal.y); })
-      .def_readonly("tolerance_cells", &CellRequest::tolerance_cells);
-
   m.def(
       "check_map",
       [](std::uint64_t width, std::uint64_t height, std::size_t data_size, double resolution, double origin_x,
@@ -257,13 +251,18 @@ PYBIND11_MODULE(_core, m) {
       "resolve_request",
       [](const MapGeometry& g, const std::string& map_frame, const std::string& start_frame, double start_x,
          double start_y, const std::string& goal_frame, double goal_x, double goal_y, float tolerance_m) {
-        return offload_planner::resolveRequest(g, map_frame, {start_frame, start_x, start_y},
-                                               {goal_frame, goal_x, goal_y}, tolerance_m);
+        // A plain tuple, not a bound object: each attribute of one is a trip through pybind11's dispatcher, and
+        // the cloud bridge resolves every cloud request on a cold cache (#30's bridge CPU bar).
+        const CellRequest r = offload_planner::resolveRequest(g, map_frame, {start_frame, start_x, start_y},
+                                                              {goal_frame, goal_x, goal_y}, tolerance_m);
+        if (!r.outcome.ok()) return py::make_tuple(r.outcome, py::none(), py::none(), py::none());
+        return py::make_tuple(py::none(), py::make_tuple(r.start.x, r.start.y), py::make_tuple(r.goal.x, r.goal.y),
+                              r.tolerance_cells);
       },
       py::arg("geometry"), py::arg("map_frame"), py::arg("start_frame"), py::arg("start_x"), py::arg("start_y"),
       py::arg("goal_frame"), py::arg("goal_x"), py::arg("goal_y"), py::arg("tolerance_m"),
       "Checks a PlanPath request against the map and converts it to cells (tolerance is float32 as in the "
-      "service).");
+      "service): (None, start (x, y), goal (x, y), tolerance in cells), or (the refusing Outcome, None, None, None).");
   m.def(
       "free_cells",
       [](const py::array& grid, int lethal_threshold, bool unknown_is_obstacle) {

@@ -71,10 +71,13 @@ def test_map_cell_limit():
 
 def test_request_checks_in_order():
     g = geometry()
-    ok = resolve_request(g, "map", "map", -0.75, 2.25, "/map", 3.75, 3.75, 0.5)
-    assert ok.outcome.ok and ok.start == (0, 0) and ok.goal == (9, 3) and ok.tolerance_cells == 1.0
-    assert resolve_request(g, "map", "", 0, 2.5, "", 1, 2.5, 0).outcome.ok      # empty frame: the map's
-    status = lambda *a: resolve_request(g, "map", *a).outcome.status             # noqa: E731
+    assert resolve_request(g, "map", "map", -0.75, 2.25, "/map", 3.75, 3.75, 0.5) == (None, (0, 0), (9, 3), 1.0)
+    assert resolve_request(g, "map", "", 0, 2.5, "", 1, 2.5, 0)[0] is None      # empty frame: the map's
+
+    def status(*args):
+        refusal, *cells = resolve_request(g, "map", *args)
+        assert (refusal is None or refusal.message) and (cells == [None] * 3) == (refusal is not None)
+        return PlanStatus.OK if refusal is None else refusal.status
     assert status("odom", 0, 2.5, "map", 1, 2.5, 0) == PlanStatus.BAD_FRAME
     assert status("map", 0, 2.5, "odom", 1, 2.5, 0) == PlanStatus.BAD_FRAME
     assert status("odom", math.nan, 2.5, "map", 1, 2.5, 0) == PlanStatus.BAD_FRAME   # frames first

@@ -31,6 +31,7 @@ class MapSnapshot:
     frame_id: str
     stamp: Any               # the map header's stamp, passed back untouched
     map_hash: bytes
+    resolution: float        # geometry.resolution as a Python float: a bound attribute costs a pybind11 call
 
 
 class StampedPose(NamedTuple):
@@ -46,11 +47,15 @@ class StampedPose(NamedTuple):
         return (self.x, self.y, self.z, *self.orientation)
 
 
+_NO_POSES = np.empty((0, 7))
+_NO_POSES.flags.writeable = False   # viewed by every result without poses: one C call, not a lambda and np.empty
+
+
 @dataclass
 class BridgeResult:
     status: PlanStatus
     message: str = ""
-    poses: np.ndarray = field(default_factory=lambda: np.empty((0, 7)))   # x, y, z, qx, qy, qz, qw per pose
+    poses: np.ndarray = field(default_factory=_NO_POSES.view)   # x, y, z, qx, qy, qz, qw per pose
     reached_goal: bool = False       # the path ends in the requested goal cell (not a tolerance fallback)
     planning_time_s: float = 0.0
     expansions: int = 0
@@ -164,7 +169,7 @@ class CloudBridge:
                 self._rejected = why
             return why
         grid = np.ascontiguousarray(data).reshape(height, width)
-        snapshot = MapSnapshot(grid, geometry, frame_id, stamp, protocol.grid_hash(grid))
+        snapshot = MapSnapshot(grid, geometry, frame_id, stamp, protocol.grid_hash(grid), geometry.resolution)
         with self._lock:
             self._map = snapshot
         return ""
@@ -268,19 +273,19 @@ class CloudBridge:
             outcome = no_map_outcome(rejected)
             return BridgeResult(outcome.status, outcome.message)
         result = BridgeResult(PlanStatus.OK, map_stamp=snapshot.stamp, frame_id=snapshot.frame_id)
-        geometry = snapshot.geometry
         # tolerance_m becomes float32, as the service carries it (a larger value is inf, so refused).
-        request = resolve_request(geometry, snapshot.frame_id, start.frame_id, start.x, start.y, goal.frame_id,
-                                  goal.x, goal.y, tolerance_m)
-        if not request.outcome.ok:
-            result.status, result.message = request.outcome.status, request.outcome.message
+        refusal, start_cell, goal_cell, tolerance_cells = resolve_request(
+            snapshot.geometry, snapshot.frame_id, start.frame_id, start.x, start.y, goal.frame_id, goal.x, goal.y,
+            tolerance_m)
+        if refusal is not None:
+            result.status, result.message = refusal.status, refusal.message
             return result
 
-        options = self._options(geometry.resolution, request.tolerance_cells)
+        options = self._options(snapshot.resolution, tolerance_cells)
         client = self._borrow_client()
         sent_before, received_before = client.bytes_sent, client.bytes_received
         try:
-            outcome = client.plan(snapshot.grid, request.start, request.goal, options, snapshot.map_hash)
+            outcome = client.plan(snapshot.grid, start_cell, goal_cell, options, snapshot.map_hash)
         except CloudTimeout:
             result.status = PlanStatus.CLOUD_TIMEOUT
             result.message = (f"cloud planner at {self.config.endpoint} did not answer within "
@@ -307,13 +312,13 @@ class CloudBridge:
         result.expansions = reply.expansions
         if result.status != PlanStatus.OK:
             return result
-        result.cost_m = reply.cost_cells * geometry.resolution
-        result.reached_goal = tuple(reply.goal) == tuple(request.goal)
+        result.cost_m = reply.cost_cells * snapshot.resolution
+        result.reached_goal = tuple(reply.goal) == goal_cell
         if row_prefix is None:
-            result.poses = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
+            result.poses = path_poses(snapshot.geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
         else:
             result.pose_row_prefix = row_prefix(snapshot.frame_id)
-            result.pose_rows = path_poses(geometry, reply.path, start.pose(), goal.pose(), result.reached_goal,
+            result.pose_rows = path_poses(snapshot.geometry, reply.path, start.pose(), goal.pose(), result.reached_goal,
                                           result.pose_row_prefix)
         return result
 

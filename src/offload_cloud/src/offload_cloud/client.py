@@ -218,7 +218,7 @@ class CloudClient:
             frames = recv_frames(self._socket)
             self.bytes_received += sum(map(len, frames))   # zmq Frames: len is bytes
             try:
-                reply = decode([frame.buffer for frame in frames])
+                reply = decode(frames)   # Frames are buffers: no memoryview of each made first
             except ProtocolError:
                 continue   # garbage from a confused server: keep waiting for ours
             if (reply[0] if isinstance(reply, tuple) else reply).request_id == request_id:

@@ -113,15 +113,26 @@ def pose_row_prefix(stamp: Time, frame_id: str) -> bytes:
 def path_of_rows(prefix: bytes, rows: bytes) -> WirePath:
     """The path whose poses are `rows` (offload_planner_cpp.path_poses with `prefix` = pose_row_prefix(stamp,
     frame_id): a uint32 count, then each pose after the prefix), stamped and framed as its poses, without a copy."""
-    header, _ = _read_header(prefix, 0)
     path = WirePath.__new__(WirePath)   # as from_poses builds it
-    path.header = header
+    path.header = _prefix_header(prefix)
     _POSES_SLOT.__set__(path, [])
     (path._count,) = _COUNT.unpack_from(rows)
     if len(rows) != _COUNT.size + path._count * (len(prefix) + 56):
         raise ValueError(f"{len(rows)} bytes are not {path._count} rows after a {len(prefix)}-byte prefix")
     path._poses_wire = rows
     return path
+
+
+def _prefix_header(prefix: bytes) -> Header:
+    """The Header of pose_row_prefix's bytes, set slot by slot: they are pose_row_prefix's own, so canonical, and
+    genpy's Time and Header constructors (a numbers.Integral check per field, keyword parsing) cost the bridge's
+    thread a dozen calls on a cold cache per cloud plan."""
+    seq, secs, nsecs, length = _HEADER.unpack_from(prefix)
+    stamp = Time.__new__(Time)
+    stamp.secs, stamp.nsecs = secs, nsecs
+    header = Header.__new__(Header)
+    header.seq, header.stamp, header.frame_id = seq, stamp, prefix[_HEADER.size:_HEADER.size + length].decode()
+    return header
 
 
 def pose_count(path: Path) -> int:

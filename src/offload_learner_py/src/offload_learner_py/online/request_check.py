@@ -28,10 +28,9 @@ def check_request(width: int, height: int, resolution: float, origin_xy: Sequenc
     if geometry is None:
         return None
     # The start's frame stands for the map frame: the goal must be in the same one (or empty, as RViz leaves it).
-    resolved = resolve_request(geometry, start_frame, start_frame, float(start_xy[0]), float(start_xy[1]),
-                               goal_frame, float(goal_xy[0]), float(goal_xy[1]), float(tolerance_m))
-    outcome = resolved.outcome
-    if outcome.ok:
+    outcome = resolve_request(geometry, start_frame, start_frame, float(start_xy[0]), float(start_xy[1]),
+                              goal_frame, float(goal_xy[0]), float(goal_xy[1]), float(tolerance_m))[0]
+    if outcome is None:
         return None
     if int(outcome.status) == int(PlanStatus.BAD_FRAME):
         return None   # the map's own frame decides: left to the planners
