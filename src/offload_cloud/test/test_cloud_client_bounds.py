@@ -87,7 +87,7 @@ def test_the_reply_check_costs_the_path_not_the_map():
     4 M-cell map per cloud plan). The check reads only the path's cells now: what it allocates does not grow
     with the map."""
     import tracemalloc
-    from offload_cloud.client import reply_problem
+    from offload_cloud.reply_check import reply_problem
     grid = np.zeros((4000, 4000), np.int8)
     path = np.array([(x, 100) for x in range(100, 141)], np.int32)
     reply = Reply(1, Status.OK, "", path, (140, 100), 41, 0.001, 40.0)

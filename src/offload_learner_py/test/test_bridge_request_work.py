@@ -105,6 +105,8 @@ def test_a_cloud_plan_makes_a_bounded_count_of_calls(tmp_path, side, length):
     total = sum(calls.values())
     assert total <= MAX_CALLS, f"{total} calls per cloud plan: {calls.most_common()}"
     assert not [name for name in calls if name.startswith("enum.py")], calls   # no IntEnum call on the way
-    assert calls["C PyCapsule.check_path"] == 1 and calls["client.py:reply_problem"] == 1
+    # the reply check and the path's poses in one call into the core (each costs tens of microseconds cold)
+    assert calls["C PyCapsule.check_path_rows"] == 1 and calls["reply_check.py:reply_problem"] == 1
+    assert calls["C PyCapsule.check_path"] == 0 and calls["C PyCapsule.path_poses"] == 0
     # the options of a repeated request are encoded once, not per request
     assert calls["plan_options.py:encode_options"] == 0

@@ -12,9 +12,9 @@
 
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/inflation.h"
-#include "offload_planner_cpp/path_check.h"
 #include "offload_planner_cpp/plan_request.h"
 #include "offload_planner_cpp/planner_options.h"
+#include "bindings_grid.h"
 
 namespace py = pybind11;
 using offload_planner::Cell;
@@ -26,36 +26,15 @@ using offload_planner::Outcome;
 using offload_planner::PlannerOptions;
 using offload_planner::PlanResult;
 using offload_planner::PlanStatus;
-using offload_planner::Pose;
+using offload_planner_bindings::GridView;
+using offload_planner_bindings::viewOf;
 
 // planner_options.h's table, its checks and conversions: bindings_options.cpp.
 void defineOptions(py::module_& m);
+// Paths planned elsewhere: their poses and their check (bindings_paths.cpp).
+void definePaths(py::module_& m, const PlannerOptions& defaults);
 
 namespace {
-
-struct GridView {
-  const std::int8_t* data;
-  std::size_t size;
-  int width;
-  int height;
-};
-
-// Borrows the array's buffer: only a C-contiguous 2-D int8 array is accepted, so nothing is converted.
-GridView viewOf(const py::array& grid) {
-  if (grid.ndim() != 2) {
-    throw py::value_error("grid must be a 2-D array indexed [y, x], got " + std::to_string(grid.ndim()) +
-                          " dimensions");
-  }
-  if (!grid.dtype().is(py::dtype::of<std::int8_t>())) {
-    throw py::value_error("grid must have dtype int8 (OccupancyGrid convention), got " +
-                          std::string(py::str(grid.dtype())) + "; convert with grid.astype(numpy.int8)");
-  }
-  if (!(grid.flags() & py::array::c_style)) {
-    throw py::value_error("grid must be C-contiguous; pass numpy.ascontiguousarray(grid)");
-  }
-  return {static_cast<const std::int8_t*>(grid.data()), static_cast<std::size_t>(grid.size()),
-          static_cast<int>(grid.shape(1)), static_cast<int>(grid.shape(0))};
-}
 
 Cell cellOf(const py::handle& obj, const char* name) {
   try {
@@ -116,50 +95,6 @@ py::dict planRaw(const py::array& grid, const py::object& start, const py::objec
   out["seconds"] = result.seconds;
   out["grid_address"] = reinterpret_cast<std::uintptr_t>(result.grid);
   return out;
-}
-
-Pose poseOf(const std::vector<double>& v, const char* name) {
-  if (v.size() != 7) throw py::value_error(std::string(name) + " must be (x, y, z, qx, qy, qz, qw)");
-  return {v[0], v[1], v[2], v[3], v[4], v[5], v[6]};
-}
-
-// N x 7 (x, y, z, qx, qy, qz, qw) poses; with a row prefix, bytes instead: the count (uint32) then every pose's 7
-// doubles after the prefix, little-endian: a serialized array of messages whose rows differ only in their poses (the
-// cloud bridge's PoseStamped rows, path_wire.py), written in one pass instead of a dozen numpy ones per cloud plan.
-py::object pathPoses(const MapGeometry& geometry, const py::array_t<std::int32_t, py::array::c_style |
-                                                                                     py::array::forcecast>& path,
-                     const std::vector<double>& start, const std::vector<double>& goal, bool reached_requested_goal,
-                     const py::object& row_prefix) {
-  if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
-    throw py::value_error("path must be an N x 2 array of (x, y) cells");
-  }
-  std::vector<Cell> cells(static_cast<std::size_t>(path.shape(0)));
-  auto p = path.unchecked<2>();
-  for (py::ssize_t k = 0; k < path.shape(0); ++k) cells[k] = Cell{p(k, 0), p(k, 1)};
-  const std::vector<Pose> poses =
-      offload_planner::pathPoses(geometry, cells, poseOf(start, "start"), poseOf(goal, "goal"), reached_requested_goal);
-  static_assert(sizeof(Pose) == 7 * sizeof(double), "Pose must be seven packed doubles");
-  if (row_prefix.is_none()) {
-    py::array_t<double> out({static_cast<py::ssize_t>(poses.size()), static_cast<py::ssize_t>(7)});
-    if (!poses.empty()) std::memcpy(out.mutable_data(), poses.data(), poses.size() * sizeof(Pose));
-    return std::move(out);
-  }
-  static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "rows are written in the host's byte order");
-  const std::string prefix = row_prefix.cast<py::bytes>();
-  const std::size_t row = prefix.size() + sizeof(Pose);
-  if (poses.size() > 0xFFFFFFFFu) throw py::value_error("more poses than a uint32 count holds");
-  const auto count = static_cast<std::uint32_t>(poses.size());
-  PyObject* bytes = PyBytes_FromStringAndSize(nullptr, static_cast<py::ssize_t>(sizeof(count) + count * row));
-  if (bytes == nullptr) throw py::error_already_set();
-  char* out = PyBytes_AS_STRING(bytes);
-  std::memcpy(out, &count, sizeof(count));
-  out += sizeof(count);
-  for (const Pose& pose : poses) {
-    std::memcpy(out, prefix.data(), prefix.size());
-    std::memcpy(out + prefix.size(), &pose, sizeof(Pose));
-    out += row;
-  }
-  return py::reinterpret_steal<py::object>(bytes);
 }
 
 py::object cellOrNone(bool ok, Cell c) { return ok ? py::object(py::make_tuple(c.x, c.y)) : py::object(py::none()); }
@@ -279,11 +214,6 @@ PYBIND11_MODULE(_core, m) {
       py::arg("grid"), py::arg("lethal_threshold") = d.lethal_threshold,
       py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
       "Boolean [y, x] mask of the cells the planner may enter, by its own rule.");
-  m.def("path_poses", &pathPoses, py::arg("geometry"), py::arg("path"), py::arg("start_pose"), py::arg("goal_pose"),
-        py::arg("reached_requested_goal"), py::arg("row_prefix") = py::none(),
-        "N x 7 (x, y, z, qx, qy, qz, qw) world poses of a planned path, as the ROS planner node returns them; with "
-        "row_prefix (bytes), bytes instead: the count (uint32) then each pose's 7 doubles after row_prefix, "
-        "little-endian.");
   m.def("plan_raw", &planRaw, py::arg("grid"), py::arg("start"), py::arg("goal"),
         py::arg("lethal_threshold") = d.lethal_threshold, py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
         py::arg("goal_tolerance") = d.goal_tolerance_cells, py::arg("stop_at_goal") = d.stop_at_goal, py::kw_only(),
@@ -294,56 +224,7 @@ PYBIND11_MODULE(_core, m) {
         "Plan without raising on planning failures: returns a dict with status (PlanStatus), message, path, "
         "cost (length in cells), weighted_cost (in the cost model planned with), goal, expansions, seconds and "
         "grid_address (the buffer planned on). Malformed arguments raise ValueError.");
-  m.def(
-      "path_clear",
-      [](const py::array& grid, const py::array_t<std::int32_t, py::array::c_style | py::array::forcecast>& path,
-         int lethal_threshold, bool unknown_is_obstacle) {
-        const GridView view = viewOf(grid);
-        if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
-          throw py::value_error("path must be an N x 2 array of (x, y) cells");
-        }
-        PlannerOptions options;
-        options.lethal_threshold = lethal_threshold;
-        options.unknown_is_obstacle = unknown_is_obstacle;
-        auto p = path.unchecked<2>();
-        for (py::ssize_t k = 0; k + 1 < path.shape(0); ++k) {
-          if (!offload_planner::segmentClear(view.data, view.width, view.height, Cell{p(k, 0), p(k, 1)},
-                                             Cell{p(k + 1, 0), p(k + 1, 1)}, options)) {
-            return k;
-          }
-        }
-        return py::ssize_t(-1);
-      },
-      py::arg("grid"), py::arg("path"), py::arg("lethal_threshold") = d.lethal_threshold,
-      py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
-      "Index of the first segment of `path` (N x 2 cells) that leaves the grid, crosses a blocked cell or cuts a "
-      "blocked corner (the planner's line-of-sight rule); -1 when every segment is clear.");
-  m.def(
-      "check_path",
-      [](const py::array& grid, const py::array_t<std::int32_t, py::array::c_style | py::array::forcecast>& path,
-         std::pair<int, int> start, std::pair<int, int> reached_goal, bool any_angle, int lethal_threshold,
-         bool unknown_is_obstacle) {
-        static const char* const kNames[] = {"", "leaves_map", "wrong_start", "wrong_end", "repeats_corner",
-                                             "not_8_connected", "blocked"};
-        static_assert(sizeof(Cell) == 2 * sizeof(std::int32_t), "Cell must be two packed ints");
-        const GridView view = viewOf(grid);
-        if (path.ndim() != 2 || path.shape(1) != 2 || path.shape(0) < 1) {
-          throw py::value_error("path must be an N x 2 array of (x, y) cells, N >= 1");
-        }
-        PlannerOptions options;
-        options.lethal_threshold = lethal_threshold;
-        options.unknown_is_obstacle = unknown_is_obstacle;
-        const auto check = offload_planner::checkPath(
-            view.data, view.width, view.height, reinterpret_cast<const Cell*>(path.data()),
-            static_cast<std::size_t>(path.shape(0)), Cell{start.first, start.second},
-            Cell{reached_goal.first, reached_goal.second}, any_angle, options);
-        return py::make_tuple(kNames[static_cast<int>(check.problem)], check.index, check.length_cells);
-      },
-      py::arg("grid"), py::arg("path"), py::arg("start"), py::arg("reached_goal"), py::arg("any_angle"),
-      py::arg("lethal_threshold") = d.lethal_threshold, py::arg("unknown_is_obstacle") = d.unknown_is_obstacle,
-      "(problem, segment, length in cells) of a path planned elsewhere, in one pass over its cells (path_check.h): "
-      "problem is '' or one of leaves_map, wrong_start, wrong_end, repeats_corner, not_8_connected, blocked "
-      "(segment: the first blocked one); the length is 0 unless the problem is ''.");
+  definePaths(m, d);
   m.def(
       "inflate",
       [](const py::array& grid, double robot_radius_cells, double inflation_radius_cells, double inflation_decay,

@@ -14,7 +14,8 @@ from scipy.sparse import csgraph
 import offload_planner_cpp
 from offload_planner_cpp import PlanStatus, inflate, path_clear, plan, plan_raw
 from offload_cloud import protocol
-from offload_cloud.client import CloudClient, reply_problem
+from offload_cloud.client import CloudClient
+from offload_cloud.reply_check import reply_problem
 from offload_cloud.protocol import PlanOptions, Status
 from offload_demos.grid_graph import grid_graph
 from offload_planner_cpp.maps import load_map

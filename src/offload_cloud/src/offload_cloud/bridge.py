@@ -18,6 +18,7 @@ from offload_planner_cpp._core import (MapGeometry, check_map, no_map_outcome, o
 from offload_cloud import protocol
 from offload_cloud.client import CloudClient, CloudTimeout, KnownMaps, PlannedGrids
 from offload_cloud.protocol import PlanOptions, Status
+from offload_cloud.reply_check import PathRows
 
 # A child of rospy's "rosout" logger: under the node its records reach /rosout and the node's log like
 # rospy.logwarn's; without ROS it is an ordinary Python logger.
@@ -282,10 +283,13 @@ class CloudBridge:
             return result
 
         options = self._options(snapshot.resolution, tolerance_cells)
+        # With row_prefix, the reply's check writes the path's rows in its own call into the core.
+        rows = None if row_prefix is None else PathRows(snapshot.geometry, start.pose(), goal.pose(),
+                                                        snapshot.frame_id, row_prefix)
         client = self._borrow_client()
         sent_before, received_before = client.bytes_sent, client.bytes_received
         try:
-            outcome = client.plan(snapshot.grid, start_cell, goal_cell, options, snapshot.map_hash)
+            outcome = client.plan(snapshot.grid, start_cell, goal_cell, options, snapshot.map_hash, rows)
         except CloudTimeout:
             result.status = PlanStatus.CLOUD_TIMEOUT
             result.message = (f"cloud planner at {self.config.endpoint} did not answer within "
@@ -314,12 +318,10 @@ class CloudBridge:
             return result
         result.cost_m = reply.cost_cells * snapshot.resolution
         result.reached_goal = tuple(reply.goal) == goal_cell
-        if row_prefix is None:
+        if rows is None:
             result.poses = path_poses(snapshot.geometry, reply.path, start.pose(), goal.pose(), result.reached_goal)
         else:
-            result.pose_row_prefix = row_prefix(snapshot.frame_id)
-            result.pose_rows = path_poses(snapshot.geometry, reply.path, start.pose(), goal.pose(), result.reached_goal,
-                                          result.pose_row_prefix)
+            result.pose_row_prefix, result.pose_rows = rows.prefix, rows.rows
         return result
 
     def _options(self, resolution: float, tolerance_cells: float) -> PlanOptions:

@@ -14,7 +14,6 @@ exits 0 and prints the round trip when the server answers, 1 with the reason oth
 import argparse
 import itertools
 import json
-import math
 import os
 import sys
 import threading
@@ -25,9 +24,10 @@ from typing import Optional, Sequence, Tuple
 import numpy as np
 import zmq
 
-from offload_planner_cpp import check_path, inflate
+from offload_planner_cpp import inflate
 from offload_cloud import protocol
 from offload_cloud.keys import load_client_keys
+from offload_cloud.reply_check import PathRows, reply_problem
 from offload_cloud.protocol import PlanOptions, ProtocolError, Reply, Status
 from offload_cloud.zmq_frames import NOBLOCK, recv_frames, send_frames
 
@@ -106,7 +106,6 @@ class PlanOutcome:
     reply: Reply
     round_trip_s: float    # send of the first attempt to the matched reply, uploads included
     uploaded: bool         # the map travelled with this call
-
 
 
 class CloudClient:
@@ -257,9 +256,11 @@ class CloudClient:
         return reply
 
     def plan(self, grid: np.ndarray, start: Sequence[int], goal: Sequence[int],
-             options: PlanOptions = PlanOptions(), map_hash: Optional[bytes] = None) -> PlanOutcome:
+             options: PlanOptions = PlanOptions(), map_hash: Optional[bytes] = None,
+             rows: Optional[PathRows] = None) -> PlanOutcome:
         """Plans on `grid` in the cloud: only the hash travels when the server acknowledged this map,
-        else the map goes along; a cache-miss reply makes it upload once and retry, within the deadline."""
+        else the map goes along; a cache-miss reply makes it upload once and retry, within the deadline. With
+        `rows`, a good path's poses are written into it as the reply is checked."""
         map_hash = protocol.grid_hash(grid) if map_hash is None else map_hash
         deadline = time.monotonic() + self.timeout_s
         started = time.perf_counter()
@@ -286,7 +287,7 @@ class CloudClient:
             round_trip_s = time.perf_counter() - started
             try:   # only a path needs the grid it was planned on
                 planned = self.planned_grids.get(grid, map_hash, options) if reply.status == Status.OK else grid
-                why = reply_problem(reply, planned, start, goal, options, round_trip_s)
+                why = reply_problem(reply, planned, start, goal, options, round_trip_s, rows)
             except ValueError as error:   # options the planner itself refuses, answered with a path
                 why = f"a path for options the planner refuses ({error})"
             if why:   # a confused or hostile server: never hand its answer on as a plan
@@ -294,52 +295,6 @@ class CloudClient:
             elif protocol.is_planner_status(reply.status):   # it planned, so it holds the map
                 self.known_maps.add(map_hash)
             return PlanOutcome(reply, round_trip_s, upload)
-
-
-def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Sequence[int], options: PlanOptions,
-                  round_trip_s: float) -> str:
-    """Why a plan reply cannot be true for the map and request this client sent (`grid`: the grid planned on,
-    inflated when the options inflate; see PlannedGrids), or "" when it can: the
-    path must run from the start to the reached goal (within the tolerance of the goal) through
-    traversable cells in 8-connected steps without cutting corners (any-angle: segments that cross no
-    blocked cell or corner, by the core's own rule), and its cost must be its length."""
-    if not (math.isfinite(reply.planning_time_s) and 0.0 <= reply.planning_time_s <= round_trip_s):
-        return f"planning time {reply.planning_time_s!r} s is not within the measured round trip"
-    if reply.expansions > 8 * grid.size + 8:
-        return f"{reply.expansions} expansions on a map of {grid.size} cells"
-    path = reply.path
-    if reply.status != Status.OK:
-        return "" if len(path) == 0 else f"{reply.status.name} with a path of {len(path)} cells"
-    if not 1 <= len(path) <= grid.size:
-        return f"path of {len(path)} cells on a map of {grid.size} cells"
-    if math.hypot(reply.goal[0] - goal[0], reply.goal[1] - goal[1]) > options.goal_tolerance_cells + 1e-9:
-        why = f"reached goal {reply.goal} is farther than the tolerance from the goal {tuple(goal)}"
-    else:
-        why = ""
-    # The rest in one pass over the path's cells in C++ (the planner's own rule for blocked cells and corners):
-    # O(path), never a pass over the map (a free-cell mask of a 4 M-cell map cost the robot 8 ms per cloud plan),
-    # and one call rather than a dozen numpy passes (0.1-0.2 ms of the bridge's CPU per cloud plan, live).
-    problem, segment, length = check_path(grid, path, (int(start[0]), int(start[1])), reply.goal, options.any_angle,
-                                          options.lethal_threshold, options.unknown_is_obstacle)
-    if problem == "leaves_map":
-        return "path leaves the map"
-    if problem == "wrong_start":
-        first = path[0].tolist()
-        return f"path starts at ({first[0]}, {first[1]}), not at the start {tuple(start)}"
-    if problem == "wrong_end":
-        last = path[-1].tolist()
-        return f"path ends at ({last[0]}, {last[1]}), not at the reached goal {reply.goal}"
-    if why:
-        return why
-    if problem == "repeats_corner":
-        return "any-angle path repeats a corner"
-    if problem == "not_8_connected":
-        return "path is not a chain of 8-connected steps"
-    if problem == "blocked":
-        return f"segment {segment} of the path crosses an obstacle or cuts its corner"
-    if not math.isfinite(reply.cost_cells) or abs(reply.cost_cells - length) > 1e-6 * max(1.0, length):
-        return f"cost {reply.cost_cells!r} cells is not the path's length {length:.6g}"
-    return ""
 
 
 def main(argv=None) -> int:

@@ -11,12 +11,13 @@ from typing import Tuple
 
 import numpy as np
 
-from offload_planner_cpp._core import (ALGORITHM_NAMES, PlanStatus, check_path, free_cells, inflate,
-                                      options_in_cells, options_table, path_clear, plan_raw, validate_options)
+from offload_planner_cpp._core import (ALGORITHM_NAMES, PlanStatus, check_path, check_path_rows, free_cells,
+                                      inflate, options_in_cells, options_table, path_clear, plan_raw,
+                                      validate_options)
 
 __all__ = ["plan", "PlanResult", "PlanError", "NoPathError", "PlanStatus", "free_cells", "inflate", "path_clear",
-           "check_path", "plan_raw", "ALGORITHM_NAMES", "options_table", "validate_options", "options_in_cells",
-           "OPTION_DEFAULTS"]
+           "check_path", "check_path_rows", "plan_raw", "ALGORITHM_NAMES", "options_table", "validate_options",
+           "options_in_cells", "OPTION_DEFAULTS"]
 
 # The core's defaults by option name (planner_options.h), for keyword defaults that must not be typed twice.
 OPTION_DEFAULTS = {row["name"]: row["default"] for row in options_table()}
