@@ -145,7 +145,7 @@ class DijkstraPlanner {
   // meet_forward_ -> meet_backward_ and costs meeting_cost_.
   bool searchBidirectional(int start, int target, const std::atomic<bool>* cancel);
   bool searchHeap(int start, int target, bool stop_at_target, const std::atomic<bool>* cancel);
-  // A* at uniform cost from start to target on a ring of four buckets over the first wave's buffer (cells
+  // A* at uniform cost from start to target on a ring of eight buckets over the first wave's buffer (cells
   // reopened when improved); the labels in last_, the target's unsettled. True when the target was reached.
   bool searchBucketAStar(int start, int target, const std::atomic<bool>* cancel);
   // Best-first search over heap_ (lazy deletion), used by searchHeap: `estimate(j)` is the
@@ -217,7 +217,7 @@ class DijkstraPlanner {
   std::size_t wave_cells_[2] = {0, 0};
   Bucket buckets_[3];
   Bucket back_buckets_[3];
-  Bucket astar_buckets_[4];
+  Bucket astar_buckets_[8];
   Labels last_;                        // the last search's distances (the forward wave's)
   Labels backward_;                    // the last two-wave search's backward distances
   double meeting_cost_ = 0.0;
