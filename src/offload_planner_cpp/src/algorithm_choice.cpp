@@ -25,7 +25,15 @@ Algorithm DijkstraPlanner::chooseAlgorithm(const PlannerOptions& options, int fr
   // 15 %, 54 against 72 at 20 %), tied at 25 % and lost beyond (72 against 55 ms at 30 %), and on maze512-1-0
   // (0.75, 1-cell corridors the octile distance says nothing about) it took 3.2x the waves' time.
   constexpr double kJumpPointsBelow = 0.26;  // midway between 0.17 (structured) and 0.35 (10 % random)
-  constexpr double kAStarBelow = 0.68;       // midway between 0.61 (20 % random) and 0.72 (25 %, a tie)
+  constexpr double kAStarBelow = 0.68;       // midway between 0.61 (20 % random) and 0.72 (25 %, a tie then)
+  // Since A* on buckets got 28 % faster (#32, branch bidir) it beats the waves on 25 % and 30 % random clutter
+  // too (binding, 2000 a side, corner to corner / 6 random pairs, ms: 25 % 46 / 39 against 61 / 117, 30 % 49 / 47
+  // against 54 / 114; 35 % 69 / 70 against 59 / 103, mixed), but maze512-1-0 (0.75 corners per free cell, A*
+  // 3.5x the waves) reads in that band. A maze's walls are long, random clutter's obstacles small: corners per
+  // blocked cell are 0.75 in the maze, 1.7-2.4 on 20-35 % random clutter. So A* up to midway between 0.82 (30 %)
+  // and 0.92 (35 %) where the obstacles are small.
+  constexpr double kClutterAStarBelow = 0.87;
+  constexpr double kSmallObstaclesAbove = 1.2;  // corners per blocked cell
   // At most 32 rows of 4 runs of 32 cells: a few microseconds, whatever the distance.
   constexpr int kSampledRows = 32;
   constexpr int kRunsPerRow = 4;
@@ -42,6 +50,7 @@ Algorithm DijkstraPlanner::chooseAlgorithm(const PlannerOptions& options, int fr
   const int runs = span <= kRunsPerRow * kRunCells ? 1 : kRunsPerRow;
   const int run_cells = runs == 1 ? span : kRunCells;
   std::size_t free = 0;
+  std::size_t sampled = 0;  // cells of both rows of the runs, free or not
   std::size_t corners = 0;
   for (int k = 0; k < rows; ++k) {
     const int y = y0 + (rows > 1 ? static_cast<int>(static_cast<long long>(k) * (y1 - y0) / (rows - 1)) : 0);
@@ -52,6 +61,7 @@ Algorithm DijkstraPlanner::chooseAlgorithm(const PlannerOptions& options, int fr
       bool left = passable_[static_cast<std::uint8_t>(row[begin])];
       bool left_below = passable_[static_cast<std::uint8_t>(below[begin])];
       free += left + left_below;
+      sampled += 2 * static_cast<std::size_t>(run_cells);
       for (int x = begin + 1; x < begin + run_cells; ++x) {
         const bool here = passable_[static_cast<std::uint8_t>(row[x])];
         const bool here_below = passable_[static_cast<std::uint8_t>(below[x])];
@@ -69,7 +79,11 @@ Algorithm DijkstraPlanner::chooseAlgorithm(const PlannerOptions& options, int fr
   const double windows_per_free_cell = 0.5 * static_cast<double>(free);
   const double counted = static_cast<double>(corners);
   if (counted < kJumpPointsBelow * windows_per_free_cell) return Algorithm::kJps;
-  return counted < kAStarBelow * windows_per_free_cell ? Algorithm::kAStar : Algorithm::kDijkstra;
+  if (counted < kAStarBelow * windows_per_free_cell) return Algorithm::kAStar;
+  const double windows_per_blocked_cell = 0.5 * static_cast<double>(sampled - free);
+  const bool small_obstacles = counted > kSmallObstaclesAbove * windows_per_blocked_cell;
+  return small_obstacles && counted < kClutterAStarBelow * windows_per_free_cell ? Algorithm::kAStar
+                                                                                 : Algorithm::kDijkstra;
 }
 
 }  // namespace offload_planner
