@@ -35,30 +35,24 @@ Pose poseOf(const std::vector<double>& v, const char* name) {
   return {v[0], v[1], v[2], v[3], v[4], v[5], v[6]};
 }
 
-std::vector<Pose> posesOf(const MapGeometry& geometry, const Cell* cells, std::size_t n,
-                          const std::vector<double>& start, const std::vector<double>& goal,
-                          bool reached_requested_goal) {
-  return offload_planner::pathPoses(geometry, std::vector<Cell>(cells, cells + n), poseOf(start, "start"),
-                                    poseOf(goal, "goal"), reached_requested_goal);
-}
-
 // The count (uint32) then every pose's 7 doubles after the prefix, little-endian: a serialized array of messages
-// whose rows differ only in their poses (the cloud bridge's PoseStamped rows, path_wire.py), written in one pass.
-py::object poseRows(const std::vector<Pose>& poses, const std::string& prefix) {
+// whose rows differ only in their poses (the cloud bridge's PoseStamped rows, path_wire.py), written in one pass
+// straight into the bytes object.
+py::object poseRows(const MapGeometry& geometry, const Cell* cells, std::size_t n, const std::vector<double>& start,
+                    const std::vector<double>& goal, bool reached_requested_goal, const std::string& prefix) {
   static_assert(__BYTE_ORDER__ == __ORDER_LITTLE_ENDIAN__, "rows are written in the host's byte order");
+  const Pose start_pose = poseOf(start, "start"), goal_pose = poseOf(goal, "goal");
   const std::size_t row = prefix.size() + sizeof(Pose);
-  if (poses.size() > 0xFFFFFFFFu) throw py::value_error("more poses than a uint32 count holds");
-  const auto count = static_cast<std::uint32_t>(poses.size());
+  if (n > 0xFFFFFFFFu) throw py::value_error("more poses than a uint32 count holds");
+  const auto count = static_cast<std::uint32_t>(n);
   PyObject* bytes = PyBytes_FromStringAndSize(nullptr, static_cast<py::ssize_t>(sizeof(count) + count * row));
   if (bytes == nullptr) throw py::error_already_set();
-  char* out = PyBytes_AS_STRING(bytes);
+  auto* out = reinterpret_cast<unsigned char*>(PyBytes_AS_STRING(bytes));
   std::memcpy(out, &count, sizeof(count));
   out += sizeof(count);
-  for (const Pose& pose : poses) {
-    std::memcpy(out, prefix.data(), prefix.size());
-    std::memcpy(out + prefix.size(), &pose, sizeof(Pose));
-    out += row;
-  }
+  for (std::size_t k = 0; k < n; ++k) std::memcpy(out + k * row, prefix.data(), prefix.size());
+  offload_planner::writePathPoses(geometry, cells, n, start_pose, goal_pose, reached_requested_goal,
+                                  out + prefix.size(), row);
   return py::reinterpret_steal<py::object>(bytes);
 }
 
@@ -68,12 +62,15 @@ py::object pathPoses(const MapGeometry& geometry, const CellArray& path, const s
   if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
     throw py::value_error("path must be an N x 2 array of (x, y) cells");
   }
+  const auto* cells = reinterpret_cast<const Cell*>(path.data());
   const auto n = static_cast<std::size_t>(path.shape(0));
-  const std::vector<Pose> poses = posesOf(geometry, reinterpret_cast<const Cell*>(path.data()), n, start, goal,
-                                          reached_requested_goal);
-  if (!row_prefix.is_none()) return poseRows(poses, row_prefix.cast<py::bytes>());
-  py::array_t<double> out({static_cast<py::ssize_t>(poses.size()), static_cast<py::ssize_t>(7)});
-  if (!poses.empty()) std::memcpy(out.mutable_data(), poses.data(), poses.size() * sizeof(Pose));
+  if (!row_prefix.is_none()) {
+    return poseRows(geometry, cells, n, start, goal, reached_requested_goal, row_prefix.cast<py::bytes>());
+  }
+  py::array_t<double> out({static_cast<py::ssize_t>(n), static_cast<py::ssize_t>(7)});
+  offload_planner::writePathPoses(geometry, cells, n, poseOf(start, "start"), poseOf(goal, "goal"),
+                                  reached_requested_goal, reinterpret_cast<unsigned char*>(out.mutable_data()),
+                                  sizeof(Pose));
   return std::move(out);
 }
 
@@ -148,10 +145,8 @@ void definePaths(py::module_& m, const PlannerOptions& d) {
         const auto check = checkOf(grid, path, start, reached_goal, any_angle, lethal_threshold, unknown_is_obstacle);
         py::object rows = py::bytes();
         if (check.problem == offload_planner::PathProblem::kNone) {
-          rows = poseRows(posesOf(geometry, reinterpret_cast<const Cell*>(path.data()),
-                                  static_cast<std::size_t>(path.shape(0)), start_pose, goal_pose,
-                                  reached_requested_goal),
-                          row_prefix);
+          rows = poseRows(geometry, reinterpret_cast<const Cell*>(path.data()), static_cast<std::size_t>(path.shape(0)),
+                          start_pose, goal_pose, reached_requested_goal, row_prefix);
         }
         return py::make_tuple(kProblemNames[static_cast<int>(check.problem)], check.index, check.length_cells, rows);
       },

@@ -1,6 +1,7 @@
 #include "offload_planner_cpp/plan_request.h"
 
 #include <cmath>
+#include <cstring>
 #include <sstream>
 
 namespace offload_planner {
@@ -110,16 +111,16 @@ CellRequest resolveRequest(const MapGeometry& geometry, const std::string& map_f
   return request;
 }
 
-std::vector<Pose> pathPoses(const MapGeometry& geometry, const std::vector<Cell>& path, const Pose& start,
-                            const Pose& goal, bool reached_requested_goal) {
-  std::vector<Pose> poses(path.size());
+void writePathPoses(const MapGeometry& geometry, const Cell* path, std::size_t n, const Pose& start, const Pose& goal,
+                    bool reached_requested_goal, unsigned char* out, std::size_t stride) {
   double heading = geometry.origin_yaw;  // of a one-cell path's only step, which never happens
   double qz = std::sin(0.5 * heading), qw = std::cos(0.5 * heading);
   int last_dx = 0, last_dy = 0;  // no step yet: (0, 0) is never one
   const double c = std::cos(geometry.origin_yaw), s = std::sin(geometry.origin_yaw);
-  for (std::size_t k = 0; k < path.size(); ++k) {
-    geometry.cellToWorld(path[k], c, s, &poses[k].x, &poses[k].y);
-    if (k + 1 < path.size()) {
+  for (std::size_t k = 0; k < n; ++k) {
+    Pose pose;
+    geometry.cellToWorld(path[k], c, s, &pose.x, &pose.y);
+    if (k + 1 < n) {
       // Steps are between cell centres of the grid, so their world heading is the grid heading plus the
       // step's angle in cells. A run of equal steps (most of an 8-connected path) shares one heading: computed
       // once per run, the same bits, not an atan2 and a sincos per pose (the robot's bridge writes every cloud path).
@@ -132,12 +133,19 @@ std::vector<Pose> pathPoses(const MapGeometry& geometry, const std::vector<Cell>
         last_dy = dy;
       }
     }
-    poses[k].qz = qz;
-    poses[k].qw = qw;
+    pose.qz = qz;
+    pose.qw = qw;
+    if (k == 0) pose = start;
+    else if (k + 1 == n && reached_requested_goal) pose = goal;
+    std::memcpy(out + k * stride, &pose, sizeof(Pose));
   }
-  if (poses.empty()) return poses;
-  if (reached_requested_goal) poses.back() = goal;
-  poses.front() = start;
+}
+
+std::vector<Pose> pathPoses(const MapGeometry& geometry, const std::vector<Cell>& path, const Pose& start,
+                            const Pose& goal, bool reached_requested_goal) {
+  std::vector<Pose> poses(path.size());
+  writePathPoses(geometry, path.data(), path.size(), start, goal, reached_requested_goal,
+                 reinterpret_cast<unsigned char*>(poses.data()), sizeof(Pose));
   return poses;
 }
 

@@ -76,5 +76,9 @@ struct Pose {
 // next cell (the last one keeps the heading of the final step).
 std::vector<Pose> pathPoses(const MapGeometry& geometry, const std::vector<Cell>& path, const Pose& start,
                             const Pose& goal, bool reached_requested_goal);
+// The same poses written to out, out + stride, ... (byte copies: any stride and alignment), so a caller serializing
+// them as rows of messages (the cloud bridge's, through the pybind11 module) needs no vector between.
+void writePathPoses(const MapGeometry& geometry, const Cell* path, std::size_t n, const Pose& start, const Pose& goal,
+                    bool reached_requested_goal, unsigned char* out, std::size_t stride);
 
 }  // namespace offload_planner
