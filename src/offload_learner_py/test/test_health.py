@@ -31,6 +31,16 @@ def test_a_link_goes_down_after_two_missed_heartbeats_and_up_after_two_answered(
     assert link.status().level == OK
 
 
+def test_a_rested_heartbeat_measures_the_link_but_is_no_ping():
+    link = LinkHealth()
+    link.heartbeat(True, 0.02, pinged=False)   # a plan's answer stood for the ping
+    status = link.status()
+    assert status.level == OK and "20.0 ms" in status.message
+    assert status.values["heartbeats"] == "0" and status.values["heartbeats rested (a plan measured the link)"] == "1"
+    link.heartbeat(True, 0.03)
+    assert link.status().values["heartbeats"] == "1"
+
+
 def test_a_flapping_link_never_flips_the_status():
     link = LinkHealth()
     levels = set()

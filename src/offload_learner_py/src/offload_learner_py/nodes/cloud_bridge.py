@@ -167,7 +167,7 @@ class CloudBridgeNode:
             else:
                 reachable, round_trip_s = self.bridge.heartbeat()
                 self.publish_latency(LinkLatency.HEARTBEAT, reachable, round_trip_s)
-            self.health.heartbeat(reachable, round_trip_s)
+            self.health.heartbeat(reachable, round_trip_s, pinged=measured is None)
             self.diagnostics.changed()
 
     def publish_latency(self, source: int, reachable: bool, round_trip_s: float) -> None:

@@ -48,14 +48,19 @@ class LinkHealth:
     def __init__(self, down_after: int = 2, up_after: int = 2, slow_round_trip_s: float = 1.0):
         self.down = Hysteresis(down_after, up_after)
         self.slow_round_trip_s = slow_round_trip_s
-        self.heartbeats = self.missed = 0
+        self.heartbeats = self.missed = self.rested = 0
         self.round_trip_s: Optional[float] = None
         self.plans = {"ok": 0, "timeout": 0, "failed": 0}
         self.map_refused = ""
         self.map_cells = 0
 
-    def heartbeat(self, reachable: bool, round_trip_s: float) -> None:
-        self.heartbeats += 1
+    def heartbeat(self, reachable: bool, round_trip_s: float, pinged: bool = True) -> None:
+        """One heartbeat period's measure of the link: a ping's, or (pinged False) a plan's answer within the period,
+        which the bridge lets stand for the ping (counted apart: an operator reading "heartbeats" counts pings)."""
+        if pinged:
+            self.heartbeats += 1
+        else:
+            self.rested += 1
         self.missed = 0 if reachable else self.missed + 1
         if reachable:
             self.round_trip_s = round_trip_s
@@ -68,13 +73,14 @@ class LinkHealth:
     def status(self) -> Status:
         rtt = self.round_trip_s
         values = {"heartbeats": str(self.heartbeats), "heartbeats missed in a row": str(self.missed),
+                  "heartbeats rested (a plan measured the link)": str(self.rested),
                   "round trip (ms)": "n/a" if rtt is None else f"{rtt * 1e3:.1f}",
                   "plans answered": str(self.plans["ok"]), "plans timed out": str(self.plans["timeout"]),
                   "plans failed": str(self.plans["failed"]), "map cells": str(self.map_cells),
                   "map refused": self.map_refused or "no"}
         if self.down.bad:
             return Status(ERROR, f"cloud unreachable: {self.missed} heartbeats in a row unanswered", values)
-        if self.heartbeats == 0:
+        if self.heartbeats + self.rested == 0:
             return Status(WARN, "no heartbeat yet", values)
         if self.map_refused:
             return Status(WARN, f"map refused, the cloud plans on the previous one: {self.map_refused}", values)
