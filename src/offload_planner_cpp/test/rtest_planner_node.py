@@ -326,14 +326,24 @@ class PlannerNodeTest(unittest.TestCase):
                 .map_stamp != rospy.Time(7000) and rospy.Time.now() < deadline:
             rospy.sleep(0.1)
         finished = {}
+        # Each long plan's proxy is made and connected before the clock starts: made inside the thread, the second
+        # one's master lookup and connection once took longer than the pause below, so it reached the node after
+        # the map swap and was answered GOAL_OFF_MAP on the small map.
+        proxies = [rospy.ServiceProxy("/planner/plan", PlanPath, persistent=True) for _ in range(2)]
+        for proxy in proxies:
+            proxy.wait_for_service(30)
+            proxy(PlanPathRequest(start=self.pose(corner), goal=self.pose(self.world((1, 1)))))   # connects it
+        ready = threading.Barrier(3)
 
         def long_plan(name):
-            res = rospy.ServiceProxy("/planner/plan", PlanPath)(long_req)
+            ready.wait(30)
+            res = proxies[name](long_req)
             finished[name] = (rospy.get_time(), res.status)
 
         threads = [threading.Thread(target=long_plan, args=(k,)) for k in range(2)]
         for thread in threads:
             thread.start()
+        ready.wait(30)
         rospy.sleep(0.2)
         pub.publish(to_message(self.map, "map", rospy.Time(8000)))
         res = self.call(self.home, self.away)
