@@ -102,8 +102,7 @@ void definePaths(py::module_& m, const PlannerOptions& d) {
         "little-endian.");
   m.def(
       "path_clear",
-      [](const py::array& grid, const py::array_t<std::int32_t, py::array::c_style | py::array::forcecast>& path,
-         int lethal_threshold, bool unknown_is_obstacle) {
+      [](const py::array& grid, const CellArray& path, int lethal_threshold, bool unknown_is_obstacle) {
         const GridView view = viewOf(grid);
         if (path.ndim() != 2 || (path.shape(0) > 0 && path.shape(1) != 2)) {
           throw py::value_error("path must be an N x 2 array of (x, y) cells");

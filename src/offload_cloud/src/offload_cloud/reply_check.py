@@ -23,7 +23,6 @@ class PathRows:
     rows: bytes = b""                   # and the rows (b"" when the path has a problem)
 
 
-
 def reply_problem(reply: Reply, grid: np.ndarray, start: Sequence[int], goal: Sequence[int], options: PlanOptions,
                   round_trip_s: float, rows: Optional[PathRows] = None) -> str:
     """Why a plan reply cannot be true for the map and request this client sent (`grid`: the grid planned on,
