@@ -2,6 +2,8 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <random>
+#include <string>
 #include <vector>
 
 #include "dijkstra_grid.h"
@@ -57,6 +59,45 @@ TEST(PathCheck, EachLieIsNamed) {
   EXPECT_EQ(checkOf(g, {{1, 0}, {1, 1}, {2, 2}}).problem, PathProblem::kBlocked);   // cuts the corner of (2, 1)
   EXPECT_EQ(checkOf(g, {{2, 1}}).problem, PathProblem::kBlocked);                    // one blocked cell
   EXPECT_EQ(checkOf(g, {{0, 0}, {5, 3}}, true).problem, PathProblem::kBlocked);      // a line through the wall
+}
+
+// The 8-connected check takes each unit move's end cell and its corner cells directly: on random grids (blocked, unknown
+// and costed cells) and random walks it says what the segment walk of every move says, and names the same move.
+TEST(PathCheck, UnitMovesAgreeWithTheSegmentWalk) {
+  std::mt19937 rng(7);
+  const int dirs[8][2] = {{1, 0}, {1, 1}, {0, 1}, {-1, 1}, {-1, 0}, {-1, -1}, {0, -1}, {1, -1}};
+  std::size_t blocked = 0;
+  for (int trial = 0; trial < 3000; ++trial) {
+    std::vector<std::string> rows(9, std::string(12, '.'));
+    for (auto& row : rows) {
+      for (char& c : row) c = "..........##?7"[rng() % 14];
+    }
+    Grid g(rows);
+    std::vector<Cell> path{{static_cast<int>(rng() % 12), static_cast<int>(rng() % 9)}};
+    const std::size_t steps = rng() % 12;
+    while (path.size() <= steps) {
+      const int* d = dirs[rng() % 8];
+      const Cell next{path.back().x + d[0], path.back().y + d[1]};
+      if (next.x >= 0 && next.y >= 0 && next.x < 12 && next.y < 9) path.push_back(next);
+    }
+    std::size_t first_blocked = path.size();
+    for (std::size_t k = 0; k < (path.size() > 1 ? path.size() - 1 : 1); ++k) {
+      if (!segmentClear(g.data.data(), 12, 9, path[k], path[path.size() > 1 ? k + 1 : k], PlannerOptions())) {
+        first_blocked = k;
+        break;
+      }
+    }
+    const PathCheck c = checkOf(g, path);
+    if (first_blocked == path.size()) {
+      EXPECT_EQ(c.problem, PathProblem::kNone) << trial;
+    } else {
+      ++blocked;
+      EXPECT_EQ(c.problem, PathProblem::kBlocked) << trial;
+      EXPECT_EQ(c.index, first_blocked) << trial;
+    }
+  }
+  EXPECT_GT(blocked, 1000u);   // both verdicts met often
+  EXPECT_LT(blocked, 2900u);
 }
 
 int main(int argc, char** argv) {
