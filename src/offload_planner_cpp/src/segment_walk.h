@@ -61,7 +61,17 @@ bool walkSegment(Cell a, Cell b, int width, Passable passable, Visit visit) {
   return true;
 }
 
+// walkSegment's verdict for a unit move from a to b (an 8-connected path's step), without its arithmetic: the end
+// cell and, on a diagonal, the two cells beside the vertex it passes (the corner rule above). a itself is not
+// looked at (the walk's caller checks the first cell). test_path_check holds the two equal on random walks.
+template <class Passable>
+bool unitMoveClear(Cell a, Cell b, int width, Passable passable) {
+  auto at = [&](int cx, int cy) { return static_cast<int>(static_cast<long long>(cy) * width + cx); };
+  return passable(at(b.x, b.y)) && (a.x == b.x || a.y == b.y || (passable(at(b.x, a.y)) && passable(at(a.x, b.y))));
+}
+
 }  // namespace detail
+using detail::unitMoveClear;
 using detail::walkSegment;
 }  // namespace offload_planner
 

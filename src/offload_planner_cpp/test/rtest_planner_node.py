@@ -384,6 +384,7 @@ class PlannerNodeTest(unittest.TestCase):
         pub.unregister()
         return res, short_done, finished, asked
 
+
 def split_map() -> np.ndarray:
     """SPLIT_SIDE x SPLIT_SIDE cells, a wall down the middle: a plan from one corner to the other is the longest
     this map has, whichever way it searches (both ends flood their half before NO_PATH). A plan thread's first
