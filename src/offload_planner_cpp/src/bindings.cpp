@@ -14,12 +14,13 @@
 #include "offload_planner_cpp/inflation.h"
 #include "offload_planner_cpp/plan_request.h"
 #include "offload_planner_cpp/planner_options.h"
+#include "offload_planner_cpp/planner_pool.h"
 #include "bindings_grid.h"
 
 namespace py = pybind11;
 using offload_planner::Cell;
 using offload_planner::CellRequest;
-using offload_planner::DijkstraPlanner;
+using offload_planner::PlannerPool;
 using offload_planner::MapGeometry;
 using offload_planner::MapInfo;
 using offload_planner::Outcome;
@@ -74,12 +75,13 @@ py::dict planRaw(const py::array& grid, const py::object& start, const py::objec
   options.inflation_decay = inflation_decay;
   const Cell s = cellOf(start, "start");
   const Cell g = cellOf(goal, "goal");
-  // One planner per thread keeps the buffers warm and lets threads plan in parallel.
-  static thread_local DijkstraPlanner planner;
+  // Plans that overlap run in parallel, each on a planner of its own; one at a time reuse one (planner_pool.h).
+  // Never destroyed: a daemon thread may still be planning, the GIL released, while the interpreter exits.
+  static PlannerPool& planners = *new PlannerPool;
   PlanResult result;
   {
     py::gil_scoped_release release;  // the grid stays alive: the caller's reference holds it
-    result = planner.plan(view.data, view.size, view.width, view.height, s, g, options);
+    result = planners.borrow()->plan(view.data, view.size, view.width, view.height, s, g, options);
   }
   py::array_t<std::int32_t> path({static_cast<py::ssize_t>(result.path.size()), static_cast<py::ssize_t>(2)});
   static_assert(sizeof(Cell) == 2 * sizeof(std::int32_t), "Cell must be two packed ints");

@@ -30,6 +30,8 @@ void PlannerNode::diagnose(diagnostic_updater::DiagnosticStatusWrapper& stat) {
   }
   stat.add("plans answered OK", static_cast<unsigned long long>(plans_ok_.load()));
   stat.add("plans refused", static_cast<unsigned long long>(plans_refused_.load()));
+  // Each holds search buffers of 16 bytes per cell once it has planned across the map: the most plans run at once.
+  stat.add("planners (search buffers)", static_cast<unsigned long long>(handler_->planners()));
   const double last = last_plan_ms_.load();
   if (last >= 0) stat.addf("last planning time (ms)", "%.2f", last);
 }

@@ -128,9 +128,8 @@ void PlanRequestHandler::handle(const PlanPath::Request& req, PlanPath::Response
 
   options.goal_tolerance_cells = request.tolerance_cells;
   options.cancel = cancel;
-  static thread_local DijkstraPlanner planner;
   const std::int8_t* grid = inflated ? inflated->data() : map->data.data();
-  const PlanResult result = planner.plan(grid, map->data.size(), geometry.width, geometry.height,
+  const PlanResult result = planners_.borrow()->plan(grid, map->data.size(), geometry.width, geometry.height,
                                          request.start, request.goal, options);
   setStatus(Outcome{result.status, result.message}, res);
   res->planning_time_s = result.seconds;

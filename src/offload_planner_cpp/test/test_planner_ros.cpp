@@ -3,6 +3,7 @@
 
 #include <algorithm>
 #include <cmath>
+#include <thread>
 #include <utility>
 
 #include "offload_planner_cpp/planner_ros.h"
@@ -345,6 +346,21 @@ TEST(PlanRequestHandler, RejectsMalformedMapsAndKeepsThePrevious) {
   EXPECT_EQ(res.status, PlanPath::Response::OK) << "the last good map keeps serving";
   handler.handle(request(1e308, wy(1), wx(2), wy(1)), &res);
   EXPECT_EQ(res.status, PlanPath::Response::START_OFF_MAP) << "a huge finite coordinate is off the map";
+}
+
+TEST(PlanRequestHandler, SequentialRequestsOnManyServingThreadsShareOnePlanner) {
+  // A robot asks one plan at a time, and the node's serving threads take turns: one planner's buffers serve them
+  // all (a planner per thread paged in buffers for each, #30), a second only for a plan beside another.
+  PlanRequestHandler handler;
+  ASSERT_TRUE(handler.setMap(makeMap(), nullptr));
+  for (int k = 0; k < 4; ++k) {
+    std::thread([&] {
+      PlanPath::Response res;
+      handler.handle(request(wx(1), wy(0), wx(8), wy(0)), &res);
+      EXPECT_EQ(res.status, PlanPath::Response::OK) << res.message;
+    }).join();
+  }
+  EXPECT_EQ(handler.planners(), 1u);
 }
 
 int main(int argc, char** argv) {

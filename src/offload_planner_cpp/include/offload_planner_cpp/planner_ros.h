@@ -27,6 +27,7 @@
 #include "offload_planner_cpp/dijkstra.h"
 #include "offload_planner_cpp/plan_request.h"
 #include "offload_planner_cpp/planner_options.h"
+#include "offload_planner_cpp/planner_pool.h"
 
 namespace offload_planner {
 
@@ -49,10 +50,13 @@ class PlanRequestHandler {
   // the options they began with. The caller has checked `parameters` (parametersProblem).
   void setParameters(const PlannerParameters& parameters);
 
-  // Thread safe; each calling thread plans with its own buffers on the map current at the call. `cancel`
-  // (optional), set from another thread, stops the plan with CANCELLED.
+  // Thread safe; each plan borrows a planner (its search buffers) from the pool, so plans that overlap run in
+  // parallel, on the map current at the call. `cancel` (optional), set from another thread, stops the plan with
+  // CANCELLED.
   void handle(const offload_msgs::PlanPath::Request& req, offload_msgs::PlanPath::Response* res,
               const std::atomic<bool>* cancel = nullptr) const;
+  // Planners made so far (each with its search buffers): the most plans that ran at once.
+  std::size_t planners() const { return planners_.planners(); }
 
  private:
   // `map` inflated for `options` and `inflation`, or nullptr when the inflation is off.
@@ -69,6 +73,7 @@ class PlanRequestHandler {
   std::shared_ptr<const std::vector<std::int8_t>> inflated_;  // map_ inflated, when inflation_ is enabled
   MapGeometry geometry_;  // of map_
   std::string rejected_;  // why the last rejected map was rejected, for NO_MAP replies
+  mutable PlannerPool planners_;
 };
 
 // The plans a caller may cancel, by the request's cancel_id. A cancel that arrives before its plan started
