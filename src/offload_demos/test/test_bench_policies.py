@@ -132,3 +132,18 @@ def test_the_deployed_model_is_the_learning_runs_rows_trained_as_one_batch(tmp_p
     assert not agent.in_warm_up()
     again = load_checkpoint(batch_checkpoint(tmp_path, seed=3))
     np.testing.assert_array_equal(again.q_values(table.states), agent.q_values(table.states))
+
+
+def _table_row(cloud_requests, per_cloud):
+    return {"requests": 10, "paths_delivered": 10, "mean_s": 0.05, "p50_s": 0.04, "p95_s": 0.09, "p99_s": 0.1,
+            "robot_cpu_s_per_request": 0.003, "bridge_cpu_s_per_request": 0.0002, "learner_cpu_s_per_request": 0.0001,
+            "robot_total_cpu_s_per_request": None, "robot_workload_cpu_s_per_request": None,
+            "link_bytes_per_request": 2048.0, "cloud_timeouts": 0, "cloud_share": 0.4, "cloud_requests": cloud_requests,
+            "bridge_cpu_s_per_cloud_request": per_cloud}
+
+
+def test_the_table_gives_the_bridge_cost_per_cloud_request_of_a_policy_that_asked_the_cloud():
+    from offload_demos.bench_report import format_table
+    text = format_table({"policies": {"dqn": _table_row(4, 0.00045), "local": _table_row(0, float("nan"))}})
+    assert "dqn: the bridge's own accounting per cloud request 0.450 ms (4 requests asked the cloud)" in text
+    assert "local: the bridge's" not in text

@@ -113,3 +113,39 @@ def test_beating_both_fixed_policies_means_both(second_half_action, beats):
         outcomes.append(outcome(k, action, local_s, cloud_s))
     log = pair_records(decisions, outcomes)
     assert summarise(log, transition_table(log))["second_half_beats_both"] is beats
+
+
+def test_the_bridge_cost_per_cloud_request_counts_only_the_requests_that_asked_the_cloud():
+    """#30's bar is per cloud request: a policy that offloads a third of its requests must not read a third of it."""
+    from offload_learner_py.offline.summary import delivered_figures
+    decisions, outcomes = [], []
+    for k in range(9):
+        asked = k % 3 == 0
+        action = CLOUD if asked else LOCAL
+        decisions.append(SimpleNamespace(**{**vars(decision(k, action)), "probe": False}, mode="deployed",
+                                         routed=action, breaker="closed", deadline_s=float("nan")))
+        done = outcome(k, action=action, local_s=0.1, cloud_s=0.3, reward_valid=False)
+        done.local_measured, done.cloud_measured = not asked, asked
+        done.cloud_timeout = k == 6        # a timeout asked the cloud too (measured as the timeout), and cost the bridge
+        outcomes.append(SimpleNamespace(**vars(done), hedged=False, transitions=1, imputed=NO_PATH_DELIVERED,
+                                        robot_cpu_s=0.0 if asked else 0.01,
+                                        bridge_cpu_s=(0.0004, 0.0006, 0.0008)[k // 3] if asked else 0.0,
+                                        link_bytes_sent=0, link_bytes_received=0))
+    figures = delivered_figures(pair_records(decisions, outcomes), cloud_timeout_s=5.0)
+    assert figures["cloud_requests"] == 3
+    assert figures["bridge_cpu_s_per_cloud_request"] == pytest.approx(0.0006)
+    assert figures["bridge_cpu_s_per_request"] == pytest.approx(0.0002)
+
+
+def test_no_cloud_request_leaves_the_bridge_cost_per_cloud_request_undefined():
+    from offload_learner_py.offline.summary import delivered_figures
+    decisions = [SimpleNamespace(**{**vars(decision(k)), "probe": False}, mode="deployed", routed=LOCAL,
+                                 breaker="closed", deadline_s=float("nan")) for k in range(3)]
+    outcomes = []
+    for k in range(3):
+        done = outcome(k, local_s=0.1, cloud_s=0.3, reward_valid=False)
+        done.cloud_measured = False
+        outcomes.append(SimpleNamespace(**vars(done), hedged=False, transitions=1, imputed=NO_PATH_DELIVERED,
+                                        robot_cpu_s=0.01, bridge_cpu_s=0.0, link_bytes_sent=0, link_bytes_received=0))
+    figures = delivered_figures(pair_records(decisions, outcomes), cloud_timeout_s=5.0)
+    assert figures["cloud_requests"] == 0 and math.isnan(figures["bridge_cpu_s_per_cloud_request"])

@@ -72,9 +72,12 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = DEFAULT_CLOUD_TI
     delivered_s = pick("outcome_delivered_s")
     breaker = np.asarray(log["breaker"], dtype=object)[answered]
 
-    def cost_per_request(name: str) -> float:   # NaN in bags from before robot cost accounting
-        values = pick(name)
-        return float(np.mean(values)) if np.all(np.isfinite(values)) else float("nan")
+    def cost_per_request(name: str, where=None) -> float:   # NaN in bags from before robot cost accounting
+        values = pick(name) if where is None else pick(name)[where]
+        return float(np.mean(values)) if len(values) and np.all(np.isfinite(values)) else float("nan")
+
+    # The requests that asked the cloud (its reply, failure or timeout measured): what #30's bridge bar is per.
+    asked_cloud = pick("outcome_cloud_measured") > 0
     figures.update({
         "paths_delivered": int(np.sum(pick("outcome_delivered") != NO_PATH_DELIVERED)),
         "mean_s": float(np.mean(delivered_s)), "p50_s": float(np.percentile(delivered_s, 50)),
@@ -82,6 +85,8 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = DEFAULT_CLOUD_TI
         "max_s": float(np.max(delivered_s)),
         "robot_cpu_s_per_request": cost_per_request("outcome_robot_cpu_s"),
         "bridge_cpu_s_per_request": cost_per_request("outcome_bridge_cpu_s"),
+        "bridge_cpu_s_per_cloud_request": cost_per_request("outcome_bridge_cpu_s", asked_cloud),
+        "cloud_requests": int(np.sum(asked_cloud)),
         "learner_cpu_s_per_request": cost_per_request("outcome_learner_cpu_s"),
         "link_bytes_per_request": float(np.mean(pick("outcome_link_bytes_sent") + pick("outcome_link_bytes_received"))),
         "cloud_timeouts": int(np.sum(pick("outcome_cloud_timeout") > 0)),
