@@ -186,6 +186,30 @@ def test_launch_files_load(launch_file):
     assert config.nodes, f"{launch_file.name} starts no node"
 
 
+LAUNCHED = sorted([*(WORKSPACE / "launch").glob("*.launch"), *(WORKSPACE / "test").glob("*.test"),
+                   *(WORKSPACE / "src").glob("*/test/*.test")], key=str)
+
+
+@pytest.mark.parametrize("launch_file", LAUNCHED, ids=lambda p: str(p.relative_to(WORKSPACE)))
+def test_every_node_a_launch_or_rostest_file_starts_is_installed(launch_file):
+    """roslaunch finds each node's executable through its package's package.xml: a Debian package that ships the
+    binary but not the package.xml (libdiagnostic-aggregator-tools without -dev) fails only when a launch starts it."""
+    import roslaunch.config
+    import roslaunch.xmlloader
+    import roslib.packages
+    import rospkg
+    config = roslaunch.config.ROSLaunchConfig()
+    roslaunch.xmlloader.XmlLoader().load(str(launch_file), config, verbose=False)
+    for node in [*config.nodes, *config.tests]:
+        try:
+            found = roslib.packages.find_node(node.package, node.type)
+        except (roslib.packages.ROSPkgException, rospkg.ResourceNotFound) as error:
+            found, why = [], str(error).splitlines()[0]
+        else:
+            why = "no such executable in it"
+        assert found, f"{launch_file.name}: node {node.package}/{node.type}: {why}"
+
+
 PYTHON_SOURCES = sorted(p for p in (WORKSPACE / "src").rglob("*.py") if "/test/" not in str(p))
 STATUS_NAMES = ("NO_MAP", "BAD_FRAME", "START_OFF_MAP", "GOAL_OFF_MAP", "START_BLOCKED", "GOAL_BLOCKED",
                 "NO_PATH", "INVALID_MAP", "CLOUD_TIMEOUT", "CLOUD_ERROR", "INVALID_REQUEST")
