@@ -177,13 +177,18 @@ def test_python_node_scripts_are_two_line_entry_points(package):
         assert lines[2] == lines[1].split()[-1] + "()"
 
 
-@pytest.mark.parametrize("launch_file", sorted((WORKSPACE / "launch").glob("*.launch")), ids=lambda p: p.name)
-def test_launch_files_load(launch_file):
+def loaded(launch_file):
+    """The launch (or rostest) file as roslaunch reads it, its arguments at their defaults."""
     import roslaunch.config
     import roslaunch.xmlloader
     config = roslaunch.config.ROSLaunchConfig()
     roslaunch.xmlloader.XmlLoader().load(str(launch_file), config, verbose=False)
-    assert config.nodes, f"{launch_file.name} starts no node"
+    return config
+
+
+@pytest.mark.parametrize("launch_file", sorted((WORKSPACE / "launch").glob("*.launch")), ids=lambda p: p.name)
+def test_launch_files_load(launch_file):
+    assert loaded(launch_file).nodes, f"{launch_file.name} starts no node"
 
 
 LAUNCHED = sorted([*(WORKSPACE / "launch").glob("*.launch"), *(WORKSPACE / "test").glob("*.test"),
@@ -194,12 +199,9 @@ LAUNCHED = sorted([*(WORKSPACE / "launch").glob("*.launch"), *(WORKSPACE / "test
 def test_every_node_a_launch_or_rostest_file_starts_is_installed(launch_file):
     """roslaunch finds each node's executable through its package's package.xml: a Debian package that ships the
     binary but not the package.xml (libdiagnostic-aggregator-tools without -dev) fails only when a launch starts it."""
-    import roslaunch.config
-    import roslaunch.xmlloader
     import roslib.packages
     import rospkg
-    config = roslaunch.config.ROSLaunchConfig()
-    roslaunch.xmlloader.XmlLoader().load(str(launch_file), config, verbose=False)
+    config = loaded(launch_file)
     for node in [*config.nodes, *config.tests]:
         try:
             found = roslib.packages.find_node(node.package, node.type)

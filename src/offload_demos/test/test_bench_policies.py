@@ -134,11 +134,11 @@ def test_the_deployed_model_is_the_learning_runs_rows_trained_as_one_batch(tmp_p
     np.testing.assert_array_equal(again.q_values(table.states), agent.q_values(table.states))
 
 
-def _table_row(cloud_requests, per_cloud):
+def _table_row(cloud_calls, per_cloud):
     return {"requests": 10, "paths_delivered": 10, "mean_s": 0.05, "p50_s": 0.04, "p95_s": 0.09, "p99_s": 0.1,
             "robot_cpu_s_per_request": 0.003, "bridge_cpu_s_per_request": 0.0002, "learner_cpu_s_per_request": 0.0001,
             "robot_total_cpu_s_per_request": None, "robot_workload_cpu_s_per_request": None,
-            "link_bytes_per_request": 2048.0, "cloud_timeouts": 0, "cloud_share": 0.4, "cloud_requests": cloud_requests,
+            "link_bytes_per_request": 2048.0, "cloud_timeouts": 0, "cloud_share": 0.4, "cloud_calls": cloud_calls,
             "bridge_cpu_s_per_cloud_request": per_cloud}
 
 

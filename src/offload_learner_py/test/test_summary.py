@@ -132,7 +132,7 @@ def test_the_bridge_cost_per_cloud_request_counts_only_the_requests_that_asked_t
                                         bridge_cpu_s=(0.0004, 0.0006, 0.0008)[k // 3] if asked else 0.0,
                                         link_bytes_sent=0, link_bytes_received=0))
     figures = delivered_figures(pair_records(decisions, outcomes), cloud_timeout_s=5.0)
-    assert figures["cloud_requests"] == 3
+    assert figures["cloud_calls"] == 3
     assert figures["bridge_cpu_s_per_cloud_request"] == pytest.approx(0.0006)
     assert figures["bridge_cpu_s_per_request"] == pytest.approx(0.0002)
 
@@ -148,4 +148,4 @@ def test_no_cloud_request_leaves_the_bridge_cost_per_cloud_request_undefined():
         outcomes.append(SimpleNamespace(**vars(done), hedged=False, transitions=1, imputed=NO_PATH_DELIVERED,
                                         robot_cpu_s=0.01, bridge_cpu_s=0.0, link_bytes_sent=0, link_bytes_received=0))
     figures = delivered_figures(pair_records(decisions, outcomes), cloud_timeout_s=5.0)
-    assert figures["cloud_requests"] == 0 and math.isnan(figures["bridge_cpu_s_per_cloud_request"])
+    assert figures["cloud_calls"] == 0 and math.isnan(figures["bridge_cpu_s_per_cloud_request"])

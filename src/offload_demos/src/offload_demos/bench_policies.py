@@ -63,8 +63,9 @@ RUNS = {
     "dqn_hedge": ["--policy", "dqn", "--mode", "deployed", "--hedge", "--fleet"],
 }
 FIELDS = ("requests", "paths_delivered", "mean_s", "p50_s", "p95_s", "p99_s", "robot_cpu_s_per_request",
-          "bridge_cpu_s_per_request", "bridge_cpu_s_per_cloud_request", "cloud_requests", "learner_cpu_s_per_request",
-          "robot_total_cpu_s_per_request", "robot_workload_cpu_s_per_request", "robot_cpu", "link_bytes_per_request", "cloud_timeouts", "cloud_share")
+          "bridge_cpu_s_per_request", "bridge_cpu_s_per_cloud_request", "cloud_calls", "learner_cpu_s_per_request",
+          "robot_total_cpu_s_per_request", "robot_workload_cpu_s_per_request", "robot_cpu", "link_bytes_per_request",
+          "cloud_timeouts", "cloud_share")
 
 
 def demo_command(launch: str, runs_dir: pathlib.Path, steps: int, seed: int, map_yaml: str, extra) -> list:

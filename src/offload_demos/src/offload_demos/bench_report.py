@@ -27,9 +27,9 @@ def format_table(results: dict) -> str:
                      f"{f['cloud_timeouts']:>9}{100 * (f.get('cloud_share') or 0.0):>8.0f}")
     for name, f in results["policies"].items():
         per_cloud = f.get("bridge_cpu_s_per_cloud_request")
-        if f.get("cloud_requests") and per_cloud is not None and np.isfinite(per_cloud):
+        if f.get("cloud_calls") and per_cloud is not None and np.isfinite(per_cloud):
             lines.append(f"{name}: the bridge's own accounting per cloud request {1e3 * per_cloud:.3f} ms "
-                         f"({f['cloud_requests']} requests asked the cloud)")
+                         f"({f['cloud_calls']} requests asked the cloud)")
         cpu = f.get("robot_cpu")
         if cpu:
             lines.append(f"{name}: robot CPU {1e3 * cpu['total_cpu_s_per_request']:.2f} ms per request by process "

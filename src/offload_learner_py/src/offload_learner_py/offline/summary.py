@@ -86,7 +86,7 @@ def delivered_figures(log: RequestLog, cloud_timeout_s: float = DEFAULT_CLOUD_TI
         "robot_cpu_s_per_request": cost_per_request("outcome_robot_cpu_s"),
         "bridge_cpu_s_per_request": cost_per_request("outcome_bridge_cpu_s"),
         "bridge_cpu_s_per_cloud_request": cost_per_request("outcome_bridge_cpu_s", asked_cloud),
-        "cloud_requests": int(np.sum(asked_cloud)),
+        "cloud_calls": int(np.sum(asked_cloud)),
         "learner_cpu_s_per_request": cost_per_request("outcome_learner_cpu_s"),
         "link_bytes_per_request": float(np.mean(pick("outcome_link_bytes_sent") + pick("outcome_link_bytes_received"))),
         "cloud_timeouts": int(np.sum(pick("outcome_cloud_timeout") > 0)),
@@ -105,12 +105,12 @@ def summarise(log: RequestLog, table: TransitionTable, q_values: Optional[Callab
     answered = log["has_outcome"].astype(bool) if requests else np.zeros(0, bool)
     delivered = int(np.sum(answered & (log["outcome_delivered"] != NO_PATH_DELIVERED))) if requests else 0
     timeouts = int(np.sum(answered & log["outcome_cloud_timeout"].astype(bool))) if requests else 0
-    cloud_calls = int(np.sum(answered & log["outcome_cloud_measured"].astype(bool))) if requests else 0
     result = {"requests": requests, "answered": int(answered.sum()), "paths_delivered": delivered,
-              "probe_steps": len(table), "cloud_timeouts": timeouts, "cloud_calls": cloud_calls,
+              "probe_steps": len(table), "cloud_timeouts": timeouts, "cloud_calls": 0,
               "policy": str(log["policy"][0]) if requests else ""}
     if requests:
         result["delivered"] = delivered_figures(log)
+        result["cloud_calls"] = result["delivered"].get("cloud_calls", 0)   # none answered: none counted
         result["mean_delivered_s"] = result["delivered"].get("mean_s", float("nan"))
     if len(table) == 0:
         return result
