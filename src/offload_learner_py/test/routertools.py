@@ -100,9 +100,12 @@ def wired_router(policy, local, cloud, statuses, config=RouterConfig(), **router
 
 
 def make_router(policy, local, cloud, clock, probe_rate=0.0, timeout_s=5.0):
+    """Its probes run both sides at once (learning mode's and the link tests' way; deployed probes in turn are
+    test_router_probes.py's)."""
     recorder = Recorder()
     router = wired_router(policy, local, cloud, STATUSES, RouterConfig(probe_rate=probe_rate, cloud_timeout_s=timeout_s,
-                                                                       probe_while_warming_up=False),
+                                                                       probe_while_warming_up=False,
+                                                                       probe_after_delivery=False),
                           on_decision=recorder.decision, on_outcome=recorder.outcome, clock=clock)
     return router, recorder
 

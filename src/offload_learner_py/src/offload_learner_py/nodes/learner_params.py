@@ -56,7 +56,7 @@ PARAMETERS = {
         "policy", "model", "checkpoint", "checkpoint_every", "learn", "explore", "seed", "dqn",
         "threshold_input_size", "replay_actions", "progress_every", "stats_window")},
     **{name: (RouterConfig, name) for name in (
-        "mode", "probe_rate", "cloud_timeout_s", "map_wait_s", "hedge", "hedge_deadline_s", "hedge_quantile",
+        "mode", "probe_rate", "probe_after_delivery", "cloud_timeout_s", "map_wait_s", "hedge", "hedge_deadline_s", "hedge_quantile",
         "hedge_min_s", "hedge_max_s")},
     "breaker_failures": (BreakerConfig, "failures_to_open"),
     "breaker_max_round_trip_s": (BreakerConfig, "max_round_trip_s"),

@@ -64,6 +64,7 @@ class _Request:
         self.started = set()
         self.results = {}
         self.checks_refusal = False   # the local planner runs to check the cloud's refusal
+        self.then = None              # a probe's other side, started once the first has answered
 
 
 class OffloadRouter:
@@ -136,9 +137,12 @@ class OffloadRouter:
                 routing = self._route_decision(request_id, state, decision)
             self.on_decision(routing)
             outcome = Outcome(request_id, state, decision, routing.probe, NO_PATH_DELIVERED, 0.0, routing=routing)
+            req = _Request(outcome, began)
             first = (LOCAL, CLOUD) if routing.probe else (routing.action,)
+            if routing.probe and self._probes_in_turn(routing):
+                first, req.then = (routing.action,), OTHER[routing.action]
             deadline = None if math.isnan(routing.deadline_s) else routing.deadline_s
-            return self._run(_Request(outcome, began), first, deadline, request)
+            return self._run(req, first, deadline, request)
         except BaseException:
             self._done()
             raise
@@ -162,6 +166,11 @@ class OffloadRouter:
             # hedge then starts the other side at once. (A call nobody waits for is cancelled instead.)
             deadline_s = 0.0 if self._lanes[action].busy() else self._deadline_s(action, state)
         return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s)
+
+    def _probes_in_turn(self, routing: Routing) -> bool:
+        """A deployed probe runs its sides in turn (config.probe_after_delivery); learning mode's probes and the
+        breaker's link tests (the caller gets the local path at worst) run both at once."""
+        return self.config.probe_after_delivery and self.config.mode == DEPLOYED and routing.breaker != TRIAL
 
     def _round_trip_too_slow(self, state: State) -> bool:
         """The hedge's guard on a cloud choice: the measured round trip alone is longer than the local planner's
@@ -257,7 +266,7 @@ class OffloadRouter:
                     lane.end(call_id)
                 result.started_after_s = started_after_s
         if side == CLOUD and not result.cancelled and req.outcome.state is not None \
-                and not (result.status in self.statuses.refusals and LOCAL not in req.started):
+                and not (result.status in self.statuses.refusals and LOCAL not in req.started and req.then != LOCAL):
             self.breaker.record_call(not result.link_failed, result.seconds)   # a refusal: when the local verdict is in
         self._settle(req, side, result, request)
 
@@ -277,8 +286,12 @@ class OffloadRouter:
         """Record one side's result; deliver the first good path; when no side is left running, finish."""
         fallback = False
         refusal = None
+        then = None
         with req.lock:
             req.results[side] = result
+            if req.then is not None and req.then not in req.started:
+                then = req.then   # the probe's other side: a measurement, or the fallback if this one failed
+                req.started.add(then)
             if side == LOCAL and req.checks_refusal:
                 refusal = req.results[CLOUD]
                 if result.status == self.statuses.ok and not result.cancelled:
@@ -310,6 +323,9 @@ class OffloadRouter:
             self._cancel(LOCAL, self._lanes[LOCAL].calls_of(req))
         if refusal is not None and req.outcome.state is not None:
             self.breaker.record_call(req.results[CLOUD] is refusal, refusal.seconds)
+        if then is not None:
+            self._lanes[then].want(req.outcome.request_id)
+            self._workers.submit(self._side, req, then, request)
         if fallback:
             self._start(req, (LOCAL,), request)
         elif finish:

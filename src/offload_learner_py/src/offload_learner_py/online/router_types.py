@@ -105,6 +105,10 @@ class RouterConfig:
     while either side's latency model lacks its first samples (a warm-started DQN on a fresh node: a
     one-sided request would teach nothing, there being nothing to impute with, and the hedge would have no
     deadline); then, as a fixed policy always does, it probes at probe_rate only."""
+    probe_after_delivery: bool = True
+    """deployed: a probe's other side starts once the chosen side has answered, so the caller waits for the chosen
+    side alone and each side is measured without the other loading the robot; False: both at once, as learning
+    mode's probes and the breaker's link tests always run."""
     cloud_timeout_s: float = DEFAULT_CLOUD_TIMEOUT_S
     """l_cloud of a request the cloud did not answer (the paper's 5 s). This and `weights` (eq. 10's alpha and
     beta) are the learner's settings (learning.py); the node passes them on with `latency_model`."""
