@@ -11,7 +11,9 @@ good path; both latencies are measured over the same moment of CPU load and link
 action is the greedy one (exploring would change nothing the caller gets). `deployed`: the chosen side
 alone, so the robot saves its CPU or the link; a `probe_rate` share of requests (drawn independently of the
 state, so they are an unbiased sample for off-policy evaluation) are probes, and every request while the
-learner `needs_both_sides()`. A deployed request measures one side; the learner imputes the other.
+learner `needs_both_sides()`. A deployed probe runs its sides in turn (`probe_after_delivery`): the chosen one,
+then the other once the caller has its path, so probing costs the caller no time and each side is measured
+alone on the robot. A deployed request measures one side; the learner imputes the other.
 
 The cloud side serves calls concurrently (the bridge borrows a socket per call and a call costs the robot
 little CPU), so a cloud call still running in the background never holds up the next request. The local
