@@ -15,8 +15,11 @@ from routertools import CANCELLABLE, CANCELLED, OK, STATE, CancellablePlanner, F
 
 
 def router_for(policy, local, cloud, clock, **config):
+    """Its probes run both sides at once, so a probe's local plan is running when the next request cancels it
+    (a deployed probe in turn starts its other side only after the first answered: test_router_probes.py)."""
     recorder = Recorder()
     config.setdefault("probe_while_warming_up", False)
+    config.setdefault("probe_after_delivery", False)
     router = wired_router(policy, local, cloud, CANCELLABLE, RouterConfig(**config), on_decision=recorder.decision,
                          on_outcome=recorder.outcome, clock=clock,
                          account=lambda response: (response.get("cpu", 0.0), 0, 0))
