@@ -239,6 +239,10 @@ class OffloadRouter:
         with req.lock:
             sides = [side for side in sides if side not in req.started]
             req.started.update(sides)
+        self._launch(req, sides, request)
+
+    def _launch(self, req: _Request, sides, request) -> None:
+        """Calls `sides`, already counted as started under req.lock."""
         for side in sides:
             self._lanes[side].want(req.outcome.request_id)
         for side in sides:
@@ -326,8 +330,7 @@ class OffloadRouter:
         if refusal is not None and req.outcome.state is not None:
             self.breaker.record_call(req.results[CLOUD] is refusal, refusal.seconds)
         if then is not None:
-            self._lanes[then].want(req.outcome.request_id)
-            self._workers.submit(self._side, req, then, request)
+            self._launch(req, (then,), request)
         if fallback:
             self._start(req, (LOCAL,), request)
         elif finish:
