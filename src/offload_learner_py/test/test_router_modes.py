@@ -42,6 +42,9 @@ class LearningRecorder(Policy):
 
 
 def configured_router(policy, local, cloud, clock, **config):
+    """Its probes run both sides at once unless told otherwise: counts of warm-up probes assume a probe's outcome
+    is learned as soon as both fake sides answered (deployed probes in turn: test_router_probes.py)."""
+    config.setdefault("probe_after_delivery", False)
     recorder = Recorder()
     router = wired_router(policy, local, cloud, STATUSES, RouterConfig(**config), on_decision=recorder.decision,
                          on_outcome=recorder.outcome, clock=clock)
