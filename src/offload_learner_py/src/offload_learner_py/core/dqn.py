@@ -181,7 +181,7 @@ class FastDecision:
     hidden layer. Each layer's bias is the last row of its matrix, fed by a unit held at 1: a 1 after the
     normalised state, then one more ReLU unit in every hidden layer whose only input is that 1. The normalisation
     is four float operations in Python. bench-decision's paced run (caches flushed before each decision, the other
-    core busy): p50 151-152 us and 181 us of CPU a decision, against 195-197 and 228-231 with the normalisation and
+    core busy): p50 149-168 us and 181-197 us of CPU a decision, against 195-197 and 228-231 with the normalisation and
     each bias a numpy call of its own."""
 
     def __init__(self, weights, biases, normalisation: StateNormalisation):
