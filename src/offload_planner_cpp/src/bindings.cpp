@@ -34,6 +34,8 @@ using offload_planner_bindings::viewOf;
 void defineOptions(py::module_& m);
 // Paths planned elsewhere: their poses and their check (bindings_paths.cpp).
 void definePaths(py::module_& m, const PlannerOptions& defaults);
+// The learner's decision, compiled (bindings_decision.cpp).
+void defineDecision(py::module_& m);
 
 namespace {
 
@@ -227,6 +229,7 @@ PYBIND11_MODULE(_core, m) {
         "cost (length in cells), weighted_cost (in the cost model planned with), goal, expansions, seconds and "
         "grid_address (the buffer planned on). Malformed arguments raise ValueError.");
   definePaths(m, d);
+  defineDecision(m);
   m.def(
       "inflate",
       [](const py::array& grid, double robot_radius_cells, double inflation_radius_cells, double inflation_decay,

@@ -1,7 +1,6 @@
 """The DQN of Algorithm 1: a Q-network STATE_SIZE (4) -> 256 -> 256 -> 256 -> 2 (ReLU), a target copy refreshed
-every K steps, FIFO replay, epsilon-greedy actions. Plus a numpy copy of the network for the robot's
-per-request decision, which must cost well under 100 us."""
-import math
+every K steps, FIFO replay, epsilon-greedy actions. Plus a compiled copy of the network for the robot's
+per-request decision (FastDecision), which must cost well under 100 us."""
 from typing import Optional, Tuple
 
 import numpy as np
@@ -13,6 +12,7 @@ from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.core.replay import ReplayMemory
 from offload_learner_py.core.state import STATE_SCHEMA, STATE_SIZE
+from offload_planner_cpp._core import QNetworkForward   # the robot's compiled module: the decision's forward pass
 
 N_ACTIONS = 2
 
@@ -173,25 +173,28 @@ class DQNAgent:
 
 
 class FastDecision:
-    """The greedy policy as plain float32 numpy: one decision is a handful of small matmuls with no
-    autograd or dispatcher overhead. A snapshot: rebuild it after more training.
+    """The greedy policy, compiled: the network's weights handed once to the C++ core's QNetworkForward
+    (offload_planner_cpp/q_network.h), so that one decision is one call with no autograd, dispatcher or numpy
+    call per layer. A snapshot: rebuild it after more training.
 
-    On a robot a decision meets cold caches (the planner and the robot's other work ran since the last one), where
-    each numpy call costs microseconds more than its arithmetic: the forward pass makes as few as it can, two per
-    hidden layer. Each layer's bias is the last row of its matrix, fed by a unit held at 1: a 1 after the
-    normalised state, then one more ReLU unit in every hidden layer whose only input is that 1. The normalisation
-    is four float operations in Python. bench-decision's paced run (caches flushed before each decision, the other
-    core busy): p50 149-168 us and 181-197 us of CPU a decision, against 195-197 and 228-231 with the normalisation and
-    each bias a numpy call of its own."""
+    On a robot a decision meets cold caches (the planner and the robot's other work ran since the last one). There
+    numpy's forward pass, two calls a hidden layer, cost 148-168 us at the p50 (bench-decision's paced run: caches
+    flushed before each decision, the other core busy); the compiled one costs ~55 us, about half of it the call
+    into the module and half the network's 530 KB of weights read from memory. The scaling is the normalisation's
+    (log(max(x, 0) + floor) on its log fields, then (x - mean) / scale), in double precision before the float32
+    network, as in normalisation.py."""
 
     def __init__(self, weights, biases, normalisation: StateNormalisation):
         self.weights = [np.ascontiguousarray(w, dtype=np.float32) for w in weights]
         self.biases = [np.ascontiguousarray(b, dtype=np.float32) for b in biases]
-        self._mean = tuple(float(m) for m in np.asarray(normalisation.mean, dtype=np.float64))
-        self._inverse_scale = tuple(1.0 / float(s) for s in np.asarray(normalisation.scale, dtype=np.float64))
-        self._logs = STATE_SCHEMA.log_columns if normalisation.log_input_size else ()
-        layers = _with_bias_rows(self.weights, self.biases)
-        self._hidden, self._output = layers[:-1], layers[-1]
+        log_floor = [0.0] * STATE_SIZE
+        if normalisation.log_input_size:
+            for i, floor in STATE_SCHEMA.log_columns:
+                log_floor[i] = float(floor)
+        scale = np.asarray(normalisation.scale, dtype=np.float64)
+        self._q_values = QNetworkForward(self.weights, self.biases,
+                                         np.asarray(normalisation.mean, dtype=np.float64).tolist(),
+                                         (1.0 / scale).tolist(), log_floor).q_values
 
     @classmethod
     def from_network(cls, network: QNetwork, normalisation: StateNormalisation) -> "FastDecision":
@@ -201,34 +204,6 @@ class FastDecision:
 
     def decide(self, *state: float) -> Tuple[int, float, float]:
         """(action, Q(s, local), Q(s, cloud)) for one raw state, its fields in schema order
-        (`*State.as_tuple()`)."""
-        if len(state) != STATE_SIZE:
-            raise TypeError(f"a state has {STATE_SIZE} fields, got {len(state)}")
-        if self._logs:
-            state = list(state)
-            for i, floor in self._logs:
-                state[i] = math.log(max(state[i], 0.0) + floor)
-        x = [(value - mean) * inverse for value, mean, inverse in zip(state, self._mean, self._inverse_scale)]
-        x.append(1.0)
-        h = np.array(x, dtype=np.float32)
-        for layer in self._hidden:
-            h = h @ layer
-            np.maximum(h, 0.0, out=h)
-        q_local, q_cloud = (h @ self._output).tolist()
+        (`*State.as_tuple()`); TypeError for a state of the wrong width."""
+        q_local, q_cloud = self._q_values(*state)
         return greedy_action(q_local, q_cloud), q_local, q_cloud
-
-
-def _with_bias_rows(weights, biases):
-    """Each (in x out) weight matrix with its bias as an extra last row; a hidden layer's also with an extra last
-    column, the unit that stays 1 for the next layer's bias row (its own bias 1, every other weight 0)."""
-    layers = []
-    last = len(weights) - 1
-    for i, (w, b) in enumerate(zip(weights, biases)):
-        rows, columns = w.shape
-        layer = np.zeros((rows + 1, columns + (0 if i == last else 1)), dtype=np.float32)
-        layer[:rows, :columns] = w
-        layer[rows, :columns] = b
-        if i != last:
-            layer[rows, columns] = 1.0
-        layers.append(layer)
-    return layers

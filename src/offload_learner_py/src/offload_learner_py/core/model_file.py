@@ -4,7 +4,7 @@ normalisation it was trained with, in one .npz, named by the SHA-256 of its byte
 The fleet learner on the cloud host writes it (`model_bytes`); the robot fetches it, checks the bytes
 against the version it asked for, and loads it weights-only (`load_model`: numpy with pickle refused, every
 array's shape and finiteness checked, the normalisation's state fields against this code's schema) into a
-FastDecision, the numpy forward pass it decides with. A file that fails any check raises ModelFileError and
+FastDecision, the compiled forward pass it decides with. A file that fails any check raises ModelFileError and
 the robot keeps the model it has."""
 import hashlib
 import io

@@ -281,7 +281,7 @@ class DQNPolicy(Policy):
     """Algorithm 1. Offline, `fit` runs it over the training rows in order (epsilon-greedy, replay, target
     copies) with rewards from the rows' measured latencies, and `choose` is the greedy policy.
 
-    Online, decisions read a numpy snapshot of the Q-network (FastDecision), rebuilt after each gradient
+    Online, decisions read a compiled snapshot of the Q-network (FastDecision), rebuilt after each gradient
     step, so deciding never waits for training or takes the torch path. With learn false the greedy
     policy of the given agent is used and nothing is trained. With explore false (learning mode, where
     both sides run anyway, and deployed mode, where probes explore) the action is always the greedy one:

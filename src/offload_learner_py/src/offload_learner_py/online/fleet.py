@@ -1,6 +1,6 @@
 """Deployed with a fleet learner: the robot decides, the cloud learns (no ROS).
 
-`FleetPolicy` decides with the numpy FastDecision of the model version it holds and never learns: no replay, no
+`FleetPolicy` decides with the compiled FastDecision of the model version it holds and never learns: no replay, no
 gradient step, no torch on the robot's request path. The version and its network are one `DeployedModel`
 reference, read once per decision and replaced whole by a swap (`swap`, from the link's thread, after the new
 file was fetched, checked and loaded there), so a decision sees either the old model or the new one, never half
