@@ -27,6 +27,12 @@ QNetworkForward::QNetworkForward(std::vector<DenseLayer> layers, InputScaling sc
   if (scaling_.mean.size() != n || scaling_.inverse_scale.size() != n || scaling_.log_floor.size() != n)
     throw std::invalid_argument("the input scaling needs one mean, inverse scale and log floor per input (" +
                                 std::to_string(n) + ")");
+  for (std::size_t i = 0; i < n; ++i)
+    if (!std::isfinite(scaling_.mean[i]) || !std::isfinite(scaling_.inverse_scale[i]) ||
+        !std::isfinite(scaling_.log_floor[i]) || scaling_.log_floor[i] < 0.0)
+      throw std::invalid_argument("input " + std::to_string(i) +
+                                  ": the mean and inverse scale must be finite, the log floor finite and >= 0 (0: "
+                                  "no log)");
 }
 
 // Compiled twice, for AVX2 with FMA and for any x86-64, the loader picking the one this CPU runs: the wide

@@ -2,6 +2,7 @@
 #include <gtest/gtest.h>
 
 #include <cmath>
+#include <limits>
 #include <stdexcept>
 #include <vector>
 
@@ -82,6 +83,20 @@ TEST(QNetworkForward, RefusesLayersThatDoNotChainAndScalingOfTheWrongWidth) {
   one.push_back(layer(2, 2, std::vector<float>(4), std::vector<float>(2)));
   EXPECT_THROW(QNetworkForward(one, {{0, 0, 0}, {1, 1, 1}, {0, 0, 0}}), std::invalid_argument);
   EXPECT_THROW(QNetworkForward({}, {}), std::invalid_argument);
+}
+
+TEST(QNetworkForward, RefusesScalingThatIsNotFiniteOrANegativeLogFloor) {
+  auto two = [] {
+    std::vector<DenseLayer> layers;
+    layers.push_back(layer(2, 2, std::vector<float>(4), std::vector<float>(2)));
+    return layers;
+  };
+  const double inf = std::numeric_limits<double>::infinity();
+  EXPECT_NO_THROW(QNetworkForward(two(), {{0, 0}, {1, 1}, {0, 0.5}}));
+  EXPECT_THROW(QNetworkForward(two(), {{0, 0}, {1, 1}, {0, -1}}), std::invalid_argument);
+  EXPECT_THROW(QNetworkForward(two(), {{0, std::nan("")}, {1, 1}, {0, 0}}), std::invalid_argument);
+  EXPECT_THROW(QNetworkForward(two(), {{0, 0}, {inf, 1}, {0, 0}}), std::invalid_argument);
+  EXPECT_THROW(QNetworkForward(two(), {{0, 0}, {1, 1}, {inf, 0}}), std::invalid_argument);
 }
 
 int main(int argc, char** argv) {

@@ -56,5 +56,7 @@ def test_a_network_that_does_not_fit_together_is_a_value_error():
         QNetworkForward(weights, biases[:2], [0.0] * 4, [1.0] * 4, [0.0] * 4)
     with pytest.raises(ValueError, match="one mean, inverse scale and log floor per input"):
         QNetworkForward(weights, biases, [0.0] * 3, [1.0] * 4, [0.0] * 4)
+    with pytest.raises(ValueError, match="log floor finite and >= 0"):
+        QNetworkForward(weights, biases, [0.0] * 4, [1.0] * 4, [0.0, -1.0, 0.0, 0.0])
     with pytest.raises(ValueError, match="do not match its shape"):
         QNetworkForward(weights, [np.zeros(15, np.float32)] + biases[1:], [0.0] * 4, [1.0] * 4, [0.0] * 4)

@@ -22,14 +22,14 @@ struct DenseLayer {
 struct InputScaling {
   std::vector<double> mean;
   std::vector<double> inverse_scale;
-  std::vector<double> log_floor;  // 0: the field as it is
+  std::vector<double> log_floor;  // 0: the field as it is; never negative
 };
 
 // Hidden layers are ReLU, the last is linear (the Q-values, one per action).
 class QNetworkForward {
  public:
   // Throws std::invalid_argument when there is no layer, the layers do not chain, a layer's arrays do not match
-  // its shape, or the scaling's three vectors are not one value per input.
+  // its shape, or the scaling's three vectors are not one finite value per input (a log floor >= 0).
   QNetworkForward(std::vector<DenseLayer> layers, InputScaling scaling);
 
   std::size_t inputs() const { return layers_.front().inputs; }
