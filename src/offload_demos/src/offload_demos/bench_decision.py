@@ -10,6 +10,7 @@ path back to back (above) in the same run. Prints wall time and the process's CP
     python -m offload_demos.bench_decision [--decisions 20000] [--budget-us 100] [--paced-decisions 100]
 """
 import argparse
+import math
 import os
 import resource
 import subprocess
@@ -114,8 +115,8 @@ def decision_paths(agent: DQNAgent) -> Dict[str, Callable]:
 
 
 def numpy_decision(agent: DQNAgent) -> Callable:
-    """The baseline: the network's forward pass as numpy calls, two a hidden layer with the bias as a row fed by a
-    unit held at 1 (the robot's decision before it was compiled)."""
+    """The baseline: the robot's decision before it was compiled (FastDecision up to 7cc2737), as numpy calls. The
+    state is normalised in Python floats, then two calls a hidden layer, its bias a row fed by a unit held at 1."""
     fast = agent.fast_decision()
     layers = []
     for i, (w, b) in enumerate(zip(fast.weights, fast.biases)):
@@ -126,9 +127,18 @@ def numpy_decision(agent: DQNAgent) -> Callable:
             layer[-1, -1] = 1.0
         layers.append(layer)
     normalisation = agent.normalisation
+    mean = [float(m) for m in normalisation.mean]
+    inverse_scale = [1.0 / float(s) for s in normalisation.scale]
+    logs = STATE_SCHEMA.log_columns if normalisation.log_input_size else ()
 
     def decide(*state):
-        h = np.append(normalisation.apply(np.array(state)), np.float32(1.0)).astype(np.float32)
+        if logs:
+            state = list(state)
+            for i, floor in logs:
+                state[i] = math.log(max(state[i], 0.0) + floor)
+        x = [(value - m) * inverse for value, m, inverse in zip(state, mean, inverse_scale)]
+        x.append(1.0)
+        h = np.array(x, dtype=np.float32)
         for layer in layers[:-1]:
             h = h @ layer
             np.maximum(h, 0.0, out=h)

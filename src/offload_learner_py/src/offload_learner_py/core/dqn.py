@@ -179,7 +179,7 @@ class FastDecision:
 
     On a robot a decision meets cold caches (the planner and the robot's other work ran since the last one). There
     numpy's forward pass, two calls a hidden layer, cost 148-168 us at the p50 (bench-decision's paced run: caches
-    flushed before each decision, the other core busy); the compiled one costs ~55 us, about half of it the call
+    flushed before each decision, the other core busy); the compiled one costs ~60 us, about half of it the call
     into the module and half the network's 530 KB of weights read from memory. The scaling is the normalisation's
     (log(max(x, 0) + floor) on its log fields, then (x - mean) / scale), in double precision before the float32
     network, as in normalisation.py."""
