@@ -13,7 +13,8 @@ NOETIC := /opt/ros/noetic/setup.bash
 ROS_DEBS := ros-base-dev python3-rospy python3-roslaunch python3-rostest python3-rosbag python3-rosgraph libnav-msgs-dev \
 	python3-nav-msgs catkin ros-message-generation librostest-dev python3-tf2-ros \
 	libdiagnostic-updater-dev python3-diagnostic-updater libdiagnostic-aggregator-tools libdiagnostic-aggregator-dev \
-	libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure
+	libdynamic-reconfigure-config-init-mutex-dev python3-dynamic-reconfigure \
+	librosbag-storage-dev libtopic-tools-dev
 BUILD_DEBS := g++ cmake make pybind11-dev libgtest-dev libgmock-dev python3-dev python3-venv libzmq3-dev
 # Test and benchmark tools: HAProxy in front of several cloud servers (fleet test, make bench-fleet) and
 # systemd-analyze for the unit file check.

@@ -141,15 +141,16 @@ class FaultStack(WaitsForRecords):
 
     @classmethod
     def start_recorder(cls):
-        """rosbag's recorder itself (not the `rosbag record` wrapper, so SIGKILL reaches it), on the topics
-        of launch/record.launch, into a new bag each time as a restarted robot should."""
+        """offload_record, as launch/record.launch starts it on its topics (it execs the recorder, so SIGKILL reaches
+        the recorder), into a new bag each time as a restarted robot should."""
         cls.bag_number += 1
         bag = os.path.join(cls.tmp.name, f"session{cls.bag_number}.bag")
         cls.bag_paths.append(bag)
         tokens = ElementTree.parse(launch_file("record.launch")).find("node").get("args").split()
         topics = tokens[tokens.index("--") + 1:]
         cls.processes["record"] = subprocess.Popen(
-            ["rosrun", "rosbag", "record", "-O", bag, *topics, "__name:=offload_record"],
+            [sys.executable, "-m", "offload_learner_py.nodes.record", "--bag", bag, "--", *topics,
+             "__name:=offload_record"],
             stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
 
     @classmethod

@@ -239,7 +239,7 @@ ROSDEP_KEYS = {"numpy": "python3-numpy", "zmq": "python3-zmq", "yaml": "python3-
                "nav_msgs": "nav_msgs", "geometry_msgs": "geometry_msgs", "std_msgs": "std_msgs",
                "offload_msgs": "offload_msgs", "offload_planner_cpp": "offload_planner_cpp", "offload_cloud": "offload_cloud",
                "offload_learner_py": "offload_learner_py", "rosgraph_msgs": "rosgraph_msgs",
-               "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph",
+               "sensor_msgs": "sensor_msgs", "visualization_msgs": "visualization_msgs", "rosgraph": "rosgraph", "roslib": "roslib",
                "atheris": "python3-atheris-pip", "rospkg": "python3-rospkg", "rosunit": "rosunit",
                "lz4": "python3-lz4", "offload_demos": "offload_demos", "diagnostic_updater": "diagnostic_updater",
                "diagnostic_msgs": "diagnostic_msgs", "dynamic_reconfigure": "dynamic_reconfigure"}

@@ -239,9 +239,11 @@ def test_bench_measure_reports_the_robots_total_per_request(tmp_path):
 
 
 def test_the_recorder_is_a_robot_process_of_its_own():
-    """rosbag records on the robot (offload_record becomes `rosbag record`, whose C++ recorder is a child): its CPU is
-    the robot's and shows apart, not in `other`."""
+    """The recorder on the robot (offload_record becomes offload_bag_recorder; `rosbag record`'s C++ recorder is a
+    child): its CPU is the robot's and shows apart, not in `other`."""
     for cmdline in (["/usr/bin/python3", "/x/offload_record", "--bag", "b", "__name:=offload_record"],
+                    ["/x/offload_bag_recorder", "--min-free-mib", "1024", "b.bag", "/t", "__name:=offload_record"],
+                    ["/x/offload_bag_recorder", "b.bag", "/t"],
                     ["/usr/bin/python3", "/usr/bin/rosbag", "record", "-O", "b.bag", "/t"],
                     ["/usr/lib/rosbag/record", "--buffsize", "256", "-O", "b.bag", "/t"]):
         assert robot_cpu.group_of(robot_cpu.process_name(cmdline)) == "recorder", cmdline

@@ -31,8 +31,10 @@ WORKLOAD_NODES = ("robot_workload",)
 # The robot's nodes by their ROS name (the `__name:=` roslaunch gives them); any other process is "other".
 NODE_GROUPS = {"planner": "planner", "cloud_bridge": "bridge", "offload_learner": "learner",
                "robot_workload": "workload",
-               # rosbag on the robot: offload_record becomes `rosbag record`, whose C++ recorder is a child process
-               "offload_record": "recorder", "rosbag": "recorder", "record": "recorder"}
+               # the recorder on the robot: offload_record becomes offload_bag_recorder (exec, the same process); a
+               # `rosbag record` (older launch files) runs its C++ recorder as a child process
+               "offload_record": "recorder", "offload_bag_recorder": "recorder", "rosbag": "recorder",
+               "record": "recorder"}
 CLOCK_TICKS_S = 1.0 / os.sysconf("SC_CLK_TCK")
 
 

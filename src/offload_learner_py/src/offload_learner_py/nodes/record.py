@@ -1,9 +1,11 @@
-"""offload_record: `rosbag record` of the offloading topics that never replaces a bag and fails loudly.
+"""offload_record: a bag of the offloading topics that never replaces a bag and fails loudly.
 
-rosbag record -O truncates an existing file (a crashed session's .bag.active, or a finished bag), and on a
-disk with less free space than its --min-space it records nothing, saying so only in its own log. This
-checks both before it hands over to rosbag (exec: the recorder keeps this process, so signals reach it),
-and exits non-zero with one line instead: record.launch marks it required, so the launch fails.
+A recorder opening BAG truncates an existing file (a crashed session's .bag.active, or a finished bag), and
+on a disk with too little free space records nothing, saying so only in its own log. This checks both before
+it hands over to the recorder, offload_bag_recorder (exec: the recorder keeps this process, so signals reach
+it), and exits non-zero with one line instead: record.launch marks it required, so the launch fails. The
+recorder writes what `rosbag record` writes, with one callback thread instead of rosbag's ten
+(src/bag_recorder.cpp says why).
 
     offload_record [--bag PATH | --prefix PREFIX] [--min-free-mib N] -- TOPIC...
 """
@@ -15,12 +17,12 @@ import time
 
 from offload_cloud.cli_args import bounded_int
 
-MIN_FREE_MIB = 1024   # the recorder's own minimum free space (1 GB, not an option of the rosbag command):
-                      # below it, it records nothing
+MIN_FREE_MIB = 1024   # rosbag record's minimum free space (1 GB), which the recorder keeps: below it, it stops
+RECORDER = "offload_bag_recorder"
 
 
 def bag_path(bag: str, prefix: str, now: float) -> str:
-    """The file rosbag will write: the bag asked for, with ".bag" appended as `rosbag record -O` appends it to
+    """The file the recorder will write: the bag asked for, with ".bag" appended as `rosbag record -O` appends it to
     a name without it (checking NAME while rosbag wrote NAME.bag replaced an earlier run's bag), else
     PREFIX-<local time>.bag, so a restart never reuses a name."""
     if not bag:
@@ -38,7 +40,7 @@ def problem(path: str, min_free_mib: int) -> str:
         return f"{directory} is not a directory"
     free_mib = shutil.disk_usage(directory).free // (1 << 20)
     if free_mib < min_free_mib:
-        return (f"only {free_mib} MiB free in {directory}, under the {min_free_mib} MiB rosbag needs to record "
+        return (f"only {free_mib} MiB free in {directory}, under the {min_free_mib} MiB the recorder needs to record "
                 f"(it would record nothing): free space or record elsewhere")
     return ""
 
@@ -56,8 +58,18 @@ def main(argv=None) -> None:
     why = problem(path, args.min_free_mib)
     if why:
         raise SystemExit(f"offload_record: {why}")
+    recorder = recorder_path()
     print(f"offload_record: recording {len(args.topics)} topics into {path}", flush=True)
-    os.execvp("rosbag", ["rosbag", "record", "-O", path, *args.topics, *ros_args])
+    os.execv(recorder, [recorder, "--min-free-mib", str(args.min_free_mib), path, *args.topics, *ros_args])
+
+
+def recorder_path() -> str:
+    """offload_bag_recorder, where catkin put it (devel or install space)."""
+    from roslib.packages import find_node   # only here: the checks above need no ROS
+    found = find_node("offload_learner_py", RECORDER)
+    if not found:
+        raise SystemExit(f"offload_record: {RECORDER} not found: build the workspace (make build)")
+    return found[0]
 
 
 if __name__ == "__main__":
