@@ -1,10 +1,11 @@
 #!/usr/bin/env python3
 """Hand-written mutation testing of the C++ planner core and its request contract (dijkstra.cpp,
 planner_options.cpp, plan_request.cpp, map_geometry.h, the ROS wrapper planner_ros.cpp and the pybind11
-bindings). `make mutate` runs it after the Python modules.
+bindings), and of the robot's recorder (offload_learner_py's bag_recorder.cpp, judged by its rostest
+bag_recorder.test). `make mutate` runs it after the Python modules.
 
 For each mutant of tools/cpp_mutants.yaml, one at a time: write the mutated source (its `file`, relative
-to src/offload_planner_cpp/, default src/dijkstra.cpp), rebuild the gtests and the pybind11 module
+to src/<its `package`>/, default offload_planner_cpp and src/dijkstra.cpp), rebuild the gtests, the recorder and the pybind11 module
 (catkin_make targets test_dijkstra, test_dijkstra_waves, test_planner_modes, test_jump_point_search, test_planner_ros,
 test_planner_options, test_planner_pool, test_q_network and _core), run the gtests and
 the binding and contract tests (test_bindings.py, test_request_contract.py, test_q_network.py), and record whether a test
@@ -26,7 +27,9 @@ import yaml
 
 ROOT = Path(__file__).resolve().parents[1]
 PACKAGE = ROOT / "src" / "offload_planner_cpp"
-DEFAULT_FILE = "src/dijkstra.cpp"
+DEFAULT_PACKAGE, DEFAULT_FILE = "offload_planner_cpp", "src/dijkstra.cpp"
+# The recorder is a node: its rostest starts it and judges the bag and its threads.
+ROSTESTS = {"offload_learner_py": ["bag_recorder.test"]}
 MUTANTS = Path(__file__).resolve().parent / "cpp_mutants.yaml"
 GTESTS = [ROOT / "devel" / "lib" / "offload_planner_cpp" / name
           for name in ("test_dijkstra", "test_dijkstra_waves", "test_planner_modes", "test_jump_point_search",
@@ -80,12 +83,29 @@ def apply(source: str, mutant: dict) -> str:
 
 
 def build() -> subprocess.CompletedProcess:
-    return subprocess.run(["catkin_make", "--source", str(ROOT), "-j2", *(path.name for path in GTESTS), "_core"],
-                          cwd=ROOT, capture_output=True, text=True)
+    return subprocess.run(["catkin_make", "--source", str(ROOT), "-j2", *(path.name for path in GTESTS), "_core",
+                           "offload_bag_recorder"], cwd=ROOT, capture_output=True, text=True)
 
 
-def run_tests() -> tuple:
-    """(killed, which test failed)."""
+def source_key(mutant: dict) -> str:
+    """The mutated file, relative to src/: its package's directory, then its path in the package."""
+    return f"{mutant.get('package', DEFAULT_PACKAGE)}/{mutant.get('file', DEFAULT_FILE)}"
+
+
+def run_tests(package: str = DEFAULT_PACKAGE) -> tuple:
+    """(killed, which test failed): the planner's gtests and binding tests, or the package's rostests."""
+    if package != DEFAULT_PACKAGE:
+        for launch in ROSTESTS.get(package, []):
+            try:
+                rostest = subprocess.run(["rostest", "--text", package, launch], cwd=ROOT, capture_output=True,
+                                         text=True, timeout=TEST_TIMEOUT_S)
+            except subprocess.TimeoutExpired:
+                return True, f"{launch} (timed out)"
+            output = rostest.stdout + rostest.stderr
+            failed = [line.split()[1] for line in output.splitlines() if line.startswith(("FAIL:", "ERROR:"))]
+            if rostest.returncode != 0 or "RESULT: FAIL" in output:   # rostest --text exits 0 on a failed test
+                return True, f"{launch} " + (failed[0] if failed else f"(exit {rostest.returncode})")
+        return False, ""
     for gtest_path in GTESTS:
         try:
             gtest = subprocess.run([str(gtest_path), "--gtest_brief=1"], capture_output=True, text=True,
@@ -114,10 +134,10 @@ def main(argv=None) -> int:
     parser.add_argument("--list", type=Path, default=MUTANTS, help="mutant list (default tools/cpp_mutants.yaml)")
     args = parser.parse_args(argv)
     mutants = load_mutants(args.list)
-    sources = {name: PACKAGE / name for name in {m.get("file", DEFAULT_FILE) for m in mutants}}
+    sources = {key: ROOT / "src" / key for key in {source_key(m) for m in mutants}}
     missing = [name for name, path in sources.items() if not path.is_file()]
     if missing:
-        sys.exit(f"{args.list}: no such source file {missing} (file is relative to {PACKAGE.relative_to(ROOT)})")
+        sys.exit(f"{args.list}: no such source file {missing} (file is relative to src/<package>/)")
     originals = {name: path.read_bytes() for name, path in sources.items()}
 
     def restore():
@@ -139,17 +159,18 @@ def main(argv=None) -> int:
         baseline = build()
         if baseline.returncode != 0:
             sys.exit(f"mutate_cpp: the unmutated workspace does not build:\n{baseline.stdout[-3000:]}")
-        killed, where = run_tests()
-        if killed:
-            sys.exit(f"mutate_cpp: the tests fail on the unmutated source ({where}); no mutant can be judged")
+        for package in sorted({m.get("package", DEFAULT_PACKAGE) for m in mutants}):
+            killed, where = run_tests(package)
+            if killed:
+                sys.exit(f"mutate_cpp: the tests fail on the unmutated source ({where}); no mutant can be judged")
         print(f"C++ mutants of {', '.join(sorted(sources))} ({len(mutants)} from {args.list.name}); tests: "
               f"{', '.join(path.name for path in GTESTS)} (gtest), "
               f"{', '.join(path.name for path in BINDING_TESTS)}", flush=True)
         for mutant in mutants:
             began = time.monotonic()
-            source = sources[mutant.get("file", DEFAULT_FILE)]
+            source = sources[source_key(mutant)]
             try:
-                mutated = apply(originals[mutant.get("file", DEFAULT_FILE)].decode(), mutant)
+                mutated = apply(originals[source_key(mutant)].decode(), mutant)
             except ValueError as error:
                 results.append((mutant, "stale", str(error)))
                 print(f"  stale     {mutant['name']}: {error}", flush=True)
@@ -159,7 +180,7 @@ def main(argv=None) -> int:
                 if build().returncode != 0:
                     outcome, detail = "no-build", "does not compile"
                 else:
-                    killed, detail = run_tests()
+                    killed, detail = run_tests(mutant.get("package", DEFAULT_PACKAGE))
                     outcome = "killed" if killed else "SURVIVED"
             finally:
                 restore()
