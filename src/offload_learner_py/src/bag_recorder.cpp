@@ -121,7 +121,13 @@ int main(int argc, char** argv) {
   uint64_t min_free_mib = 1024;
   std::vector<std::string> words(argv + 1, argv + argc);
   if (words.size() >= 2 && words[0] == "--min-free-mib") {
-    min_free_mib = std::strtoull(words[1].c_str(), nullptr, 10);
+    char* end = nullptr;
+    min_free_mib = std::strtoull(words[1].c_str(), &end, 10);
+    if (words[1].empty() || *end != '\0' || words[1][0] == '-') {   // strtoull takes "-1" and stops at garbage
+      std::fprintf(stderr, "offload_bag_recorder: --min-free-mib wants a whole number of MiB, got '%s'\n",
+                   words[1].c_str());
+      return 2;
+    }
     words.erase(words.begin(), words.begin() + 2);
   }
   if (words.size() < 2) {

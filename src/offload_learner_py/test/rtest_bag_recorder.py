@@ -163,5 +163,15 @@ class BagRecorderTest(unittest.TestCase):
         self.assertFalse(os.path.exists(bag + ".active"))
 
 
+    def test_a_garbage_floor_is_refused_with_one_line(self):
+        """The recorder alone (offload_record passes a checked number): a floor that is not a whole number of MiB is
+        refused, never read as 0 (record everything until the disk is full)."""
+        for floor in ("abc", "12x", "-1", ""):
+            done = subprocess.run([recorder_path(), "--min-free-mib", floor, self.bag_name("garbage"), COUNTED],
+                                  capture_output=True, text=True, timeout=20)
+            self.assertEqual(done.returncode, 2, floor)
+            self.assertIn("--min-free-mib wants a whole number", done.stderr)
+
+
 if __name__ == "__main__":
     rostest.rosrun("offload_learner_py", "bag_recorder_rtest", BagRecorderTest, sys.argv)
