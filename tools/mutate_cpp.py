@@ -7,7 +7,7 @@ bag_recorder.test). `make mutate` runs it after the Python modules.
 For each mutant of tools/cpp_mutants.yaml, one at a time: write the mutated source (its `file`, relative
 to src/<its `package`>/, default offload_planner_cpp and src/dijkstra.cpp), rebuild the gtests, the recorder and the pybind11 module
 (catkin_make targets test_dijkstra, test_dijkstra_waves, test_planner_modes, test_jump_point_search, test_planner_ros,
-test_planner_options, test_planner_pool, test_q_network and _core), run the gtests and
+test_planner_options, test_planner_pool, test_q_network, test_serve_queue and _core), run the gtests and
 the binding and contract tests (test_bindings.py, test_request_contract.py, test_q_network.py), and record whether a test
 failed (killed), the build failed (does not compile) or everything passed (survived). The original source
 is written back after every mutant, and on any exit (failure, Ctrl-C, SIGTERM); the devel space is then
@@ -33,7 +33,8 @@ ROSTESTS = {"offload_learner_py": ["bag_recorder.test"]}
 MUTANTS = Path(__file__).resolve().parent / "cpp_mutants.yaml"
 GTESTS = [ROOT / "devel" / "lib" / "offload_planner_cpp" / name
           for name in ("test_dijkstra", "test_dijkstra_waves", "test_planner_modes", "test_jump_point_search",
-                       "test_planner_ros", "test_planner_options", "test_planner_pool", "test_q_network")]
+                       "test_planner_ros", "test_planner_options", "test_planner_pool", "test_q_network",
+                       "test_serve_queue")]
 BINDING_TESTS = [PACKAGE / "test" / name for name in ("test_bindings.py", "test_request_contract.py",
                                                         "test_q_network.py")]
 TEST_TIMEOUT_S = 300  # a mutant that loops forever is killed by this, not waited for

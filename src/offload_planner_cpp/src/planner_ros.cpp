@@ -281,10 +281,12 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
 // (4.2 ms/s, a robot's cost whether it plans or not). A queue wakes one waiting thread when a callback arrives, so a
 // long wait adds no latency; ros::shutdown disables the global queue, which wakes its threads (the calling thread is
 // one of them) to leave, and disabling the node's own queues wakes theirs.
+void serveQueue(ros::CallbackQueue* queue, double wait_s) {
+  while (queue->isEnabled()) queue->callOne(ros::WallDuration(wait_s));
+}
+
 void PlannerNode::spin() {
-  const auto serve = [](ros::CallbackQueue* queue) {
-    while (ros::ok() && queue->isEnabled()) queue->callAvailable(ros::WallDuration(kSpinnerWaitS));
-  };
+  const auto serve = [](ros::CallbackQueue* queue) { serveQueue(queue, kSpinnerWaitS); };
   std::vector<std::thread> threads;
   threads.emplace_back(serve, &map_queue_);
   threads.emplace_back(serve, &cancel_queue_);

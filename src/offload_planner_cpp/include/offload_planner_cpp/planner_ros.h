@@ -97,6 +97,12 @@ class CancelRegistry {
 // (planner_options.h), by its name, type and default; the first problem found, or "" when they are fine.
 std::string readPlannerParameters(const ros::NodeHandle& pnh, PlannerParameters* parameters);
 
+// Runs `queue`'s callbacks until the queue is disabled (ros::shutdown disables the global one), waiting up to
+// `wait_s` at a time for work. One callback a call: callAvailable would hand every callback waiting at that moment to
+// the one thread that woke, so of two plans asked together the second waited behind the first while the other
+// serving threads slept (a cancel of the second answered only once the first had ended: CI, stop 47).
+void serveQueue(ros::CallbackQueue* queue, double wait_s);
+
 class PlannerNode {
  public:
   PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh);
