@@ -319,6 +319,8 @@ class PlannerNodeTest(unittest.TestCase):
         # machine a long plan can reach the node after the map swap (GOAL_OFF_MAP on the small map: CI, 3d17f2f) or,
         # after a longer pause, end before the short plan is asked (fresh-ci, 666b468): such an attempt is run again
         # with the pause moved the other way. A node that makes the short plan wait still fails a valid attempt.
+        # (Before 6f7115a "late" was likely the node's own doing as well: the serving thread that woke took both long
+        # plans and began the second only after the first had ended. test_serve_queue.cpp now holds that.)
         pause, attempts = 0.4, []
         for attempt in range(6):
             res, short_done, finished, asked = self.long_plans_beside_a_map_swap(7000 + 2000 * attempt, pause)
