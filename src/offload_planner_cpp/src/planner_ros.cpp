@@ -276,15 +276,16 @@ PlannerNode::PlannerNode(ros::NodeHandle& nh, ros::NodeHandle& pnh) {
            planning_threads_, max_map_cells, map_sub_.getTopic().c_str());
 }
 
+// One callback a call (planner_ros.h says why).
+void serveQueue(ros::CallbackQueue* queue, double wait_s) {
+  while (queue->isEnabled()) queue->callOne(ros::WallDuration(wait_s));
+}
+
 // roscpp's AsyncSpinner wakes each of its threads every 0.1 s to look for work, and ros::waitForShutdown every
 // 0.05 s: with the map, the cancel and four planning threads, 80 wake-ups a second, most of an idle node's CPU
 // (4.2 ms/s, a robot's cost whether it plans or not). A queue wakes one waiting thread when a callback arrives, so a
 // long wait adds no latency; ros::shutdown disables the global queue, which wakes its threads (the calling thread is
 // one of them) to leave, and disabling the node's own queues wakes theirs.
-void serveQueue(ros::CallbackQueue* queue, double wait_s) {
-  while (queue->isEnabled()) queue->callOne(ros::WallDuration(wait_s));
-}
-
 void PlannerNode::spin() {
   const auto serve = [](ros::CallbackQueue* queue) { serveQueue(queue, kSpinnerWaitS); };
   std::vector<std::thread> threads;
