@@ -165,6 +165,9 @@ def test_dqn_learns_on_probe_steps_and_prefers_the_faster_side():
     sizes = [0.01 * (k % 50) for k in range(300)]
     for d in sizes:
         router.route(d, State(d, 0.5, 0.05, 2e7))
+        # Both sides measured before the next request: its caller goes on once it has the first path, and a local
+        # side not yet started when a newer request needs the planner is dropped (test_router_cancel.py).
+        assert router.wait_idle(30)
     finish(router)
     policy.flush()
     assert policy.steps == 2 * len(sizes)     # full information: both actions' rewards from every probe

@@ -58,6 +58,7 @@ def test_learning_mode_probes_every_request_and_teaches_both_actions():
                                          mode="learning", probe_rate=0.0)
     for _ in range(3):
         router.route("req", STATE)
+        assert router.wait_idle(30)   # the caller has its path before the other side answers: one at a time
     finish(router)
     assert all(routing.probe for routing in recorder.routings)
     assert policy.taught == [(LOCAL, reward(LOCAL, 0.2, 0.08)), (CLOUD, reward(CLOUD, 0.2, 0.08))] * 3
@@ -216,6 +217,7 @@ def test_breaker_trial_is_a_probe_and_a_cloud_answer_closes_it():
     router.route("req", STATE)
     now[0] = 100.0
     router.route("req", STATE)
+    assert router.wait_idle(30)   # the trial's cloud answer is in (the caller has its path before it may be)
     router.route("req", STATE)
     finish(router)
     assert [(r.breaker, r.probe) for r in recorder.routings] == [("open", False), ("trial", True), ("closed", False)]
@@ -290,6 +292,7 @@ def test_a_warm_started_policy_probes_until_both_latency_models_are_ready():
                                          mode="deployed", probe_rate=0.0)
     for _ in range(40):
         router.route("req", STATE)
+        assert router.wait_idle(30)   # each request learned before the next (the caller has its path first)
     finish(router)
     probes = [r.probe for r in recorder.routings]
     min_samples = router.config.latency_model.min_samples
@@ -359,6 +362,7 @@ def test_a_cloud_refusal_is_checked_locally_and_a_lying_one_counts_as_a_cloud_fa
     for _ in range(5):
         delivered = router.route("req", STATE)
         assert delivered.status == OK and delivered.response["side"] is local
+        assert router.wait_idle(30)   # the refusal's verdict is in before the next request
     finish(router)
     failures = router.config.breaker.failures_to_open
     assert len(cloud.calls) == failures, "the lying cloud was not taken out of service"

@@ -124,8 +124,10 @@ class LearnerNode:
             self.outputs.rejected(refused)
             rospy.logwarn_throttle(10.0, "request refused (status %d): %s", refused.status, refused.message)
             return PlanPathResponse(status=refused.status, message=refused.message)
-        self.outputs.goal(request.goal)
-        result = self.router.route(request, self.build_state(request), arrived)
+        state = self.build_state(request)
+        if state is None:
+            self.outputs.goal(request.goal)   # nothing to decide: no outcome to publish it with
+        result = self.router.route(request, state, arrived)
         if result.response is None:
             return PlanPathResponse(status=result.status, message=result.raised)
         if result.note:   # a path on the last map the planner took, never as OK: STALE_MAP and why

@@ -5,7 +5,6 @@ others, nodes/learner_params.py). Here: the rows as the node publishes them (the
 rosbag stores them, with the classes' definitions and md5), and the TrainingStats fields of the fleet mode."""
 import io
 import time
-from collections import OrderedDict
 
 from offload_msgs.msg import OffloadDecision, OffloadOutcome
 
@@ -18,7 +17,6 @@ from offload_learner_py.online.router_types import DEPLOYED
 DEFINITIONS = {"offload_msgs/OffloadDecision": OffloadDecision._full_text,
                "offload_msgs/OffloadOutcome": OffloadOutcome._full_text}
 MD5 = {"offload_msgs/OffloadDecision": OffloadDecision._md5sum, "offload_msgs/OffloadOutcome": OffloadOutcome._md5sum}
-MAX_UNPAIRED = 1000     # decisions whose outcome has not come (requests in flight); more is a leak, not load
 
 
 def serialized(msg) -> bytes:
@@ -38,7 +36,6 @@ class NodeFleet:
     def __init__(self, config: FleetConfig, guard: GuardConfig, mode: str, policy: str, model: str, log):
         self.config = config
         self.robot = None
-        self._decisions = OrderedDict()
         if not self.config.enabled:
             return
         if mode != DEPLOYED or policy != "dqn":
@@ -57,20 +54,14 @@ class NodeFleet:
             return OnlineLearner.resume(session, log=log, **settings)
         return OnlineLearner(self.robot.policy, settings.pop("statuses"), config=session, log=log, **settings)
 
-    def decision(self, msg) -> None:
-        if self.robot is not None:
-            self._decisions[msg.request_id] = msg
-            while len(self._decisions) > MAX_UNPAIRED:
-                self._decisions.popitem(last=False)
-
-    def outcome(self, outcome, msg) -> None:
-        """Before `msg` is published: the guard's sample (its CPU added to learner_cpu_s), then the row."""
+    def outcome(self, outcome, msg, decision=None) -> None:
+        """Before `msg` is published: the guard's sample (its CPU added to learner_cpu_s), then the row (`decision`,
+        `msg`), when the request's decision message is known."""
         if self.robot is None:
             return
         began = time.thread_time()
         self.robot.on_outcome(outcome)
         msg.learner_cpu_s += time.thread_time() - began
-        decision = self._decisions.pop(outcome.request_id, None)
         if decision is not None and self.robot.link is not None:
             self.robot.link.enqueue((decision, msg))
 

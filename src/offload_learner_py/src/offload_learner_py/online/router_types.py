@@ -51,7 +51,7 @@ class SideResult:
 
 @dataclass(frozen=True)
 class Routing:
-    """What the router did with a decision, published before any side is called."""
+    """What the router did with a decision, handed to on_decision before any side is called."""
     request_id: int
     state: State
     decision: "Decision"
@@ -61,6 +61,7 @@ class Routing:
     breaker: str = CLOSED           # CLOSED, OPEN (cloud skipped), TRIAL (a probe to test the link) or SLOW (the
                                     # hedge kept a cloud choice local: its round trip alone is too long)
     deadline_s: float = float("nan")   # hedge deadline of the first side; NaN when not hedged
+    request: Any = field(default=None, compare=False, repr=False)   # the caller's request, for its records
 
 
 @dataclass
