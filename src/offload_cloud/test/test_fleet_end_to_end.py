@@ -4,7 +4,6 @@ the learner is SIGKILLed mid-run, the robot keeps deciding with the version it h
 sends them when the learner is back on the same store; every row is in the pool but the ones counted as dropped."""
 import os
 import signal
-import socket
 import subprocess
 import sys
 import time
@@ -13,6 +12,7 @@ import numpy as np
 import pytest
 
 import fleet_helpers as h
+from offload_demos.loopback import free_port
 from offload_learner_py.core.model_file import model_bytes, model_version
 from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.core.state import STATE_SIZE, State
@@ -23,12 +23,6 @@ from offload_learner_py.online.model_guard import GuardConfig
 
 DEFS, MD5 = h.definitions()
 STATE = State(1.2, 0.6, 0.05, 2e7)
-
-
-def free_port() -> int:
-    with socket.socket() as s:
-        s.bind(("127.0.0.1", 0))
-        return s.getsockname()[1]
 
 
 def serve(store, port):

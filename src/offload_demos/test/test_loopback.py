@@ -1,11 +1,12 @@
-"""Stopping a server a test or benchmark started: a polite one exits on SIGTERM and keeps its chance to clean
+"""Loopback ports that stay free until a server binds them, and stopping a server a test or benchmark started: a polite one exits on SIGTERM and keeps its chance to clean
 up; one that ignores SIGTERM is killed after the grace period instead of hanging the caller."""
 import signal
+import socket
 import subprocess
 import sys
 import time
 
-from offload_demos.loopback import stop_process
+from offload_demos.loopback import LOOPBACK, ephemeral_ports, free_port, stop_process
 
 _IGNORES_TERM = ("import signal, time; signal.signal(signal.SIGTERM, signal.SIG_IGN); print('ready', flush=True); "
                  "time.sleep(60)")
@@ -41,3 +42,22 @@ def test_none_and_an_exited_process_are_left_alone():
     process.wait()
     stop_process(process)
     assert process.returncode == 0
+
+
+def test_a_free_port_is_below_the_range_outgoing_connections_draw_from():
+    """A port from bind(0) lies in the ephemeral range, where a launch's own connections could take it before the
+    server binds it (a cloud server died with "Address already in use" in a bench run)."""
+    low, high = ephemeral_ports()
+    ports = {free_port() for _ in range(50)}
+    assert all(port < low for port in ports), sorted(ports)
+    assert len(ports) > 1, "the same port every time: not drawn"
+    for port in list(ports)[:5]:
+        with socket.socket() as server:
+            server.bind((LOOPBACK, port))     # free: a server can take it
+
+
+def test_the_ephemeral_range_is_read_and_a_missing_file_falls_back(tmp_path):
+    path = tmp_path / "range"
+    path.write_text("40000\t50000\n")
+    assert ephemeral_ports(str(path)) == (40000, 50000)
+    assert ephemeral_ports(str(tmp_path / "missing")) == (32768, 60999)

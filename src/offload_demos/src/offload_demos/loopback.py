@@ -1,18 +1,42 @@
 """Loopback ports for the demo, tests and benchmarks that start servers of their own, and stopping those servers."""
 import contextlib
+import random
 import socket
 import subprocess
 import time
-from typing import Optional
+from typing import Optional, Tuple
 
 LOOPBACK = "127.0.0.1"
+PORT_RANGE_FILE = "/proc/sys/net/ipv4/ip_local_port_range"
+LOWEST_PORT = 10000
 
 
-def free_port() -> int:
-    """A TCP port on the loopback interface that is free now (the OS picks it)."""
-    with socket.socket() as probe:
-        probe.bind((LOOPBACK, 0))
-        return probe.getsockname()[1]
+def ephemeral_ports(path: str = PORT_RANGE_FILE) -> Tuple[int, int]:
+    """The kernel's range for the local ports of outgoing connections (Linux's default when it cannot be read)."""
+    try:
+        with open(path) as stream:
+            low, high = (int(field) for field in stream.read().split()[:2])
+        return low, high
+    except (OSError, ValueError):
+        return 32768, 60999
+
+
+def free_port(attempts: int = 200) -> int:
+    """A TCP port on the loopback interface that is free now, below the kernel's ephemeral range. A port the OS
+    picks (bind to 0) comes from that range, which every outgoing connection draws from too: between the pick and a
+    server's bind, one of a launch's own connections (the master's, a node's) took it, and the server died with
+    "Address already in use" (a bench run, 2026-11-28)."""
+    high = ephemeral_ports()[0]
+    low = LOWEST_PORT if high > LOWEST_PORT + 1000 else 1024
+    for _ in range(attempts):
+        port = random.randrange(low, high)
+        with socket.socket() as probe:
+            try:
+                probe.bind((LOOPBACK, port))
+            except OSError:
+                continue
+        return port
+    raise OSError(f"no free loopback port in [{low}, {high}) after {attempts} tries")
 
 
 def wait_for_port(port: int, timeout_s: float) -> bool:
