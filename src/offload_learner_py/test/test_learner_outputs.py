@@ -1,9 +1,11 @@
 """The learner node's records of a decided request (nodes/learner_outputs.py) without a master, rospy's publishers
-and clock replaced by stand-ins: nothing is published on the caller's path (before its planner is called), and
-the goal, the decision (stamped at its moment) and the outcome go out once the request is done, in that order, for
-the fleet's row too."""
+and clock replaced by stand-ins: nothing is published on the caller's path (before its planner is called); the goal
+and the decision (stamped at its moment) go out once the caller has its path, before a probe's slower side is done,
+and the outcome after them."""
 import itertools
 import logging
+import threading
+import time
 
 import pytest
 
@@ -69,7 +71,7 @@ def test_a_decided_requests_records_go_out_after_its_path_not_on_the_callers_pat
     fleet = NodeFleet(FleetConfig(), GuardConfig(), DEPLOYED, "local", "", logging.getLogger("test"))
     router = wired_router(AlwaysLocal(), planner, planner, STATUSES, config)
     outputs = learner_outputs.LearnerOutputs(router.learner, fleet, LinkBreaker(config.breaker), config, session, 60.0)
-    router.on_decision, router.on_outcome = outputs.decision, outputs.outcome
+    router.on_decision, router.on_outcome, router.on_delivered = outputs.decision, outputs.outcome, outputs.delivered
     goal = PoseStamped()
     goal.pose.position.x = 4.5
     for _ in range(2):
@@ -102,3 +104,32 @@ def test_decided_requests_kept_for_their_outcomes_are_bounded(published):
         outputs.decision(Routing(request_id, STATE, Decision(LOCAL, 1.0), False, LOCAL, DEPLOYED))
     assert len(outputs._decided) == learner_outputs.MAX_UNPAIRED
     assert min(outputs._decided) == 50, "the oldest are let go first"
+
+
+def test_the_decision_goes_out_once_the_caller_has_its_path_before_the_slower_side_is_done(published):
+    """A client pairs its call with the decision it waits for next (the fault-matrix rostest does): the decision
+    must not wait for a probe's slower side, which may take up to the cloud timeout."""
+    cloud_may_answer = threading.Event()
+
+    def local(request):
+        return STATUSES.ok, PlanPathResponse(status=PlanPathResponse.OK, path=Path())
+
+    def cloud(request):
+        assert cloud_may_answer.wait(30)
+        return STATUSES.ok, PlanPathResponse(status=PlanPathResponse.OK, path=Path())
+    config = RouterConfig(mode="learning", hedge=False)
+    session = SessionConfig(policy="local", learn=False)
+    fleet = NodeFleet(FleetConfig(), GuardConfig(), "learning", "local", "", logging.getLogger("test"))
+    router = wired_router(AlwaysLocal(), local, cloud, STATUSES, config)
+    outputs = learner_outputs.LearnerOutputs(router.learner, fleet, LinkBreaker(config.breaker), config, session, 60.0)
+    router.on_decision, router.on_outcome, router.on_delivered = outputs.decision, outputs.outcome, outputs.delivered
+    try:
+        assert router.route(PlanPathRequest(goal=PoseStamped()), STATE).status == STATUSES.ok
+        deadline = time.monotonic() + 30
+        while "~decision" not in published.topics() and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert published.topics() == ["~goal", "~decision"], "the decision waited for the probe's slower side"
+    finally:
+        cloud_may_answer.set()
+    assert router.wait_idle(30)
+    assert published.topics() == ["~goal", "~decision", "~outcome"]

@@ -64,6 +64,7 @@ class LearnerNode:
                           rospy.names.resolve_name(recorder) if recorder else "")
         self.router = OffloadRouter(self.learner, *self.sides, STATUSES, config,
                                     on_decision=self.outputs.decision, on_outcome=self.on_outcome,
+                                    on_delivered=self.outputs.delivered,
                                     stale=StaleMapCheck(lambda: self.map_info), account=account, breaker=breaker)
         # ~set_parameters: mode, probe rate, hedge and cloud timeout changed on the running node.
         self.reconfigure = LearnerReconfigure(config, self.learner, self.outputs, session.seed)

@@ -2,10 +2,12 @@
 table a bag rebuilds) and its sides' latched paths, the training statistics at most every ~stats_period_s, refused
 requests, goals, the latched settings, and its /diagnostics status (online/health.py's rules).
 
-A decided request's goal and decision are published with its outcome, once no side of it is running, not before
-its sides are called: a publish on the caller's path (serializing, waking rospy's writer thread, which then takes
-the interpreter) cost it 0.2 ms at the median and 1 ms at the 90th percentile on a loaded robot, as much as a
-small map's plan. The decision keeps the stamp and model steps of its moment."""
+A decided request's goal and decision are published once its caller has its path (the router's on_delivered), not
+before its sides are called: a publish on the caller's path (serializing, waking rospy's writer thread, which then
+takes the interpreter) cost it 0.2 ms at the median and 1 ms at the 90th percentile on a loaded robot, as much as a
+small map's plan. The decision keeps the stamp and model steps of its moment; its outcome follows once no side of
+the request is running."""
+import threading
 import time
 from collections import OrderedDict
 
@@ -39,7 +41,8 @@ class LearnerOutputs:
         self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
         self.config_pub.publish(config_msg(router_config, learner, session.seed, router_config.weights.alpha))
         self.health = LearnerHealth(router_config.mode, session.policy)
-        self._decided = OrderedDict()   # request id -> (routing, its stamp, the model's steps then)
+        self._decided = OrderedDict()   # request id -> (routing, stamp, model steps), then its published decision
+        self._lock = threading.Lock()   # the delivering side thread and the finishing one may be two
         self.diagnostics = NodeDiagnostics("offload decisions", self.health_status)
 
     @property
@@ -61,24 +64,39 @@ class LearnerOutputs:
     def decision(self, routing) -> None:
         """On the caller's path (the router's on_decision): what the records need from this moment, nothing sent."""
         self.health.decision(routing.action == CLOUD, routing.probe)
-        self._decided[routing.request_id] = (routing, rospy.Time.now(), self.learner.policy.steps)
-        while len(self._decided) > MAX_UNPAIRED:
-            self._decided.popitem(last=False)
+        with self._lock:
+            self._decided[routing.request_id] = (routing, rospy.Time.now(), self.learner.policy.steps)
+            while len(self._decided) > MAX_UNPAIRED:
+                self._decided.popitem(last=False)
+
+    def delivered(self, routing) -> None:
+        """Once the caller has its path (the router's on_delivered): the request's goal and decision."""
+        with self._lock:
+            self._publish_decision(routing.request_id)
+
+    def _publish_decision(self, request_id: int):
+        """Under _lock: the request's goal and decision, once (kept for the fleet's row); the decision or None."""
+        decided = self._decided.get(request_id)
+        if not isinstance(decided, tuple):
+            return decided   # published already, or never decided
+        routing, stamp, steps = decided
+        decision = decision_msg(routing, self.learner.config.policy, steps)
+        decision.header.stamp = stamp
+        self._decided[request_id] = decision
+        goal = getattr(routing.request, "goal", None)
+        if goal is not None:
+            self.goal_pub.publish(goal)
+        self.decision_pub.publish(decision)
+        return decision
 
     def outcome(self, outcome) -> None:
-        """A decided request's goal, decision and outcome, its sides' paths and, when due, the statistics."""
+        """A decided request's outcome (its decision first if a probe's other side finished before the hook ran), its
+        sides' paths and, when due, the statistics."""
         msg = outcome_msg(outcome)
         self.health.outcome(outcome.learner_cpu_s)
-        decided = self._decided.pop(outcome.request_id, None)
-        decision = None
-        if decided is not None:
-            routing, stamp, steps = decided
-            decision = decision_msg(routing, self.learner.config.policy, steps)
-            decision.header.stamp = stamp
-            goal = getattr(routing.request, "goal", None)
-            if goal is not None:
-                self.goal_pub.publish(goal)
-            self.decision_pub.publish(decision)
+        with self._lock:
+            decision = self._publish_decision(outcome.request_id)
+            self._decided.pop(outcome.request_id, None)
         self.fleet.outcome(outcome, msg, decision)   # the guard's sample and the row for the fleet learner
         self.outcome_pub.publish(msg)
         # Each side's latched path is this request's (a probe's losing side too), or empty: never a stale one. An

@@ -33,6 +33,7 @@ are planned locally without touching the link until the link is healthy again.
 """
 import dataclasses
 import itertools
+import logging
 import math
 import os
 import threading
@@ -52,6 +53,7 @@ from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConf
 from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller, Workers
 
 OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
+LOG = logging.getLogger(__name__)
 # How long the side that delivered waits for the caller to take its path before going on (a caller that never
 # comes back from its wait, an exception): a bound, not a pace; the caller takes it within microseconds.
 TAKEN_WAIT_S = 1.0
@@ -78,7 +80,8 @@ class OffloadRouter:
     gets; `on_decision(routing)` is called before any side is called, in the caller's thread (its time is the
     caller's: keep it short). The `learner` (learning.py) decides through its policy, lends the hedge its latency
     models, and gets every request's Outcome (`learn`) once no side of it is running, from a side thread;
-    `on_outcome(outcome)` is called after that.
+    `on_outcome(outcome)` is called after that. `on_delivered(routing)`: from the side thread that delivered a decided
+    request's path, once the caller has taken it.
 
     `stale(response)` (optional) says why a good answer was planned on a map older than the one in
     force, or None. The side is asked again until it answers from the current map or `config.map_wait_s`
@@ -93,7 +96,7 @@ class OffloadRouter:
 
     def __init__(self, learner: OnlineLearner, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
-                 on_outcome: Callable = None, clock: Callable[[], float] = time.perf_counter,
+                 on_outcome: Callable = None, on_delivered: Callable = None, clock: Callable[[], float] = time.perf_counter,
                  stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep,
                  account: Accounting = None, breaker: LinkBreaker = None):
         self.learner, self.policy, self.models = learner, learner.policy, learner.models
@@ -102,6 +105,7 @@ class OffloadRouter:
         self.config = config
         self.on_decision = on_decision or (lambda routing: None)
         self.on_outcome = on_outcome or (lambda outcome: None)
+        self.on_delivered = on_delivered or (lambda routing: None)
         self.clock = clock
         self.rng = np.random.default_rng(config.seed)
         self.breaker = breaker or LinkBreaker(config.breaker)
@@ -339,6 +343,11 @@ class OffloadRouter:
             # learner, the node's records) would keep the woken caller waiting for it, 0.5 ms at the median and
             # 4-6 ms at the 90th percentile on a loaded robot, after delivered_s was taken.
             req.taken.wait(TAKEN_WAIT_S)
+            try:
+                if req.outcome.routing is not None:
+                    self.on_delivered(req.outcome.routing)
+            except Exception:   # a broken record never loses the request's outcome
+                LOG.exception("on_delivered failed for request %d", req.outcome.request_id)
         if abandon:
             self._cancel(LOCAL, self._lanes[LOCAL].calls_of(req))
         if refusal is not None and req.outcome.state is not None:
