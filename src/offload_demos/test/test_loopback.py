@@ -1,5 +1,6 @@
-"""Loopback ports that stay free until a server binds them, and stopping a server a test or benchmark started: a polite one exits on SIGTERM and keeps its chance to clean
-up; one that ignores SIGTERM is killed after the grace period instead of hanging the caller."""
+"""Loopback ports that stay free until a server binds them, and stopping a server a test or benchmark started: a
+polite one exits on SIGTERM and keeps its chance to clean up; one that ignores SIGTERM is killed after the grace
+period instead of hanging the caller."""
 import signal
 import socket
 import subprocess

@@ -127,7 +127,7 @@ class LearnerNode:
             return PlanPathResponse(status=refused.status, message=refused.message)
         state = self.build_state(request)
         if state is None:
-            self.outputs.goal(request.goal)   # nothing to decide: no outcome to publish it with
+            self.outputs.goal(request.goal)   # no decision: nothing publishes it once the path is delivered
         result = self.router.route(request, state, arrived)
         if result.response is None:
             return PlanPathResponse(status=result.status, message=result.raised)

@@ -26,6 +26,14 @@ from offload_learner_py.online.health import LearnerHealth
 MAX_UNPAIRED = 1000     # decided requests whose outcome has not come (requests in flight); more is a leak, not load
 
 
+class _Decided:
+    """One decided request until its outcome: what its decision message needs from its moment, then the message."""
+    __slots__ = ("routing", "stamp", "steps", "msg")
+
+    def __init__(self, routing, stamp, steps: int):
+        self.routing, self.stamp, self.steps, self.msg = routing, stamp, steps, None
+
+
 class LearnerOutputs:
     def __init__(self, learner, fleet, breaker, router_config, session, stats_period_s: float):
         self.learner, self.fleet, self.breaker = learner, fleet, breaker
@@ -41,7 +49,7 @@ class LearnerOutputs:
         self.rejected_pub = rospy.Publisher("~rejected", RequestRejected, queue_size=100)
         self.config_pub.publish(config_msg(router_config, learner, session.seed, router_config.weights.alpha))
         self.health = LearnerHealth(router_config.mode, session.policy)
-        self._decided = OrderedDict()   # request id -> (routing, stamp, model steps), then its published decision
+        self._decided = OrderedDict()   # request id -> _Decided
         self._lock = threading.Lock()   # the delivering side thread and the finishing one may be two
         self.diagnostics = NodeDiagnostics("offload decisions", self.health_status)
 
@@ -65,7 +73,7 @@ class LearnerOutputs:
         """On the caller's path (the router's on_decision): what the records need from this moment, nothing sent."""
         self.health.decision(routing.action == CLOUD, routing.probe)
         with self._lock:
-            self._decided[routing.request_id] = (routing, rospy.Time.now(), self.learner.policy.steps)
+            self._decided[routing.request_id] = _Decided(routing, rospy.Time.now(), self.learner.policy.steps)
             while len(self._decided) > MAX_UNPAIRED:
                 self._decided.popitem(last=False)
 
@@ -77,17 +85,16 @@ class LearnerOutputs:
     def _publish_decision(self, request_id: int):
         """Under _lock: the request's goal and decision, once (kept for the fleet's row); the decision or None."""
         decided = self._decided.get(request_id)
-        if not isinstance(decided, tuple):
-            return decided   # published already, or never decided
-        routing, stamp, steps = decided
-        decision = decision_msg(routing, self.learner.config.policy, steps)
-        decision.header.stamp = stamp
-        self._decided[request_id] = decision
-        goal = getattr(routing.request, "goal", None)
-        if goal is not None:
-            self.goal_pub.publish(goal)
-        self.decision_pub.publish(decision)
-        return decision
+        if decided is None:
+            return None   # not decided here, or let go by the bound
+        if decided.msg is None:
+            decided.msg = decision_msg(decided.routing, self.learner.config.policy, decided.steps)
+            decided.msg.header.stamp = decided.stamp
+            goal = getattr(decided.routing.request, "goal", None)
+            if goal is not None:
+                self.goal_pub.publish(goal)
+            self.decision_pub.publish(decided.msg)
+        return decided.msg
 
     def outcome(self, outcome) -> None:
         """A decided request's outcome (its decision first if a probe's other side finished before the hook ran), its

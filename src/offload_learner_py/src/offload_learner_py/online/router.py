@@ -96,7 +96,8 @@ class OffloadRouter:
 
     def __init__(self, learner: OnlineLearner, local: PlanCall, cloud: PlanCall, statuses: Statuses,
                  config: RouterConfig = RouterConfig(), on_decision: Callable = None,
-                 on_outcome: Callable = None, on_delivered: Callable = None, clock: Callable[[], float] = time.perf_counter,
+                 on_outcome: Callable = None, on_delivered: Callable = None,
+                 clock: Callable[[], float] = time.perf_counter,
                  stale: Callable[[Any], Optional[str]] = None, sleep: Callable[[float], None] = time.sleep,
                  account: Accounting = None, breaker: LinkBreaker = None):
         self.learner, self.policy, self.models = learner, learner.policy, learner.models
@@ -303,8 +304,8 @@ class OffloadRouter:
         fallback = False
         refusal = None
         then = None
-        delivered = False
         with req.lock:
+            was_delivered = req.delivered.is_set()
             req.results[side] = result
             if req.then is not None and req.then not in req.started:
                 then = req.then   # the probe's other side: a measurement, or the fallback if this one failed
@@ -320,7 +321,6 @@ class OffloadRouter:
             abandon = False
             if good and not req.delivered.is_set():
                 self._deliver(req, side, result)
-                delivered = True
                 # A hedge's local plan is not a measurement anyone asked for: its CPU is freed at once.
                 abandon = side == CLOUD and not req.outcome.probe and LOCAL in req.started \
                     and LOCAL not in req.results
@@ -336,8 +336,8 @@ class OffloadRouter:
                     self._deliver(req, LOCAL, req.results[LOCAL])
                 else:
                     self._deliver(req, side, result)   # the planner's own verdict on the request (NO_PATH, ...)
-                delivered = req.delivered.is_set()
             finish = all_done and not fallback
+            delivered = req.delivered.is_set() and not was_delivered   # by this thread
         if delivered:
             # The caller first: this thread holds the interpreter, and what follows (the other side's call, the
             # learner, the node's records) would keep the woken caller waiting for it, 0.5 ms at the median and
