@@ -32,3 +32,17 @@ def test_the_caller_has_its_path_before_the_side_that_delivered_it_goes_on():
     assert finished_before_the_caller_had_its_path == [], \
         "the side that delivered went on to the outcome before the caller took its path"
     assert finished == [recorder.routings[0].request_id]
+
+
+def test_a_failing_on_delivered_hook_loses_neither_the_path_nor_the_outcome():
+    clock = VirtualClock()
+    router, recorder = make_router(AlwaysLocal("local"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.05), clock)
+
+    def broken(routing):
+        raise RuntimeError("a broken record")
+    router.on_delivered = broken
+    for _ in range(2):
+        assert router.route("req", STATE).response is not None
+        assert router.wait_idle(30), "the request never finished: its outcome was lost with the hook's error"
+    finish(router)
+    assert len(recorder.outcomes) == 2
