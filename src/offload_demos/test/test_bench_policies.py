@@ -23,6 +23,9 @@ def test_repeated_runs_are_pooled_and_each_runs_mean_is_kept(tmp_path):
     assert pooled["mean_s"] == pytest.approx((30 * alone[0]["mean_s"] + 50 * alone[1]["mean_s"]) / 80)
     assert pooled["p99_s"] == pytest.approx(np.percentile(alone[0]["delivered_s"] + alone[1]["delivered_s"], 99))
     assert "run_means_s" not in alone[0]
+    # each run's own latencies, for the ratio to always-local over the pairs of runs (mean_ratio.py)
+    for run, figures in zip(pooled["run_delivered_s"], alone):
+        assert list(run) == pytest.approx(figures["delivered_s"])
     # each mean is its own run's, whatever order the runs are given in (the reader sorts the bags)
     assert measure(runs[::-1], 5.0)["run_means_s"] == pytest.approx(pooled["run_means_s"][::-1])
 

@@ -75,8 +75,9 @@ def measure(run_dirs, cloud_timeout_s: float) -> dict:
     stamps = np.asarray(log["stamp_ns"], dtype=np.float64)
     figures["arrivals_s"] = [((stamps[bag_of == k] - stamps[bag_of == k].min()) / 1e9).tolist()
                              for k in range(len(order)) if np.any(bag_of == k)]
-    if len(run_dirs) > 1:     # each run's mean: the spread between repeats is the noise of the machine
+    if len(run_dirs) > 1:     # each run's: the spread between repeats is the noise of the machine (mean_ratio.py)
         run = np.asarray(log["bag"])[answered]        # index into the reader's (sorted) bag list
-        figures["run_means_s"] = [float(delivered_s[answered][run == order.index(str(run_dir / "offload.bag"))].mean())
-                                  for run_dir in run_dirs]
+        figures["run_delivered_s"] = [delivered_s[answered][run == order.index(str(run_dir / "offload.bag"))]
+                                      for run_dir in run_dirs]     # popped by the bench
+        figures["run_means_s"] = [float(run.mean()) for run in figures["run_delivered_s"]]
     return figures

@@ -31,6 +31,8 @@ link bytes per request, paths delivered and cloud timeouts, with the oracle meas
 probes (both sides every request). A last run stops the cloud link for 30 s mid-run (the WAN
 emulator drops everything) while the RTT trace jumps, and reports the worst wait and how many requests
 waited the cloud timeout. Results go to runs/bench-policies-<time>/results.json, a figure and a table.
+With always-local among the policies, each other policy's mean is given as a ratio to local's with a 95 % interval
+over the repeats (offload_demos.mean_ratio: the runs' spread, not the requests', is the bench's noise).
 """
 import argparse
 import json
@@ -45,6 +47,7 @@ from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos.bench_measure import measure
 from offload_demos.bench_report import format_scenario_table, format_table, plot, scenario_rows
 from offload_demos.hindsight import best_threshold, faster_sides
+from offload_demos.mean_ratio import MeanRatio, mean_ratio
 from offload_demos.scenario import NAMED, ScenarioError, load_scenario
 from offload_learner_py.online.router_types import RouterConfig
 from offload_demos.driver import LINK_PROFILES
@@ -234,6 +237,7 @@ def main(argv=None) -> int:
         left_s = (time.monotonic() - began) / done * (total - done)
         return f"{done + 1}/{total}, about {left_s / 60:.0f} min left"
     run_dirs = {name: [] for name in policies}
+    run_delivered = {}     # name -> each repeat's delivered latencies, for the ratios to always-local
     for repeat in range(args.repeats):
         for index, name in enumerate(policies):
             extra = policy_args(name, scenario_args, model, threshold_config, oracle_config)
@@ -262,6 +266,7 @@ def main(argv=None) -> int:
                 continue
             figures = measure(run_dirs[name], args.cloud_timeout_s)
             results["delivered_s"][name] = figures.pop("delivered_s")
+            run_delivered[name] = figures.pop("run_delivered_s", None) or [results["delivered_s"][name]]
             figures.pop("probe_rows", None)
             figures.pop("request_sides_s", None)
             lag = schedule_lag_s(figures.pop("arrivals_s", []), scenario.request_times(args.steps, args.goal_rate_hz))
@@ -274,6 +279,11 @@ def main(argv=None) -> int:
                 results["oracle_cloud_share"] = figures["cloud_share"]
                 results["oracle_robot_cpu_s_per_request"] = figures["first_local_cpu_s_per_request"]
             print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
+    if "local" in run_delivered:    # each policy's mean against always-local's, repeat r with repeat r
+        for name in run_delivered:
+            if name != "local":
+                results["policies"][name]["mean_ratio_to_local"] = mean_ratio(run_delivered[name],
+                                                                              run_delivered["local"]).as_dict()
     results["outage"] = {}
     for index, name in enumerate(outage, start=args.repeats * len(policies)):
         extra = policy_args(name, scenario_args, model, threshold_config, oracle_config) + [
@@ -307,6 +317,9 @@ def main(argv=None) -> int:
     if args.repeats > 1:
         for name, f in results["policies"].items():
             print(f"{name}: run means " + ", ".join(f"{1e3 * m:.1f}" for m in f["run_means_s"]) + " ms")
+    for name, f in results["policies"].items():
+        if f.get("mean_ratio_to_local"):
+            print(MeanRatio(**f["mean_ratio_to_local"]).describe(name, "local"))
     for name, f in results["outage"].items():
         if not (f.get("cloud_failures") or f.get("breaker_open")):
             print(f"link down {args.outage_s:g} s from {args.outage_at_s:g} s, {name}: no request met the outage (no "
