@@ -330,9 +330,9 @@ def test_the_router_decides_with_the_learners_policy_and_hedges_on_its_latency_m
     assert router.policy is router.learner.policy and router.models is router.learner.models
     router = OffloadRouter(learner, FakePlanner(clock, 0.2), FakePlanner(clock, 0.05), STATUSES,
                            RouterConfig(hedge=True, hedge_min_s=0.01, hedge_max_s=0.9), clock=clock)
-    assert router._deadline_s(CLOUD, STATE) == 0.9
+    assert router.hedge.deadline_s(CLOUD, STATE) == 0.9
     trained(learner, local_s=0.08, cloud_s=0.3)
-    assert router._deadline_s(CLOUD, STATE) == pytest.approx(0.3, rel=0.01)    # the models it learned
+    assert router.hedge.deadline_s(CLOUD, STATE) == pytest.approx(0.3, rel=0.01)    # the models it learned
     router.route("req", STATE)
     finish(router)
     assert learner.count == learner.models[LOCAL].config.min_samples + 1

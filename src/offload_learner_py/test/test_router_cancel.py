@@ -202,10 +202,10 @@ def test_a_late_cloud_call_is_hedged_once_the_local_plan_would_have_finished():
                            hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
     for k in range(60):
         router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.1 * (1.0 + 0.5 * (k % 3 - 1)))
-    assert router._deadline_s(CLOUD, STATE) > 0.12                 # the cloud's own 95th percentile
+    assert router.hedge.deadline_s(CLOUD, STATE) > 0.12                 # the cloud's own 95th percentile
     for k in range(60):
         router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.08)
-    assert router._deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].impute_s((1.2, 0.6, 0.05)))
+    assert router.hedge.deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].impute_s((1.2, 0.6, 0.05)))
     # (never before the cloud's own median, though the local median is lower)
 
 

@@ -178,10 +178,10 @@ def test_hedge_deadline_follows_the_latency_model_within_its_bounds():
     clock = VirtualClock()
     router, _ = configured_router(AlwaysCloud("cloud"), FakePlanner(clock, 0.1), FakePlanner(clock, 0.1),
                                   clock, hedge=True, hedge_min_s=0.02, hedge_max_s=0.9)
-    assert router._deadline_s(CLOUD, STATE) == 0.9          # no model yet: the upper bound
+    assert router.hedge.deadline_s(CLOUD, STATE) == 0.9          # no model yet: the upper bound
     for k in range(60):
         router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.1 * (1.0 + 0.05 * (k % 3 - 1)))
-    assert 0.1 < router._deadline_s(CLOUD, STATE) < 0.3      # a high quantile of about 0.1 s
+    assert 0.1 < router.hedge.deadline_s(CLOUD, STATE) < 0.3      # a high quantile of about 0.1 s
 
 
 def test_breaker_opens_after_cloud_failures_and_routes_locally_without_calling_the_cloud():
@@ -278,9 +278,9 @@ def test_a_long_local_plan_is_hedged_once_the_clouds_median_has_passed():
     for k in range(60):
         router.models[LOCAL].observe((1.2, 0.6, 0.05), 0.5 * (1.0 + 0.3 * (k % 3 - 1)))   # local slow, noisy
         router.models[CLOUD].observe((1.2, 0.6, 0.05), 0.12 * (1.0 + 0.3 * (k % 3 - 1)))
-    assert router._deadline_s(LOCAL, STATE) == pytest.approx(0.12, rel=0.05)
-    assert router._deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].quantile_s((1.2, 0.6, 0.05), 0.95))
-    assert router._deadline_s(CLOUD, STATE) > 0.12
+    assert router.hedge.deadline_s(LOCAL, STATE) == pytest.approx(0.12, rel=0.05)
+    assert router.hedge.deadline_s(CLOUD, STATE) == pytest.approx(router.models[CLOUD].quantile_s((1.2, 0.6, 0.05), 0.95))
+    assert router.hedge.deadline_s(CLOUD, STATE) > 0.12
 
 
 def test_a_warm_started_policy_probes_until_both_latency_models_are_ready():

@@ -24,7 +24,7 @@ A cancelled call's CPU is still accounted; its latency is a lower bound (Outcome
 the learner uses only where the other side was already faster. `delivered_s` runs from the request's arrival
 (any wait for the local planner included) to the path the caller gets. sides.py: the lanes and the calls.
 
-Deadline hedge: when the chosen side has not answered within a deadline (a quantile of the learner's latency
+Deadline hedge (hedge.py): when the chosen side has not answered within a deadline (a quantile of the learner's latency
 model of that side for this state, clamped, or a fixed bound), the other side starts and the first good path
 is delivered. With the hedge on, a cloud choice whose measured round trip alone exceeds the local planner's
 hedge quantile for the state is planned locally (routing `slow`): the cloud could not win it. Circuit breaker
@@ -48,11 +48,11 @@ from offload_learner_py.core.policies import Decision
 from offload_learner_py.core.state import State
 from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
-from offload_learner_py.online.learning import OnlineLearner, latency_features as _features
+from offload_learner_py.online.hedge import OTHER, DeadlineHedge
+from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
 from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller, Workers
 
-OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 LOG = logging.getLogger(__name__)
 # How long the side that delivered waits for the caller to take its path before going on (a caller that never
 # comes back from its wait, an exception): a bound, not a pace; the caller takes it within microseconds.
@@ -110,6 +110,7 @@ class OffloadRouter:
         self.clock = clock
         self.rng = np.random.default_rng(config.seed)
         self.breaker = breaker or LinkBreaker(config.breaker)
+        self.hedge = DeadlineHedge(config, self.models, self.breaker)
         self._lanes = {LOCAL: Lane(serial=True), CLOUD: Lane(serial=False)}
         self._caller = SideCaller(statuses, config, clock, sleep, stale, account)
         self._workers = Workers("offload-side")
@@ -170,13 +171,13 @@ class OffloadRouter:
             probe, action = False, LOCAL      # a link known to be down is not offloaded into
         elif admitted == TRIAL:
             probe = True                      # both sides: the caller gets local at worst, the link is tested
-        elif config.hedge and not probe and action == CLOUD and self._round_trip_too_slow(state):
+        elif config.hedge and not probe and action == CLOUD and self.hedge.round_trip_too_slow(state):
             admitted, action = SLOW, LOCAL
         deadline_s = float("nan")
         if config.hedge and not probe:
             # The local planner still busy with a call someone waits for would make this one wait for it: the
             # hedge then starts the other side at once. (A call nobody waits for is cancelled instead.)
-            deadline_s = 0.0 if self._lanes[action].busy() else self._deadline_s(action, state)
+            deadline_s = 0.0 if self._lanes[action].busy() else self.hedge.deadline_s(action, state)
         return Routing(request_id, state, decision, probe, action, config.mode, admitted, deadline_s, request)
 
     def _probes_in_turn(self, routing: Routing) -> bool:
@@ -184,39 +185,11 @@ class OffloadRouter:
         breaker's link tests (the caller gets the local path at worst) run both at once."""
         return self.config.probe_after_delivery and self.config.mode == DEPLOYED and routing.breaker != TRIAL
 
-    def _round_trip_too_slow(self, state: State) -> bool:
-        """The hedge's guard on a cloud choice: the measured round trip alone is longer than the local planner's
-        hedge_quantile for this state, so the cloud cannot answer before a local plan would almost surely be done
-        (a link on the slow end of its range, in a state the policy has seen too little of)."""
-        local_q = self.models[LOCAL].quantile_s(_features(state), self.config.hedge_quantile)
-        return local_q is not None and state.round_trip_s >= local_q
-
-    def _deadline_s(self, side: int, state: State) -> float:
-        """How long the chosen side may take before the other starts: the hedge_quantile of its latency for
-        this state, clamped to [hedge_min_s, hedge_max_s], and sooner:
-        - a local plan, once the cloud's median for the state has passed: the cloud would most likely have
-          been done already, and it costs the robot only the bridge;
-        - a cloud call, once the local planner's median has passed (never before the cloud's own median): a
-          late cloud call (a link slowing down) gets the local plan while it can still win, and the local
-          plan is cancelled if the cloud answers first. Whether the local planner is hedged into at all is
-          _worth_hedging's call."""
-        config = self.config
-        if config.hedge_deadline_s > 0:
-            return config.hedge_deadline_s
-        features = _features(state)
-        quantile = self.models[side].quantile_s(features, config.hedge_quantile)
-        deadline = config.hedge_max_s if quantile is None else quantile
-        other = self.models[OTHER[side]].impute_s(features)
-        if other is not None:
-            own = self.models[side].impute_s(features) if side == CLOUD else None
-            deadline = min(deadline, other if own is None else max(other, own))
-        return min(max(deadline, config.hedge_min_s), config.hedge_max_s)
-
     def _run(self, req: _Request, first, deadline_s: Optional[float], request=None):
         self._start(req, first, request)
         if deadline_s is not None and not req.delivered.wait(deadline_s):
             other = OTHER[first[0]]
-            if self._worth_hedging(other, req.outcome.state, first[0]):
+            if self.hedge.worth_hedging(other, req.outcome.state):
                 self._hedge(req, other, request)
             elif other == LOCAL and not req.delivered.wait(max(0.0, self.config.hedge_max_s - deadline_s)):
                 # By hedge_max_s a cloud call is as good as failed (a dead link the breaker has not caught
@@ -232,18 +205,6 @@ class OffloadRouter:
         if late:
             req.outcome.hedged = True
             self._start(req, (other,), request)
-
-    def _worth_hedging(self, other: int, state: State, first: int) -> bool:
-        """The cloud is hedged into unless the breaker says the link is down. The local planner is hedged into
-        at the deadline only when its median latency for this state is below the cloud's 95th percentile: on a
-        saturated robot a local plan would most likely lose, and its CPU would slow the cloud call's bridge and
-        the learner that waits for it."""
-        if other == CLOUD:
-            return self.breaker.admit() != OPEN
-        features = _features(state)
-        local_s = self.models[LOCAL].impute_s(features)
-        cloud_q = self.models[CLOUD].quantile_s(features, self.config.hedge_quantile)
-        return local_s is None or cloud_q is None or local_s < cloud_q
 
     def _start(self, req: _Request, sides, request) -> None:
         """All of `sides` count as started before any runs, so the first to finish cannot finish the request."""
