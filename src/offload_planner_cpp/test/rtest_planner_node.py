@@ -210,10 +210,7 @@ class PlannerNodeTest(unittest.TestCase):
         bad.header.frame_id = "map"
         bad.info.width, bad.info.height, bad.info.resolution = 10, 10, 0.05
         bad.data = [0] * 7  # declares 100 cells
-        deadline = rospy.Time.now() + rospy.Duration(10)
-        while pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
-            rospy.sleep(0.05)
-        pub.publish(bad)
+        connected(pub, 10.0).publish(bad)
         rospy.sleep(0.5)
         res = self.call(self.home, self.away)
         self.assertEqual(res.status, R.OK, "the last good map keeps serving")
@@ -236,9 +233,7 @@ class PlannerNodeTest(unittest.TestCase):
         costs = {0: route.cost, 1: detour}
         self.assertGreater(costs[1], costs[0])
         variants = {0: self.map, 1: dataclasses.replace(self.map, grid=walled)}
-        np_pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=10)
-        while np_pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
-            rospy.sleep(0.05)
+        np_pub = connected(rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=10), 10.0)
         stop = threading.Event()
 
         def publish_maps():
@@ -268,10 +263,8 @@ class PlannerNodeTest(unittest.TestCase):
 
     def publish_map(self, grid, stamp_s):
         """Publishes the test map with `grid` and waits until the node plans on it."""
-        pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2)
+        pub = connected(rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2))
         deadline = rospy.Time.now() + rospy.Duration(30)
-        while pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
-            rospy.sleep(0.05)
         pub.publish(to_message(dataclasses.replace(self.map, grid=grid), "map", rospy.Time(stamp_s)))
         while self.call(self.home, self.home).map_stamp != rospy.Time(stamp_s) and rospy.Time.now() < deadline:
             rospy.sleep(0.1)
@@ -281,10 +274,7 @@ class PlannerNodeTest(unittest.TestCase):
         """Of two identical long plans started together, the one cancelled on ~cancel answers CANCELLED
         first; a cancel that arrives before its request makes that request answer CANCELLED at once."""
         self.publish_map(split_map(), 9000)
-        cancel = rospy.Publisher("/planner/cancel", UInt64, queue_size=10)
-        deadline = rospy.Time.now() + rospy.Duration(30)
-        while cancel.get_num_connections() == 0 and rospy.Time.now() < deadline:
-            rospy.sleep(0.05)
+        cancel = connected(rospy.Publisher("/planner/cancel", UInt64, queue_size=10))
         corner, far = self.world((0, 0)), self.world((SPLIT_SIDE - 1, SPLIT_SIDE - 1))
         finished = {}
 
@@ -344,10 +334,8 @@ class PlannerNodeTest(unittest.TestCase):
         (stamp + 1000) and plans on it: (the short plan's response, when it ended, {k: (end, status)}, when the
         small map was published)."""
         big_map = dataclasses.replace(self.map, grid=split_map())
-        pub = rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2)
+        pub = connected(rospy.Publisher("/map", NumpyOccupancyGrid, queue_size=2))
         deadline = rospy.Time.now() + rospy.Duration(30)
-        while pub.get_num_connections() == 0 and rospy.Time.now() < deadline:
-            rospy.sleep(0.05)
         pub.publish(to_message(big_map, "map", rospy.Time(stamp)))
         corner, far = self.world((0, 0)), self.world((SPLIT_SIDE - 1, SPLIT_SIDE - 1))
         long_req = PlanPathRequest(start=self.pose(corner), goal=self.pose(far))
@@ -385,6 +373,14 @@ class PlannerNodeTest(unittest.TestCase):
             proxy.close()
         pub.unregister()
         return res, short_done, finished, asked
+
+
+def connected(pub, timeout_s: float = 30.0):
+    """`pub` once the node has subscribed to it (or after timeout_s): a message published before is lost."""
+    deadline = time.monotonic() + timeout_s
+    while pub.get_num_connections() == 0 and time.monotonic() < deadline:
+        rospy.sleep(0.05)
+    return pub
 
 
 def split_map() -> np.ndarray:

@@ -369,31 +369,6 @@ int main(int argc, char** argv) {
   return RUN_ALL_TESTS();
 }
 
-TEST(CancelRegistry, ACancelReachesTheRunningPlanOrWaitsForItsStart) {
-  CancelRegistry registry;
-  auto running = registry.begin(7);
-  EXPECT_FALSE(running->load());
-  registry.cancel(7);
-  EXPECT_TRUE(running->load()) << "a running plan sees its cancel";
-  registry.end(7);
-  EXPECT_EQ(registry.running(), 0u);
-  registry.cancel(8);   // the cancel overtook its request
-  EXPECT_TRUE(registry.begin(8)->load()) << "a plan cancelled before it began never runs";
-  registry.end(8);
-  EXPECT_FALSE(registry.begin(8)->load()) << "the early cancel is used once";
-  registry.end(8);
-  EXPECT_FALSE(registry.begin(9)->load()) << "other plans are untouched";
-  registry.end(9);
-}
-
-TEST(CancelRegistry, RemembersOnlyTheLatestEarlyCancels) {
-  CancelRegistry registry;
-  for (std::uint64_t id = 1; id <= CancelRegistry::kRemembered + 10; ++id) registry.cancel(id);
-  EXPECT_FALSE(registry.begin(1)->load()) << "the oldest early cancels are forgotten: memory stays bounded";
-  EXPECT_TRUE(registry.begin(CancelRegistry::kRemembered + 10)->load());
-  EXPECT_TRUE(registry.begin(11)->load());
-}
-
 TEST(PlanRequestHandler, ACancelledPlanAnswersCancelledWithoutAPath) {
   PlanRequestHandler handler;
   ASSERT_TRUE(handler.setMap(makeMap(), nullptr));

@@ -1,7 +1,9 @@
-// The planner node's serving loop: threads sharing a queue run callbacks that arrive together side by side.
+// The planner node's serving: threads sharing a queue run callbacks that arrive together side by side, and a cancel
+// reaches the plan it names (CancelRegistry).
 #include <gtest/gtest.h>
 
 #include <chrono>
+#include <cstdint>
 #include <condition_variable>
 #include <mutex>
 #include <thread>
@@ -67,6 +69,33 @@ TEST(ServeQueue, ReturnsOnceTheQueueIsDisabled) {
   queue.disable();   // wakes a thread waiting for work
   server.join();
   EXPECT_LT(std::chrono::steady_clock::now() - disabled, std::chrono::seconds(10));
+}
+
+using offload_planner::CancelRegistry;
+
+TEST(CancelRegistry, ACancelReachesTheRunningPlanOrWaitsForItsStart) {
+  CancelRegistry registry;
+  auto running = registry.begin(7);
+  EXPECT_FALSE(running->load());
+  registry.cancel(7);
+  EXPECT_TRUE(running->load()) << "a running plan sees its cancel";
+  registry.end(7);
+  EXPECT_EQ(registry.running(), 0u);
+  registry.cancel(8);   // the cancel overtook its request
+  EXPECT_TRUE(registry.begin(8)->load()) << "a plan cancelled before it began never runs";
+  registry.end(8);
+  EXPECT_FALSE(registry.begin(8)->load()) << "the early cancel is used once";
+  registry.end(8);
+  EXPECT_FALSE(registry.begin(9)->load()) << "other plans are untouched";
+  registry.end(9);
+}
+
+TEST(CancelRegistry, RemembersOnlyTheLatestEarlyCancels) {
+  CancelRegistry registry;
+  for (std::uint64_t id = 1; id <= CancelRegistry::kRemembered + 10; ++id) registry.cancel(id);
+  EXPECT_FALSE(registry.begin(1)->load()) << "the oldest early cancels are forgotten: memory stays bounded";
+  EXPECT_TRUE(registry.begin(CancelRegistry::kRemembered + 10)->load());
+  EXPECT_TRUE(registry.begin(11)->load());
 }
 
 int main(int argc, char** argv) {
