@@ -4,7 +4,7 @@ nominal rate."""
 import numpy as np
 import pytest
 
-from offload_demos.mean_ratio import mean_ratio
+from offload_demos.mean_ratio import mean_ratio, ratios_to
 
 
 def rounds(rng, pairs, truth, requests=200, machine=0.12, run=0.08):
@@ -51,3 +51,14 @@ def test_one_pair_gives_no_interval():
 def test_refuses_what_it_cannot_compare(policy, baseline):
     with pytest.raises(ValueError):
         mean_ratio(policy, baseline)
+
+
+def test_every_policy_against_the_baseline_and_a_run_without_answers_loses_only_its_own_ratio(capsys):
+    runs = {"local": [np.full(10, 2e-3), np.full(10, 2e-3)], "dqn": [np.full(10, 2.2e-3), np.full(10, 2.2e-3)],
+            "cloud": [np.full(10, 3e-3), np.array([])]}
+    ratios = ratios_to(runs, "local")
+    assert set(ratios) == {"dqn", "cloud"}
+    assert ratios["dqn"]["ratio"] == pytest.approx(1.1) and ratios["dqn"]["pairs"] == 2
+    assert ratios["cloud"] is None
+    assert "cloud: no ratio to local" in capsys.readouterr().out
+    assert ratios_to({"dqn": runs["dqn"]}, "local") == {}

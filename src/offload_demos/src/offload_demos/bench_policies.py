@@ -47,7 +47,7 @@ from offload_cloud.cli_args import bounded_float, bounded_int
 from offload_demos.bench_measure import measure
 from offload_demos.bench_report import format_scenario_table, format_table, plot, scenario_rows
 from offload_demos.hindsight import best_threshold, faster_sides
-from offload_demos.mean_ratio import MeanRatio, mean_ratio
+from offload_demos.mean_ratio import MeanRatio, ratios_to
 from offload_demos.scenario import NAMED, ScenarioError, load_scenario
 from offload_learner_py.online.router_types import RouterConfig
 from offload_demos.driver import LINK_PROFILES
@@ -279,11 +279,8 @@ def main(argv=None) -> int:
                 results["oracle_cloud_share"] = figures["cloud_share"]
                 results["oracle_robot_cpu_s_per_request"] = figures["first_local_cpu_s_per_request"]
             print(format_table({**results, "policies": {name: results["policies"][name]}}).splitlines()[1], flush=True)
-    if "local" in run_delivered:    # each policy's mean against always-local's, repeat r with repeat r
-        for name in run_delivered:
-            if name != "local":
-                results["policies"][name]["mean_ratio_to_local"] = mean_ratio(run_delivered[name],
-                                                                              run_delivered["local"]).as_dict()
+    for name, ratio in ratios_to(run_delivered, "local").items():   # each policy against always-local, pair by pair
+        results["policies"][name]["mean_ratio_to_local"] = ratio
     results["outage"] = {}
     for index, name in enumerate(outage, start=args.repeats * len(policies)):
         extra = policy_args(name, scenario_args, model, threshold_config, oracle_config) + [

@@ -10,7 +10,7 @@ baseline met the same state of the machine: a pair. The ratio is the policy's po
 table's figures); its interval is Student's t on the pairs' log ratios, as wide as the pairs disagree, with one pair
 no interval at all."""
 import math
-from typing import NamedTuple, Optional, Sequence
+from typing import Dict, NamedTuple, Optional, Sequence
 
 import numpy as np
 from scipy.stats import t as student_t
@@ -49,3 +49,21 @@ def mean_ratio(runs: Sequence[Sequence[float]], baseline_runs: Sequence[Sequence
     logs = np.log([run.mean() / base.mean() for run, base in zip(runs, baseline_runs)])
     half = float(student_t.ppf((1 + level) / 2, pairs - 1)) * float(np.std(logs, ddof=1)) / math.sqrt(pairs)
     return MeanRatio(ratio, ratio * math.exp(-half), ratio * math.exp(half), pairs)
+
+
+def ratios_to(runs: Dict[str, Sequence[Sequence[float]]], baseline: str) -> Dict[str, Optional[dict]]:
+    """Every other policy's MeanRatio to `baseline` (as a dict), from each policy's runs in repeat order; None (and a
+    line saying why) for a policy whose runs cannot be compared (a run without an answered request), so a bench
+    that ran for an hour still writes its results. Empty without the baseline."""
+    if baseline not in runs:
+        return {}
+    ratios = {}
+    for name, policy_runs in runs.items():
+        if name == baseline:
+            continue
+        try:
+            ratios[name] = mean_ratio(policy_runs, runs[baseline]).as_dict()
+        except ValueError as error:
+            print(f"{name}: no ratio to {baseline}: {error}", flush=True)
+            ratios[name] = None
+    return ratios
