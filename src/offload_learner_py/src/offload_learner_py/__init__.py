@@ -6,4 +6,5 @@ Only the `nodes` subpackage (the learner, cloud bridge and recorder nodes) impor
 
 LOCAL = 0
 CLOUD = 1
+OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}   # the action not taken
 ACTION_NAMES = ("local", "cloud")

@@ -4,14 +4,12 @@ per-side latency models (latency_model.py) for the request's state and the link 
 (router.py) acts on its answers."""
 from typing import Dict
 
-from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py import CLOUD, LOCAL, OTHER
 from offload_learner_py.core.state import State
 from offload_learner_py.online.breaker import OPEN, LinkBreaker
 from offload_learner_py.online.latency_model import LatencyModel
 from offload_learner_py.online.learning import latency_features as _features
 from offload_learner_py.online.router_types import RouterConfig
-
-OTHER = {LOCAL: CLOUD, CLOUD: LOCAL}
 
 
 class DeadlineHedge:

@@ -43,12 +43,12 @@ from typing import Any, Callable, Optional
 
 import numpy as np
 
-from offload_learner_py import CLOUD, LOCAL
+from offload_learner_py import CLOUD, LOCAL, OTHER
 from offload_learner_py.core.policies import Decision
 from offload_learner_py.core.state import State
 from offload_learner_py.data.records import NO_PATH_DELIVERED
 from offload_learner_py.online.breaker import OPEN, SLOW, TRIAL, LinkBreaker
-from offload_learner_py.online.hedge import OTHER, DeadlineHedge
+from offload_learner_py.online.hedge import DeadlineHedge
 from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.online.router_types import DEPLOYED, Outcome, RouterConfig, Routing, SideResult, Statuses
 from offload_learner_py.online.sides import Accounting, Lane, PlanCall, SideCaller, Workers
