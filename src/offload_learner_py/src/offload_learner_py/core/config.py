@@ -14,6 +14,8 @@ from typing import Tuple
 MAX_PARAMETERS = 20_000_000
 # Replay memory is preallocated (two float32 state arrays): 10 million experiences take about 280 MB.
 MAX_REPLAY_CAPACITY = 10_000_000
+# More variants than this would fill the replay with copies of a few requests.
+MAX_ROUND_TRIP_VARIANTS = 8
 
 
 def parameter_count(hidden_sizes, state_size: int = 3, n_actions: int = 2) -> int:
@@ -71,6 +73,11 @@ class DQNConfig:
     """gradient norm clip, guards against rare large TD errors when gamma > 0."""
     log_input_size: bool = True
     """feed log(d + 1e-6) and log(p + 1e5) for d and p: they span orders of magnitude (the schema's log floors)."""
+    round_trip_variants: int = 1
+    """copies of each request whose cloud side was measured, added to replay with its round trip redrawn from those
+    the robot met and its cloud latency moved with it (core/round_trip.py: the round trip adds to the cloud's
+    latency whatever the load). Applied by the learner node and by training from bags (retrain, the fleet
+    learner); the paper's synthetic streams have no link, and run_online does not apply it. 0: none."""
 
     def __post_init__(self):
         for spec in fields(self):
@@ -108,6 +115,9 @@ class DQNConfig:
                 raise ValueError(f"{name} must be >= 1, got {getattr(self, name)}")
         if self.seed < 0:
             raise ValueError(f"seed must be >= 0, got {self.seed}")
+        if not 0 <= self.round_trip_variants <= MAX_ROUND_TRIP_VARIANTS:
+            raise ValueError(f"round_trip_variants must be in [0, {MAX_ROUND_TRIP_VARIANTS}], got "
+                             f"{self.round_trip_variants}")
         if self.normalisation_refit_interval < 0:
             raise ValueError(f"normalisation_refit_interval must be >= 0, got {self.normalisation_refit_interval}")
         if self.learning_starts < 0:

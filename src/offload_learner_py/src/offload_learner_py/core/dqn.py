@@ -121,6 +121,12 @@ class DQNAgent:
             self.target_network.load_state_dict(self.q_network.state_dict())
         return loss
 
+    def remember(self, state, action: int, reward: float) -> None:
+        """Store a transition in replay without counting a step or training (a round-trip variant of a measured
+        request, core/round_trip.py): it shapes what later gradient steps sample, not their schedule. Its next
+        state is its own, as for a run's last transition."""
+        self.memory.add(state, action, reward, state)
+
     def refit_due(self) -> bool:
         """A re-fit of the normalisation is due every normalisation_refit_interval steps after the warm-up, once
         the replay memory holds at least a warm-up's worth of states (an agent resumed from a checkpoint starts

@@ -53,6 +53,9 @@ class Policy(ABC):
         """One online transition; the training loss when a gradient step ran. Baselines never learn."""
         return None
 
+    def remember(self, state: State, action: int, reward_value: float) -> None:
+        """A transition for replay only (a round-trip variant); baselines keep none."""
+
     def flush(self) -> Optional[float]:
         return None
 
@@ -352,6 +355,12 @@ class DQNPolicy(Policy):
                 loss = self._observe(*self._pending, current)
             self._pending = (current, action, reward_value)
             return loss
+
+    def remember(self, state, action, reward_value) -> None:
+        """A transition for replay only (DQNAgent.remember): no step, no training."""
+        if self.learns:
+            with self.lock:
+                self.agent.remember(state.as_array(), action, reward_value)
 
     def flush(self) -> Optional[float]:
         with self.lock:

@@ -36,7 +36,8 @@ from offload_learner_py.core.normalisation import StateNormalisation
 from offload_learner_py.offline.output import code_block, prepare_out_dir, terminal_text
 from offload_learner_py.offline.off_policy import LoggedSteps, evaluate_policy, format_results, to_jsonable
 from offload_learner_py.core.replay import ReplayMemory
-from offload_learner_py.core.reward import CostWeights, rewards
+from offload_learner_py.core.reward import DEFAULT_CLOUD_TIMEOUT_S, CostWeights, rewards
+from offload_learner_py.core.round_trip import table_variants
 
 DEFAULT_EPOCHS = 50
 MIN_ROWS = 10
@@ -58,12 +59,15 @@ def gradient_steps_for(rows: int, config: DQNConfig, epochs: float = DEFAULT_EPO
 
 def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: Optional[int] = None,
                   weights: CostWeights = CostWeights(), taken_only: bool = False,
-                  progress: bool = False, agent: Optional[DQNAgent] = None) -> OfflineResult:
+                  progress: bool = False, agent: Optional[DQNAgent] = None,
+                  cloud_timeout_s: float = DEFAULT_CLOUD_TIMEOUT_S) -> OfflineResult:
     """The Q-network trained on a fixed table: the normalisation fitted on the training states and
     frozen, every transition in replay at once, `gradient_steps` minibatch steps of Algorithm 1's
     loss (target copies every K steps when gamma > 0). The agent's step counter is set past the
     warm-up, so a node that loads the checkpoint acts on it at once. With `agent` (a warm start, e.g. the fleet
-    learner's version in use) that network is trained further with its own normalisation."""
+    learner's version in use) that network is trained further with its own normalisation. Unless taken_only, the
+    replay also holds config.round_trip_variants round-trip variants of each row whose cloud side answered
+    (l_cloud under `cloud_timeout_s`; core/round_trip.py); the gradient steps are counted on the rows alone."""
     if len(train) == 0:
         raise ValueError("no training rows")
     if gradient_steps is None:
@@ -81,6 +85,12 @@ def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: Opt
         step_rewards = np.concatenate([rewards(np.full(len(train), a), train.local_s, train.cloud_s, weights)
                                        for a in (LOCAL, CLOUD)])
         state_rows, next_rows = np.concatenate([states, states]), np.concatenate([next_states, next_states])
+        answered = train.cloud_s < cloud_timeout_s
+        moved, local_s, cloud_s = table_variants(states[answered], train.local_s[answered], train.cloud_s[answered],
+                                                 config.round_trip_variants, np.random.default_rng(config.seed))
+        actions = np.concatenate([actions, np.full(len(moved), CLOUD)])
+        step_rewards = np.concatenate([step_rewards, rewards(np.full(len(moved), CLOUD), local_s, cloud_s, weights)])
+        state_rows, next_rows = np.concatenate([state_rows, moved]), np.concatenate([next_rows, moved])
     agent.memory = ReplayMemory(max(len(actions), config.batch_size))
     for state, action, value, next_state in zip(state_rows, actions, step_rewards, next_rows):
         agent.memory.add(state, int(action), float(value), next_state)

@@ -9,7 +9,9 @@ it each request's Outcome once no side of it is running, and it
   trains on every measured latency. A local plan cancelled after it had run longer than the cloud took counts
   as that lower bound (or the model's estimate when larger);
 - rewards the decided action by eq. 10 (core/reward.py) and hands the policy both actions' transitions
-  (Algorithm 1 with full information: both latencies measured on a probe, one imputed on a deployed request);
+  (Algorithm 1 with full information: both latencies measured on a probe, one imputed on a deployed request),
+  and, for a cloud side that answered, its round-trip variants to the DQN's replay (core/round_trip.py: the same
+  request at other round trips the robot met);
 - saves the policy's checkpoint every `checkpoint_every` learned requests (atomically; a failed save is logged
   at error level, counted, and tried again at the next learned request) and at close;
 - keeps the recent figures the node publishes (loss, accuracy against the oracle, delivered latency), with a
@@ -31,6 +33,7 @@ from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.evaluation import faster_actions
 from offload_learner_py.core.policies import Policy
 from offload_learner_py.core.reward import DEFAULT_CLOUD_TIMEOUT_S, CostWeights, cloud_latency_s, reward
+from offload_learner_py.core.round_trip import RoundTripPool, at_round_trips
 from offload_learner_py.core.state import State
 from offload_learner_py.online.latency_model import LatencyModel, LatencyModelConfig
 from offload_learner_py.online.router_types import Outcome, Statuses
@@ -62,6 +65,8 @@ class OnlineLearner:
         self.policy, self.statuses, self.agent, self.config, self.log = policy, statuses, agent, config, log
         self.weights, self.cloud_timeout_s = weights, cloud_timeout_s
         self.models = {LOCAL: LatencyModel(latency_model), CLOUD: LatencyModel(latency_model)}
+        # The round trips met, for the DQN's round-trip variants (core/round_trip.py): as many as its replay holds.
+        self.round_trips = None if agent is None else RoundTripPool(agent.config.replay_capacity, agent.config.seed)
         self.checkpoint_failures = 0
         self.count = 0                                    # outcomes of decisions learned from
         self._lock = threading.Lock()
@@ -118,6 +123,8 @@ class OnlineLearner:
         hedge that ran both, a cloud failure that cost the timeout), else from the measured one and the other
         side's imputed latency (deployed)."""
         state = latency_features(outcome.state)
+        if self.round_trips is not None:
+            self.round_trips.add(outcome.state.round_trip_s)
         # A local answer that waited for a map the planner never took measures the wait, not planning.
         local_ok = outcome.local is not None and outcome.local.status == self.statuses.ok and outcome.local.note is None
         cloud_ok = outcome.cloud is not None and outcome.cloud.status == self.statuses.ok
@@ -160,6 +167,19 @@ class OnlineLearner:
                 outcome.loss = loss if loss is not None else outcome.loss
             outcome.learned = True
             outcome.transitions = 2
+            if cloud_ok:
+                self._learn_round_trip_variants(outcome.state, local_s, cloud_s)
+
+    def _learn_round_trip_variants(self, state: State, local_s: float, cloud_s: float) -> None:
+        """The measured cloud side at other round trips the robot met, for the DQN's replay (core/round_trip.py);
+        l_local, measured or imputed, stays as it was."""
+        if self.agent is None or self.round_trips is None:
+            return
+        round_trips = self.round_trips.draw(self.agent.config.round_trip_variants)
+        states, clouds = at_round_trips(np.repeat(state.as_array()[None], len(round_trips), axis=0),
+                                        np.full(len(round_trips), cloud_s), round_trips)
+        for row, cloud in zip(states, clouds):
+            self.policy.remember(State(*row), CLOUD, reward(CLOUD, local_s, max(float(cloud), 1e-9), self.weights))
 
     # --- statistics and checkpoints -------------------------------------------------------------------------
     def _record(self, outcome: Outcome) -> None:

@@ -46,7 +46,7 @@ class SessionConfig:
 # DQNConfig fields a loaded model takes from the node's settings: how training goes on. The rest (the network's
 # shape, its input encoding, the optimizer and the replay memory it was built with, the seed) stay the model's.
 TRAINING_SCHEDULE = ("gamma", "batch_size", "train_frequency", "gradient_steps", "target_update_interval", "epsilon",
-                     "huber_delta", "max_grad_norm")
+                     "huber_delta", "max_grad_norm", "round_trip_variants")
 
 
 def dqn_settings(mode: str, dqn: dict, deployed_dqn: dict) -> dict:
