@@ -9,7 +9,7 @@ from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.policies import DQNPolicy
-from offload_learner_py.core.round_trip import ROUND_TRIP, RoundTripPool, at_round_trips, table_variants
+from offload_learner_py.core.round_trip import ROUND_TRIP, RoundTripPool, at_round_trips, draw_above, table_variants
 from offload_learner_py.core.state import STATE_SCHEMA, State
 from offload_learner_py.data.dataset import TransitionTable
 from offload_learner_py.online.learning import OnlineLearner
@@ -95,26 +95,41 @@ def test_a_variant_moves_the_cloud_latency_with_the_round_trip():
     assert states[0, ROUND_TRIP] == 0.020   # the input is not changed
 
 
-def test_table_variants_draw_the_tables_own_round_trips():
-    rows = requests(30)
-    states = np.array([s.as_array() for s, _, _ in rows])
-    local, cloud = np.array([r[1] for r in rows]), np.array([r[2] for r in rows])
+def test_table_variants_draw_the_tables_own_round_trips_above_each_rows():
+    rng = np.random.default_rng(3)
+    round_trips = rng.uniform(0.01, 0.1, 30)
+    states = np.array([State(0.1 + k, 0.5, b, RATE).as_array() for k, b in enumerate(round_trips)])   # d_t: the row
+    local, cloud = rng.uniform(0.01, 0.2, 30), round_trips + rng.uniform(0.0, 0.05, 30)
     moved, moved_local, moved_cloud = table_variants(states, local, cloud, 3, np.random.default_rng(0))
-    assert len(moved) == 90
-    assert set(moved[:, ROUND_TRIP]) <= set(states[:, ROUND_TRIP])
-    source = np.tile(np.arange(30), 3)
+    assert len(moved) == 87   # 3 a row but none for the row with the highest round trip
+    assert set(moved[:, ROUND_TRIP]) <= set(round_trips)
+    source = np.round(moved[:, 0] - 0.1).astype(int)
+    assert np.bincount(source, minlength=30)[np.argsort(round_trips)].tolist() == [3] * 29 + [0]
+    assert np.all(moved[:, ROUND_TRIP] > round_trips[source])
+    others = [i for i in range(len(STATE_SCHEMA)) if i != ROUND_TRIP]
+    assert np.array_equal(moved[:, others], states[source][:, others])
     assert np.array_equal(moved_local, local[source])
-    assert moved_cloud - moved[:, ROUND_TRIP] == pytest.approx(cloud[source] - states[source, ROUND_TRIP])
+    assert moved_cloud - moved[:, ROUND_TRIP] == pytest.approx(cloud[source] - round_trips[source])
     assert len(table_variants(states, local, cloud, 0, np.random.default_rng(0))[0]) == 0
+
+
+def test_draw_above_is_uniform_over_the_higher_round_trips():
+    ordered = np.array([0.01, 0.02, 0.03, 0.04])
+    drawn = draw_above(ordered, np.full(4000, 0.015), np.random.default_rng(0))
+    values, counts = np.unique(drawn, return_counts=True)
+    assert list(values) == [0.02, 0.03, 0.04] and counts.min() > 1200
+    assert np.isnan(draw_above(ordered, [0.04, 0.05], np.random.default_rng(0))).all()
 
 
 def test_the_pool_keeps_the_last_round_trips_only():
     pool = RoundTripPool(capacity=4, seed=0)
-    assert len(pool.draw(3)) == 0
+    assert len(pool.draw_above(0.0, 3)) == 0
     for b in range(10):
         pool.add(b / 1000)
     assert len(pool) == 4
-    assert set(pool.draw(200)) == {0.006, 0.007, 0.008, 0.009}
+    assert set(pool.draw_above(0.0, 200)) == {0.006, 0.007, 0.008, 0.009}
+    assert set(pool.draw_above(0.0075, 200)) == {0.008, 0.009}
+    assert len(pool.draw_above(0.009, 5)) == 0
     with pytest.raises(ValueError):
         RoundTripPool(capacity=0, seed=0)
 
@@ -123,19 +138,22 @@ def test_only_an_answered_cloud_side_gets_variants_and_they_are_not_steps():
     config = DQNConfig(seed=1, round_trip_variants=2)
     agent = DQNAgent(config)
     learner = OnlineLearner(DQNPolicy(config, agent=agent, explore=False), STATUSES, agent=agent)
-    state = State(BIG, IDLE, 0.02, RATE)
-    learner.learn(outcome(local=(OK, 0.04), cloud=(OK, 0.03), state=state))
+    learner.round_trips.add(0.09)   # a slower link met before
+    learner.learn(outcome(local=(OK, 0.04), cloud=(OK, 0.03), state=State(BIG, IDLE, 0.02, RATE)))
     # one transition stored (the other waits for its successor), one step; two variants in replay, not steps
     assert (len(agent.memory), agent.steps) == (3, 1)
     variants = slice(1, 3)
     assert list(agent.memory.actions[variants]) == [CLOUD, CLOUD]
-    assert set(agent.memory.states[variants, ROUND_TRIP]) == {np.float32(0.02)}   # the only round trip met
-    learner.learn(outcome(local=(OK, 0.04), cloud=(TIMEOUT, 5.0), state=state))
+    assert set(agent.memory.states[variants, ROUND_TRIP]) == {np.float32(0.09)}   # the one round trip above
+    assert agent.memory.rewards[variants] == pytest.approx([(0.04 - 0.10) / 0.14] * 2)   # l_cloud 90 + 10 ms
+    learner.learn(outcome(local=(OK, 0.04), cloud=(TIMEOUT, 5.0), state=State(BIG, IDLE, 0.02, RATE)))
     assert (len(agent.memory), agent.steps) == (5, 3)   # a timed-out cloud: its transitions, no variant
+    learner.learn(outcome(local=(OK, 0.04), cloud=(OK, 0.10), state=State(BIG, IDLE, 0.09, RATE)))
+    assert (len(agent.memory), agent.steps) == (7, 5)   # no round trip met above 90 ms: no variant
 
 
 def test_the_config_bounds_the_variants():
     for bad in (-1, 9):
         with pytest.raises(ValueError, match="round_trip_variants"):
             DQNConfig(round_trip_variants=bad)
-    assert DQNConfig.from_dict({}).round_trip_variants == 1   # a model saved before the field: the default
+    assert DQNConfig.from_dict({}).round_trip_variants == 0   # a model saved before the field: none, as it trained

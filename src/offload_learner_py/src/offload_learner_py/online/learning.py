@@ -175,7 +175,7 @@ class OnlineLearner:
         l_local, measured or imputed, stays as it was."""
         if self.agent is None or self.round_trips is None:
             return
-        round_trips = self.round_trips.draw(self.agent.config.round_trip_variants)
+        round_trips = self.round_trips.draw_above(state.round_trip_s, self.agent.config.round_trip_variants)
         states, clouds = at_round_trips(np.repeat(state.as_array()[None], len(round_trips), axis=0),
                                         np.full(len(round_trips), cloud_s), round_trips)
         for row, cloud in zip(states, clouds):
