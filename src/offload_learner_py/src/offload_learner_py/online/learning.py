@@ -65,8 +65,10 @@ class OnlineLearner:
         self.policy, self.statuses, self.agent, self.config, self.log = policy, statuses, agent, config, log
         self.weights, self.cloud_timeout_s = weights, cloud_timeout_s
         self.models = {LOCAL: LatencyModel(latency_model), CLOUD: LatencyModel(latency_model)}
-        # The round trips met, for the DQN's round-trip variants (core/round_trip.py): as many as its replay holds.
-        self.round_trips = None if agent is None else RoundTripPool(agent.config.replay_capacity, agent.config.seed)
+        # The round trips met, for the DQN's round-trip variants (core/round_trip.py): as many as its replay holds;
+        # none kept when the DQN takes no variants (the default), so a request pays nothing for them.
+        self.round_trips = RoundTripPool(agent.config.replay_capacity, agent.config.seed) \
+            if agent is not None and agent.config.round_trip_variants else None
         self.checkpoint_failures = 0
         self.count = 0                                    # outcomes of decisions learned from
         self._lock = threading.Lock()
@@ -173,13 +175,15 @@ class OnlineLearner:
     def _learn_round_trip_variants(self, state: State, local_s: float, cloud_s: float) -> None:
         """The measured cloud side at other round trips the robot met, for the DQN's replay (core/round_trip.py);
         l_local, measured or imputed, stays as it was."""
-        if self.agent is None or self.round_trips is None:
+        if self.round_trips is None:
             return
         round_trips = self.round_trips.draw_above(state.round_trip_s, self.agent.config.round_trip_variants)
+        if not len(round_trips):
+            return
         states, clouds = at_round_trips(np.repeat(state.as_array()[None], len(round_trips), axis=0),
                                         np.full(len(round_trips), cloud_s), round_trips)
-        for row, cloud in zip(states, clouds):
-            self.policy.remember(State(*row), CLOUD, reward(CLOUD, local_s, max(float(cloud), 1e-9), self.weights))
+        for row, cloud in zip(states, clouds):   # l_cloud' = b' + work > b' > b >= 0: never 0
+            self.policy.remember(State(*row), CLOUD, reward(CLOUD, local_s, float(cloud), self.weights))
 
     # --- statistics and checkpoints -------------------------------------------------------------------------
     def _record(self, outcome: Outcome) -> None:
