@@ -64,7 +64,7 @@ def test_the_live_oracle_replays_each_requests_faster_side_in_request_order(tmp_
     # run takes the side that was faster for request k (a cloud side that timed out loses however short its time).
     from offload_msgs.srv import PlanPathResponse
     from offload_demos.hindsight import faster_sides
-    from offload_learner_py.core.policies import ReplayPolicy
+    from offload_learner_py.core.replay_policy import ReplayPolicy
     from offload_learner_py.core.state import State
     sides = [(0.05, 0.20), (0.30, 0.10), (0.08, 0.09), (0.50, 0.12), (0.40, 0.02), (0.06, 0.07), (0.20, 0.03)]
     requests = []

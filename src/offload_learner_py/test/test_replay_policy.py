@@ -3,7 +3,7 @@ refused with its name; the node's ~policy replay needs ~replay_actions."""
 import pytest
 
 from offload_learner_py import CLOUD, LOCAL
-from offload_learner_py.core.policies import ReplayPolicy
+from offload_learner_py.core.replay_policy import ReplayPolicy
 from offload_learner_py.core.state import State
 from offload_learner_py.online.session import SessionConfig, make_policy
 

@@ -10,7 +10,8 @@ from offload_learner_py.core.checkpoint import load_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
 from offload_learner_py.core.policies import AlwaysCloud, AlwaysLocal, DQNPolicy, InputSizeThreshold, LatencyBound, \
-    Policy, RandomPolicy, ReplayPolicy
+    Policy, RandomPolicy
+from offload_learner_py.core.replay_policy import ReplayPolicy
 from offload_learner_py.online.router_types import DEPLOYED
 
 POLICIES = ("dqn", "local", "cloud", "random", "threshold", "latency_bound", "replay")
