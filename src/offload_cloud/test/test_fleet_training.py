@@ -10,6 +10,7 @@ import numpy as np
 import fleet_helpers as h
 from offload_cloud.learner.training import training_round
 from offload_learner_py.core.model_file import load_model
+from offload_learner_py.core.reward import CostWeights, reward
 from offload_learner_py.core.state import STATE_FIELDS, State
 from test_fleet_learner import DEFS, MD5, SMALL, learner  # noqa: F401 (the fixture)
 
@@ -126,3 +127,25 @@ def test_a_version_in_use_of_the_state_before_p_t_is_replaced_by_a_round_from_sc
     assert fast.weights[0].shape[0] == len(STATE_FIELDS)
     assert any("cannot be loaded here" in r.getMessage() and "round_trip_s), this code's state is" in r.getMessage()
                for r in caplog.records)
+
+
+def test_a_round_tells_training_which_cloud_sides_answered(learner, monkeypatch):  # noqa: F811
+    """Round-trip variants are made only of cloud sides that answered: the round hands training the outcomes'
+    own verdict (a robot with a 2 s cloud timeout logs l_cloud = 2 s when it times out, under the paper's 5 s)."""
+    from offload_cloud.learner import training
+    service, _ = learner()
+    requests = h.requests(60, seed=8)
+    for k, (_, outcome) in enumerate(requests):
+        if k % 5 == 0:
+            outcome.update(cloud_s=2.0, cloud_timeout=True, cloud_status=9,
+                           reward=reward(outcome["action"], outcome["local_s"], 2.0, CostWeights()))
+    service.pool.add("robot1", DEFS, MD5, [h.serialize(d, o, 1_700_000_000_000_000_000 + k * 1000)
+                                           for k, (d, o) in enumerate(requests)])
+    seen = []
+    original = training.train_offline
+    monkeypatch.setattr(training, "train_offline",
+                        lambda *a, **kw: seen.append(kw.get("cloud_answered")) or original(*a, **kw))
+    assert training_round(service.pool, service.store, SMALL) is not None
+    answered = seen[0]
+    assert answered is not None and len(answered) > 20
+    assert list(np.flatnonzero(~answered)) == [k for k in range(len(answered)) if k % 5 == 0]

@@ -5,6 +5,7 @@ where its local plans are faster."""
 import numpy as np
 import pytest
 
+from offload_planner_cpp import PlanStatus
 from offload_learner_py import CLOUD, LOCAL
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.core.dqn import DQNAgent
@@ -12,9 +13,11 @@ from offload_learner_py.core.policies import DQNPolicy
 from offload_learner_py.core.round_trip import ROUND_TRIP, RoundTripPool, at_round_trips, draw_above, table_variants
 from offload_learner_py.core.state import STATE_SCHEMA, State
 from offload_learner_py.data.dataset import TransitionTable
+from offload_learner_py.data.records import cloud_answered, pair_records, transition_table
 from offload_learner_py.online.learning import OnlineLearner
 from offload_learner_py.offline.retrain import train_offline
 from test_learning import outcome
+from recordtools import decision as record_decision, outcome as record_outcome
 from routertools import OK, STATUSES, TIMEOUT
 
 RATE = 2e7
@@ -157,3 +160,47 @@ def test_the_config_bounds_the_variants():
         with pytest.raises(ValueError, match="round_trip_variants"):
             DQNConfig(round_trip_variants=bad)
     assert DQNConfig.from_dict({}).round_trip_variants == 0   # a model saved before the field: none, as it trained
+
+
+def test_training_from_bags_gives_variants_only_to_the_cloud_sides_the_outcomes_say_answered():
+    """A robot that ran with a 2 s cloud timeout: a timed-out row holds l_cloud = 2 s, under the paper's 5 s, and a
+    cloud error costs what the robot measured. Neither is a round trip plus the cloud's work, so neither is moved
+    to other round trips; the outcomes' own status and timeout flag say so, not a timeout the trainer assumes."""
+    log = pair_records([record_decision(k, b=0.02 * k) for k in (1, 2, 3, 4)], timed_out_and_failed())
+    answered = cloud_answered(log)
+    assert list(answered) == [True, False, False, True]
+    table = transition_table(log)
+    config = DQNConfig(seed=1, round_trip_variants=2)
+    # 4 rows x 2 actions, and two variants of row 1 at the round trip of row 4 (row 4 has none above it)
+    assert len(train_offline(table, config, 1, cloud_answered=answered).agent.memory) == 8 + 2
+    assert len(train_offline(table, config, 1).agent.memory) == 8 + 2 * 3   # by the 5 s rule, rows 2 and 3 too
+    with pytest.raises(ValueError, match="cloud_answered"):
+        train_offline(table, config, 1, cloud_answered=answered[:3])
+
+
+def timed_out_and_failed():
+    """Four outcomes: answered, timed out at a robot's 2 s timeout (an older record: no status, its timeout flag),
+    a cloud error, answered."""
+    outcomes = [record_outcome(1, cloud_s=0.03), record_outcome(2, cloud_s=2.0, timeout=True),
+                record_outcome(3, cloud_s=0.5), record_outcome(4, cloud_s=0.09)]
+    outcomes[1].cloud_status = 0
+    outcomes[2].cloud_status = int(PlanStatus.CLOUD_ERROR)
+    return outcomes
+
+
+def test_retrain_tells_training_which_cloud_sides_answered(tmp_path, monkeypatch):
+    """offline/retrain's caller of train_offline hands it the outcomes' verdict for its training rows."""
+    from offload_learner_py.data.bag_report import ReadReport
+    from offload_learner_py.data.bags import BagData
+    from offload_learner_py.offline import retrain as retrain_module
+    outcomes = [o for _ in range(5) for o in timed_out_and_failed()]
+    for k, o in enumerate(outcomes):
+        o.request_id = k + 1
+    log = pair_records([record_decision(k + 1, b=0.02 * (k % 4 + 1)) for k in range(20)], outcomes)
+    seen = []
+    original = retrain_module.train_offline
+    monkeypatch.setattr(retrain_module, "train_offline",
+                        lambda *a, **kw: seen.append(kw.get("cloud_answered")) or original(*a, **kw))
+    retrain_module.retrain(BagData(log, ReadReport(bags=[])), str(tmp_path), DQNConfig(seed=1, round_trip_variants=1),
+                           gradient_steps=1, test_fraction=0.2)
+    assert list(seen[0]) == [True, False, False, True] * 4   # the 16 training rows of 20, in order

@@ -29,7 +29,7 @@ from offload_learner_py.core.dqn import DQNAgent, greedy_actions
 from offload_learner_py.core.model_file import ModelFileError, agent_model_bytes, load_model, model_version
 from offload_learner_py.data.bags import read_bags
 from offload_learner_py.data.dataset import COLUMNS, TransitionTable
-from offload_learner_py.data.records import RequestLog, transition_table
+from offload_learner_py.data.records import RequestLog, cloud_answered, transition_table
 from offload_learner_py.offline.off_policy_steps import LoggedSteps
 from offload_learner_py.offline.retrain import DEFAULT_EPOCHS, gradient_steps_for, train_offline
 
@@ -88,7 +88,7 @@ def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConf
     dqn = DQNConfig.from_dict(config.dqn)
     current = store.state()["current"]
     current_data = store.get(current) if current else None
-    tables, judged, used = [], {}, {}
+    tables, answered, judged, used = [], [], {}, {}
     for robot in pool.robots():
         data = read_bags(pool.bag_paths(robot), workers=1)
         log = data.log
@@ -102,6 +102,7 @@ def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConf
         if len(table) == 0 or len(steps) == 0:
             continue
         tables.append(table)
+        answered.append(cloud_answered(train_log))
         used[robot] = len(table)
         judged[robot] = (steps, logged_actions(log, window[cut:]) if len(steps) == len(window) - cut else None)
     if not tables or sum(used.values()) < 2:
@@ -109,7 +110,8 @@ def training_round(pool: ExperiencePool, store: ModelStore, config: TrainingConf
     table = TransitionTable(**{name: np.concatenate([getattr(t, name) for t in tables]) for name in COLUMNS})
     base = agent_in_use(current_data, dqn)
     steps_count = gradient_steps_for(len(table), dqn, config.epochs)
-    result = train_offline(table, base.config if base else dqn, steps_count, agent=base)
+    result = train_offline(table, base.config if base else dqn, steps_count, agent=base,
+                           cloud_answered=np.concatenate(answered))
     data = agent_model_bytes(result.agent)
     version = model_version(data)
     reference = agent_in_use(current_data, dqn) if base is not None else None

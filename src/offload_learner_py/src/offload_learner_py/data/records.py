@@ -276,6 +276,19 @@ def transition_table(log: RequestLog, metadata: Dict = None) -> TransitionTable:
                            reward=rewards, metadata=dict(metadata or {}))
 
 
+def cloud_answered(log: RequestLog) -> np.ndarray:
+    """Per transition-table row (`transition_table`'s rows, in its order): whether its cloud side answered with a
+    path, so l_cloud is the round trip plus the cloud's work rather than a timeout or a failure's cost. Read from
+    the outcome's own status and timeout flag, so a run with any cloud timeout is told apart alike."""
+    from offload_planner_cpp import PlanStatus   # the core's status codes (a binding, no ROS)
+
+    keep = rewarded_rows(log)
+    if not keep.any():
+        return np.zeros(0, dtype=bool)
+    status = np.asarray(log["outcome_cloud_status"])[keep]
+    return (status == int(PlanStatus.OK)) & ~np.asarray(log["outcome_cloud_timeout"])[keep].astype(bool)
+
+
 def rewarded_rows(log: RequestLog) -> np.ndarray:
     """The log rows that are transition-table rows (a reward from two measured latencies), as a mask."""
     if len(log) == 0:

@@ -29,7 +29,7 @@ from offload_learner_py.data.bags import BagData, read_bags
 from offload_learner_py.core.checkpoint import save_checkpoint
 from offload_learner_py.core.config import DQNConfig
 from offload_learner_py.data.dataset import TransitionTable
-from offload_learner_py.data.records import rewarded_rows
+from offload_learner_py.data.records import cloud_answered, rewarded_rows
 from offload_learner_py.core.dqn import DQNAgent, greedy_actions
 from offload_learner_py.core.evaluation import evaluate
 from offload_learner_py.core.normalisation import StateNormalisation
@@ -60,14 +60,16 @@ def gradient_steps_for(rows: int, config: DQNConfig, epochs: float = DEFAULT_EPO
 def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: Optional[int] = None,
                   weights: CostWeights = CostWeights(), taken_only: bool = False,
                   progress: bool = False, agent: Optional[DQNAgent] = None,
-                  cloud_timeout_s: float = DEFAULT_CLOUD_TIMEOUT_S) -> OfflineResult:
+                  cloud_answered: Optional[np.ndarray] = None) -> OfflineResult:
     """The Q-network trained on a fixed table: the normalisation fitted on the training states and
     frozen, every transition in replay at once, `gradient_steps` minibatch steps of Algorithm 1's
     loss (target copies every K steps when gamma > 0). The agent's step counter is set past the
     warm-up, so a node that loads the checkpoint acts on it at once. With `agent` (a warm start, e.g. the fleet
     learner's version in use) that network is trained further with its own normalisation. Unless taken_only, the
     replay also holds config.round_trip_variants round-trip variants of each row whose cloud side answered
-    (l_cloud under `cloud_timeout_s`; core/round_trip.py); the gradient steps are counted on the rows alone."""
+    (core/round_trip.py; the gradient steps are counted on the rows alone): `cloud_answered` per row, as
+    data/records.cloud_answered reads it from the outcomes; without it, a row whose l_cloud is under the paper's
+    5 s timeout (a table of no run: a CSV, synthetic data)."""
     if len(train) == 0:
         raise ValueError("no training rows")
     if gradient_steps is None:
@@ -85,7 +87,10 @@ def train_offline(train: TransitionTable, config: DQNConfig, gradient_steps: Opt
         step_rewards = np.concatenate([rewards(np.full(len(train), a), train.local_s, train.cloud_s, weights)
                                        for a in (LOCAL, CLOUD)])
         state_rows, next_rows = np.concatenate([states, states]), np.concatenate([next_states, next_states])
-        answered = train.cloud_s < cloud_timeout_s
+        answered = train.cloud_s < DEFAULT_CLOUD_TIMEOUT_S if cloud_answered is None else \
+            np.asarray(cloud_answered, dtype=bool)
+        if len(answered) != len(train):
+            raise ValueError(f"cloud_answered has {len(answered)} rows for a table of {len(train)}")
         moved, local_s, cloud_s = table_variants(states[answered], train.local_s[answered], train.cloud_s[answered],
                                                  config.round_trip_variants, np.random.default_rng(config.seed))
         actions = np.concatenate([actions, np.full(len(moved), CLOUD)])
@@ -191,7 +196,8 @@ def retrain(data: BagData, out_dir: str, config: DQNConfig, gradient_steps: Opti
     train, test = table.slice(0, cut), table.slice(cut, len(table))
     if gradient_steps is None:
         gradient_steps = gradient_steps_for(len(train), config, taken_only=taken_only)
-    result = train_offline(train, config, gradient_steps, weights, taken_only, progress)
+    result = train_offline(train, config, gradient_steps, weights, taken_only, progress,
+                           cloud_answered=cloud_answered(data.log)[:cut])
     agent = result.agent
     checkpoint = os.path.join(out_dir, "checkpoint.pt")
     save_checkpoint(agent, checkpoint)
