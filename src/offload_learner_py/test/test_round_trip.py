@@ -162,7 +162,7 @@ def test_the_config_bounds_the_variants():
     assert DQNConfig.from_dict({}).round_trip_variants == 0   # a model saved before the field: none, as it trained
 
 
-def test_training_from_bags_gives_variants_only_to_the_cloud_sides_the_outcomes_say_answered():
+def test_training_from_bags_gives_variants_only_to_the_cloud_sides_the_outcomes_say_answered(monkeypatch):
     """A robot that ran with a 2 s cloud timeout: a timed-out row holds l_cloud = 2 s, under the paper's 5 s, and a
     cloud error costs what the robot measured. Neither is a round trip plus the cloud's work, so neither is moved
     to other round trips; the outcomes' own status and timeout flag say so, not a timeout the trainer assumes."""
@@ -171,9 +171,20 @@ def test_training_from_bags_gives_variants_only_to_the_cloud_sides_the_outcomes_
     assert list(answered) == [True, False, False, True]
     table = transition_table(log)
     config = DQNConfig(seed=1, round_trip_variants=2)
+    from offload_learner_py.offline import retrain as retrain_module
+    added = []
+
+    class Counted(retrain_module.ReplayMemory):   # training's replay, emptied after it: count what went in
+        def add(self, *row):
+            added.append(row)
+            super().add(*row)
+    monkeypatch.setattr(retrain_module, "ReplayMemory", Counted)
+    train_offline(table, config, 1, cloud_answered=answered)
     # 4 rows x 2 actions, and two variants of row 1 at the round trip of row 4 (row 4 has none above it)
-    assert len(train_offline(table, config, 1, cloud_answered=answered).agent.memory) == 8 + 2
-    assert len(train_offline(table, config, 1).agent.memory) == 8 + 2 * 3   # by the 5 s rule, rows 2 and 3 too
+    assert len(added) == 8 + 2
+    added.clear()
+    train_offline(table, config, 1)
+    assert len(added) == 8 + 2 * 3   # by the 5 s rule, rows 2 and 3 too
     with pytest.raises(ValueError, match="cloud_answered"):
         train_offline(table, config, 1, cloud_answered=answered[:3])
 
