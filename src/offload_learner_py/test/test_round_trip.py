@@ -2,6 +2,8 @@
 in the learner node's replay and in training from bags. The behaviour they exist for (#33's held-out load pulse):
 a round trip met only while the robot was loaded, where the cloud still won, comes back while the robot is idle,
 where its local plans are faster."""
+from typing import Optional
+
 import numpy as np
 import pytest
 
@@ -44,9 +46,10 @@ def requests(n=300, seed=0):
     return rows
 
 
-def online_choice(variants: int, seed: int = 1) -> int:
-    """What the learner node's DQN, trained online on `requests()` probes, chooses at QUERY."""
-    config = DQNConfig(seed=seed, round_trip_variants=variants)
+def online_choice(variants: Optional[int], seed: int = 1) -> int:
+    """What the learner node's DQN, trained online on `requests()` probes, chooses at QUERY (variants None: the
+    DQNConfig default, which is what the node runs when its YAML sets none)."""
+    config = DQNConfig(seed=seed) if variants is None else DQNConfig(seed=seed, round_trip_variants=variants)
     agent = DQNAgent(config)
     learner = OnlineLearner(DQNPolicy(config, agent=agent, explore=False), STATUSES, agent=agent)
     for state, local_s, cloud_s in requests():
@@ -69,6 +72,12 @@ SEEDS = (1, 2, 3, 4)
 @pytest.mark.parametrize("seed", SEEDS)
 def test_the_online_learner_carries_a_round_trip_to_an_idle_robot(seed):
     assert online_choice(1, seed) == LOCAL
+
+
+@pytest.mark.parametrize("seed", SEEDS)
+def test_the_shipped_config_carries_a_round_trip_to_an_idle_robot(seed):
+    """The variants are on as the learner ships (#33: measured on every scenario with them on, 2026-11-28)."""
+    assert online_choice(None, seed) == LOCAL
 
 
 def test_without_variants_the_online_learner_offloads_there():
@@ -159,7 +168,8 @@ def test_the_config_bounds_the_variants():
     for bad in (-1, 9):
         with pytest.raises(ValueError, match="round_trip_variants"):
             DQNConfig(round_trip_variants=bad)
-    assert DQNConfig.from_dict({}).round_trip_variants == 0   # a model saved before the field: none, as it trained
+    # a model saved before the field reads the default; how it trains on is the node's (session.TRAINING_SCHEDULE)
+    assert DQNConfig.from_dict({}).round_trip_variants == 1
 
 
 def test_training_from_bags_gives_variants_only_to_the_cloud_sides_the_outcomes_say_answered(monkeypatch):

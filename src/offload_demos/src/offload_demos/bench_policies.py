@@ -112,14 +112,15 @@ def batch_checkpoint(learning_run: pathlib.Path, seed: int) -> str:
     from offload_learner_py.core.checkpoint import save_checkpoint
     from offload_learner_py.core.config import DQNConfig
     from offload_learner_py.data.bags import read_bags
-    from offload_learner_py.data.records import transition_table
+    from offload_learner_py.data.records import cloud_answered, transition_table
     from offload_learner_py.offline.retrain import train_offline
     data = read_bags([str(learning_run / "offload.bag")], workers=1)
     table = transition_table(data.log)
     if not len(table):
         raise RuntimeError(f"the learning run {learning_run} has no probe with both sides measured")
     path = learning_run / "checkpoint_batch.pt"
-    save_checkpoint(train_offline(table, DQNConfig(seed=seed)).agent, str(path))
+    agent = train_offline(table, DQNConfig(seed=seed), cloud_answered=cloud_answered(data.log)).agent
+    save_checkpoint(agent, str(path))
     return str(path)
 
 

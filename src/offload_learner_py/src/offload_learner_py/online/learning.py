@@ -66,7 +66,7 @@ class OnlineLearner:
         self.weights, self.cloud_timeout_s = weights, cloud_timeout_s
         self.models = {LOCAL: LatencyModel(latency_model), CLOUD: LatencyModel(latency_model)}
         # The round trips met, for the DQN's round-trip variants (core/round_trip.py): as many as its replay holds;
-        # none kept when the DQN takes no variants (the default), so a request pays nothing for them.
+        # none kept when the DQN takes none (round_trip_variants 0), so a request pays nothing for them.
         self.round_trips = RoundTripPool(agent.config.replay_capacity, agent.config.seed) \
             if agent is not None and agent.config.round_trip_variants else None
         self.checkpoint_failures = 0
