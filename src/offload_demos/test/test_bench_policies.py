@@ -150,3 +150,20 @@ def test_the_table_gives_the_bridge_cost_per_cloud_request_of_a_policy_that_aske
     text = format_table({"policies": {"dqn": _table_row(4, 0.00045), "local": _table_row(0, float("nan"))}})
     assert "dqn: the bridge's own accounting per cloud request 0.450 ms (4 requests asked the cloud)" in text
     assert "local: the bridge's" not in text
+
+
+def test_the_scenario_table_gives_the_gap_closed_within_each_round_of_repeats():
+    from offload_demos.bench_report import format_scenario_table, scenario_rows
+    runs = {"threshold_best": [0.040, 0.046], "oracle": [0.038, 0.036], "dqn": [0.041, 0.039]}
+    results = {"scenario": "pulse", "policies": {
+        name: {**_table_row(0, None), "mean_s": float(np.mean(means)), "run_means_s": means}
+        for name, means in runs.items()}}
+    rows = {row["policy"]: row for row in scenario_rows(results)}
+    # Round 1: 40 -> 38, the DQN at 41 is half the gap worse; round 2: 46 -> 36, the DQN at 39 closes 70 %.
+    assert rows["dqn"]["gap_closed_runs"] == pytest.approx([-0.5, 0.7])
+    assert rows["dqn"]["gap_closed"] == pytest.approx((0.043 - 0.040) / (0.043 - 0.037))
+    assert rows["oracle"]["gap_closed_runs"] == pytest.approx([1.0, 1.0])
+    assert "-50 %, 70 %" in format_scenario_table(results)
+    one_round = {"policies": {name: {**f, "run_means_s": f["run_means_s"][:1]}
+                              for name, f in results["policies"].items()}}
+    assert all(row["gap_closed_runs"] is None for row in scenario_rows(one_round))

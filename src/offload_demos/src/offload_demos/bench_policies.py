@@ -32,7 +32,9 @@ probes (both sides every request). A last run stops the cloud link for 30 s mid-
 emulator drops everything) while the RTT trace jumps, and reports the worst wait and how many requests
 waited the cloud timeout. Results go to runs/bench-policies-<time>/results.json, a figure and a table.
 With always-local among the policies, each other policy's mean is given as a ratio to local's with a 95 % interval
-over the repeats (offload_demos.mean_ratio: the runs' spread, not the requests', is the bench's noise).
+over the repeats (offload_demos.mean_ratio: the runs' spread, not the requests', is the bench's noise); for the same
+reason the scenario table gives each policy's share of the threshold_best-to-oracle gap within each round of repeats
+beside the pooled share.
 """
 import argparse
 import json

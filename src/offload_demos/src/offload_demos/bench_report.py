@@ -55,6 +55,16 @@ def gap_oracle(results: dict):
     return (live, "oracle") if live is not None else (results.get("oracle_mean_s"), "oracle (probes)")
 
 
+def gap_closed_runs(results: dict, name: str):
+    """The gap closed within each round of repeats (repeat r of the policy against repeat r of threshold_best and of
+    the live oracle: the runs that met the same state of the machine), so the table shows how far the pooled share
+    moves between rounds; None with one repeat, without the live oracle, or when a run's mean is missing."""
+    runs = [results["policies"].get(key, {}).get("run_means_s") for key in (name, "threshold_best", "oracle")]
+    if any(not means for means in runs) or len({len(means) for means in runs}) != 1 or len(runs[0]) < 2:
+        return None
+    return [gap_closed(best, mean, oracle) for mean, best, oracle in zip(*runs)]
+
+
 def scenario_rows(results: dict) -> list:
     """The scenario's report, a row per policy: mean, p99, the robot's total CPU per request and the share of the
     gap between the best threshold in hindsight (its live run) and the oracle (gap_oracle) it closes. The probe
@@ -63,7 +73,7 @@ def scenario_rows(results: dict) -> list:
     oracle, _ = gap_oracle(results)
     rows = [{"policy": name, "mean_s": f["mean_s"], "p99_s": f["p99_s"],
              "robot_total_cpu_s_per_request": f.get("robot_total_cpu_s_per_request"),
-             "gap_closed": gap_closed(best, f["mean_s"], oracle)}
+             "gap_closed": gap_closed(best, f["mean_s"], oracle), "gap_closed_runs": gap_closed_runs(results, name)}
             for name, f in results["policies"].items()]
     if results.get("oracle_mean_s") is not None:
         rows.append({"policy": "oracle (probes)", "mean_s": results["oracle_mean_s"], "p99_s": None,
@@ -72,17 +82,22 @@ def scenario_rows(results: dict) -> list:
     return rows
 
 
+def _shares(shares) -> str:
+    return "" if not shares else ", ".join("n/a" if share is None else f"{100 * share:.0f} %" for share in shares)
+
+
 def format_scenario_table(results: dict) -> str:
     pick = results.get("threshold_best") or {}
     lines = [f"scenario {results.get('scenario', 'stationary')}: {'policy':<15}{'mean ms':>9}{'p99 ms':>9}"
-             f"{'robot CPU ms/req':>18}{'gap closed':>12}   (gap: threshold_best's live mean to the "
-             f"{gap_oracle(results)[1]}'s; 100 % is that oracle, 0 the best fixed d_t rule, below 0 worse than it)"]
+             f"{'robot CPU ms/req':>18}{'gap closed':>12}{'per repeat':>22}   (gap: threshold_best's live mean to the "
+             f"{gap_oracle(results)[1]}'s; 100 % is that oracle, 0 the best fixed d_t rule, below 0 worse than it; "
+             "per repeat: within each round of runs, how far the pooled share moves with the machine)"]
     indent = " " * len(f"scenario {results.get('scenario', 'stationary')}: ")
     for row in scenario_rows(results):
         gap = row["gap_closed"]
         lines.append(f"{indent}{row['policy']:<15}{_ms(row['mean_s'], 9)}{_ms(row['p99_s'], 9)}"
                      f"{_ms(row['robot_total_cpu_s_per_request'], 18)}"
-                     f"{'n/a' if gap is None else f'{100 * gap:.0f} %':>12}")
+                     f"{'n/a' if gap is None else f'{100 * gap:.0f} %':>12}{_shares(row.get('gap_closed_runs')):>22}")
     oracle, label = gap_oracle(results)
     under = [row["policy"] for row in scenario_rows(results) if not row["policy"].startswith("oracle")
              and oracle is not None and row["mean_s"] < oracle]
