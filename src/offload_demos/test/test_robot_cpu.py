@@ -248,3 +248,40 @@ def test_the_recorder_is_a_robot_process_of_its_own():
                     ["/usr/lib/rosbag/record", "--buffsize", "256", "-O", "b.bag", "/t"]):
         assert robot_cpu.group_of(robot_cpu.process_name(cmdline)) == "recorder", cmdline
     assert robot_cpu.group_of("tool.py") == "other"
+
+
+def test_a_process_caught_inside_an_exec_is_named_later_and_its_cpu_stays_the_workloads(tmp_path):
+    """bench-policies (held-out load pulse, the DQN's first run): the sampler read the workload's command line while
+    it was empty (inside an exec), named it "?" for the whole run, and the workload's 10.9 CPU-s counted as the
+    robot's "other": the DQN's robot total read 21.6 ms a request instead of 10.3."""
+    fake, now = robot(tmp_path), [100.0]
+    fake.process(109, node("robot_workload", "robot_workload"), listed=False)   # a forked helper, not in the list
+    (fake.proc / "104" / "cmdline").write_bytes(b"")                           # mid-exec
+    (fake.proc / "109" / "cmdline").write_bytes(b"")
+    sampler = fake.sampler(lambda: now[0])
+    for t, workload in ((100.0, 1.0), (110.0, 6.0)):
+        now[0] = t
+        for pid, value in ((101, 1.0), (102, 0.5), (103, 2.0), (104, workload), (109, workload)):
+            fake.cpu(pid, value)
+        fake.cgroup_s(3.5 + 2 * workload)
+        sampler.sample()
+        (fake.proc / "109" / "cmdline").write_bytes(b"/opt/robot/lib/robot_workload\0__name:=robot_workload\0")
+    assert [s["procs"][104][0] for s in sampler.samples] == ["robot_workload"] * 2   # from robot_confine's list
+    assert [s["procs"][109][0] for s in sampler.samples] == ["?", "robot_workload"]  # read again, not kept as "?"
+    figures = robot_cpu.robot_cpu(robot_cpu.window_usage(sampler.samples, 100.0, 110.0), requests=10)
+    assert figures["workload_cpu_s"] == pytest.approx(10.0) and figures["other_cpu_s"] == 0.0
+    assert figures["total_cpu_s"] == pytest.approx(0.0)
+
+
+def test_samples_saved_with_an_unknown_name_are_named_from_robot_confines_list(tmp_path):
+    run = tmp_path / "dqn"
+    run.mkdir()
+    write(run / "offload.bag", make_requests(20, probe_every=4))
+    t0 = 1_700_000_000.0
+    samples = [{"t": t0 - 1.0, "cgroup_ns": 0, "procs": {"1": ["planner", 0.0], "2": ["?", 0.0]}},
+               {"t": t0 + 5.0, "cgroup_ns": int(6e9), "procs": {"1": ["planner", 1.2], "2": ["?", 3.6]}}]
+    (run / robot_cpu.SAMPLES_FILE).write_text(json.dumps({"samples": samples}))
+    (run / robot_cpu.PIDS_FILE).write_text("1 /x/planner_node __name:=planner\n2 /x/robot_workload __name:=robot_workload "
+                                          "__log:=/tmp/w.log\n")
+    figures = measure(run, 5.0)["robot_cpu"]
+    assert figures["other_cpu_s"] == 0.0 and figures["workload_cpu_s"] == pytest.approx(3.6 * figures["window_s"] / 6)

@@ -58,6 +58,23 @@ def process_name(cmdline: List[str]) -> str:
     return os.path.basename(words[0]) if words else "?"
 
 
+UNKNOWN = "?"   # process_name of an empty command line: a process caught inside an exec reads so
+
+
+def listed_names(pids_file) -> Dict[int, str]:
+    """{pid: node name} from robot_confine's list ("<pid> <command...>" lines, written before the exec)."""
+    names = {}
+    try:
+        lines = pathlib.Path(pids_file).read_text().splitlines()
+    except OSError:
+        return names
+    for line in lines:
+        words = line.split()
+        if len(words) > 1 and words[0].isdigit():
+            names[int(words[0])] = process_name(words[1:])
+    return names
+
+
 def group_of(name: str) -> str:
     return NODE_GROUPS.get(name, "other")
 
@@ -103,8 +120,13 @@ class CpuSampler:
             try:
                 if pid not in self.names:
                     cmdline = (self.proc_root / str(pid) / "cmdline").read_bytes().split(b"\0")
-                    self.names[pid] = process_name([part.decode(errors="replace") for part in cmdline if part])
-                procs[pid] = [self.names[pid], process_cpu_s((self.proc_root / str(pid) / "stat").read_text())]
+                    name = process_name([part.decode(errors="replace") for part in cmdline if part])
+                    if name == UNKNOWN and self.pids_file:
+                        name = listed_names(self.pids_file).get(pid, UNKNOWN)
+                    if name != UNKNOWN:   # read again next time: an exec empties the command line for a moment
+                        self.names[pid] = name
+                procs[pid] = [self.names.get(pid, UNKNOWN),
+                              process_cpu_s((self.proc_root / str(pid) / "stat").read_text())]
             except (OSError, ValueError, IndexError):
                 continue        # gone between the listing and the read: its last sample stands
         record = {"t": self.clock(), "cgroup_ns": cgroup_ns, "procs": procs}
@@ -157,7 +179,8 @@ def window_usage(samples: List[Dict], t0: float, t1: float) -> Dict:
     names: Dict[str, str] = {}
     for s in samples:
         for pid, (name, _) in s["procs"].items():
-            names[str(pid)] = name
+            if name != UNKNOWN or str(pid) not in names:
+                names[str(pid)] = name
     by_pid = {}
     for pid in names:
         series, last = [], 0.0
@@ -227,6 +250,13 @@ def run_robot_cpu(samples_path, stamp_ns, delivered_s) -> Optional[Dict]:
         return None
     with open(samples_path) as stream:
         samples = json.load(stream)["samples"]
+    # A process whose every sample reads UNKNOWN (samples written before the sampler read the list) is named by
+    # robot_confine's list beside them: else the workload's CPU counted as the robot's "other".
+    listed = listed_names(os.path.join(os.path.dirname(str(samples_path)), PIDS_FILE))
+    for sample in samples:
+        for pid, entry in sample["procs"].items():
+            if entry[0] == UNKNOWN and str(pid).isdigit() and int(pid) in listed:
+                entry[0] = listed[int(pid)]
     t0, t1 = request_window(stamp_ns, delivered_s)
     return robot_cpu(window_usage(samples, t0, t1), len(stamp_ns))
 
