@@ -5,6 +5,7 @@
     offload-cloud-learner pin VERSION [--robot NAME] --store DIR
     offload-cloud-learner rollback [--robot NAME] --store DIR
     offload-cloud-learner unpin [--robot NAME] --store DIR
+    offload-cloud-learner import MODEL [--publish] --store DIR
 
 The commands act on the store's files (atomic writes under a lock); a running service picks the change up at the
 next robot's query."""
@@ -59,6 +60,11 @@ def parse_args(argv=None) -> argparse.Namespace:
             command.add_argument("version")
         if name in ("pin", "rollback", "unpin"):
             command.add_argument("--robot", help="one robot (its allowlist name); default: the fleet")
+    imports = commands.add_parser("import", help="add a model (retrain's checkpoint.pt or a model .npz) to the store")
+    imports.add_argument("model", help="a learner checkpoint (checkpoint.pt) or a model file (.npz)")
+    imports.add_argument("--store", required=True)
+    imports.add_argument("--publish", action="store_true",
+                         help="make it the fleet's current version (training continues from it)")
     args = parser.parse_args(argv)
     if args.command == "serve" and not args.insecure and not args.keys_dir:
         parser.error("pass --keys-dir (CURVE with the robots' allowlist) or --insecure")
@@ -110,6 +116,38 @@ def serve(args) -> int:
     return 0
 
 
+def model_file_of(path: str) -> bytes:
+    """The model file bytes of `path`: a model file as it is, or a learner checkpoint (retrain's, a learning run's)
+    converted, both read by the loaders that refuse hostile files. StoreError when it is neither."""
+    from offload_cloud.learner.store import StoreError
+    from offload_learner_py.core.checkpoint import load_checkpoint
+    from offload_learner_py.core.model_file import MAX_MODEL_BYTES, ModelFileError, agent_model_bytes, load_model
+
+    try:
+        with open(path, "rb") as source:
+            data = source.read(MAX_MODEL_BYTES + 1)
+    except OSError as error:
+        raise StoreError(f"{path}: {error.strerror or error}") from None
+    try:
+        load_model(data)
+        return data
+    except ModelFileError as as_model:
+        try:
+            return agent_model_bytes(load_checkpoint(path))
+        except (ValueError, RuntimeError, OSError) as as_checkpoint:
+            raise StoreError(f"{path} is neither a model file ({as_model}) nor a learner checkpoint "
+                             f"({as_checkpoint})") from None
+
+
+def history_line(entry: dict) -> str:
+    if entry.get("event") == "imported":
+        return (f"{entry['version'][:16]} parent {entry.get('parent', '')[:16] or '-':16} "
+                f"{'published' if entry.get('published') else 'stored   '} imported from {entry.get('source', '?')}")
+    gate = " ".join(f"{robot}:{gate_word(g)}" for robot, g in entry["gate"].items())
+    return (f"{entry['version'][:16]} parent {entry['parent'][:16] or '-':16} "
+            f"{'published' if entry['published'] else 'refused  '} rows {sum(entry['rows'].values())} {gate}")
+
+
 def gate_word(figure: dict) -> str:
     """A robot's verdict on a candidate: ok, no, or n/a when its rows could not judge it (it abstained)."""
     if figure.get("accepted"):
@@ -126,16 +164,17 @@ def main(argv=None) -> int:
     store = ModelStore(args.store)
     try:
         if args.command == "list":
-            for entry in store.history("trained"):
-                gate = " ".join(f"{robot}:{gate_word(g)}" for robot, g in entry["gate"].items())
-                print(f"{entry['version'][:16]} parent {entry['parent'][:16] or '-':16} "
-                      f"{'published' if entry['published'] else 'refused  '} rows {sum(entry['rows'].values())} {gate}")
+            for entry in store.history():
+                if entry.get("event") in ("trained", "imported"):
+                    print(history_line(entry))
             return 0
         if args.command == "status":
             print(json.dumps(store.summary(), indent=2, sort_keys=True))
             return 0
         state = {"pin": lambda: store.pin(args.version, args.robot), "rollback": lambda: store.rollback(args.robot),
-                 "unpin": lambda: store.unpin(args.robot)}[args.command]()
+                 "unpin": lambda: store.unpin(args.robot),
+                 "import": lambda: store.import_model(model_file_of(args.model), args.model, args.publish),
+                 }[args.command]()
     except StoreError as error:
         print(f"error: {error}", file=sys.stderr)
         return 1

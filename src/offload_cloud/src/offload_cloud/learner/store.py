@@ -20,10 +20,22 @@ import time
 from contextlib import contextmanager
 from typing import Dict, List, Optional, Sequence
 
-from offload_learner_py.core.model_file import MAX_MODEL_BYTES, model_version
+from offload_learner_py.core.model_file import MAX_MODEL_BYTES, ModelFileError, load_model, model_version
 
 EMPTY_STATE = {"current": "", "fleet_pinned": False, "pins": {}, "rolled_back": {}, "rollback_pins": {}}
 MAX_HISTORY_BYTES = 64 << 20
+
+
+def _make_current(state: dict, entry: dict) -> None:
+    """`entry`'s version becomes the fleet's current (a gate-passed round's or an operator's import)."""
+    state["current"] = entry["version"]
+    entry["published"] = True
+    # A robot that rolled a version back was pinned where it went back to: a newer version the gate published
+    # replaces that pin (its guard judges it live); an operator's pins stay.
+    for robot in state["rollback_pins"]:
+        state["pins"].pop(robot, None)
+    entry["rollback_pins_lapsed"] = sorted(state["rollback_pins"])
+    state["rollback_pins"] = {}
 
 
 class StoreError(ValueError):
@@ -120,8 +132,10 @@ class ModelStore:
         return [e for e in entries if event is None or e.get("event") == event]
 
     def parent(self, version: str) -> str:
-        for entry in reversed(self.history("trained")):
-            if entry.get("version") == version:
+        for entry in reversed(self.history()):
+            # (an import of the version already in use names itself: the entry that made it current says more)
+            if entry.get("event") in ("trained", "imported") and entry.get("version") == version \
+                    and entry.get("parent") != version:
                 return entry.get("parent", "")
         return ""
 
@@ -131,14 +145,7 @@ class ModelStore:
         version unless an operator pinned the fleet. True when published."""
         def publish(state):
             if data is not None and not state["fleet_pinned"] and state["current"] == entry["parent"]:
-                state["current"] = entry["version"]
-                entry["published"] = True
-                # A robot that rolled a version back was pinned where it went back to: a newer version the gate
-                # published replaces that pin (its guard judges it live); an operator's pins stay.
-                for robot in state["rollback_pins"]:
-                    state["pins"].pop(robot, None)
-                entry["rollback_pins_lapsed"] = sorted(state["rollback_pins"])
-                state["rollback_pins"] = {}
+                _make_current(state, entry)
         entry = {**entry, "event": "trained", "published": False}
         if data is not None:
             self.put(data)
@@ -169,6 +176,30 @@ class ModelStore:
         return current if answer in refused or not self.has(answer) and answer else answer
 
     # --- operator commands -------------------------------------------------------------------------------------
+    def import_model(self, data: bytes, source: str, publish: bool = False) -> dict:
+        """Adds an operator's model file (a model retrained from bags, say) to the store, checked as a robot would
+        check it (model_file.load_model: weights only, shapes, this code's state schema). With publish it becomes
+        the fleet's current version as a gate-passed round would (not pinned: training warm-starts from it, judges
+        candidates against it and publishes over it; `rollback` returns to the version it replaced)."""
+        try:
+            load_model(data)
+        except ModelFileError as error:
+            raise StoreError(f"{source}: {error}") from None
+        version = self.put(data)
+        entry = {"event": "imported", "version": version, "source": source, "published": False,
+                 "parent": self.state()["current"]}
+
+        def change(state):
+            if not publish:
+                return
+            if state["fleet_pinned"]:
+                raise StoreError(f"the fleet is pinned to {state['current'][:16]}: `pin {version}` runs the "
+                                 "imported version pinned, or `unpin` first")
+            entry["parent"] = state["current"]
+            if state["current"] != version:
+                _make_current(state, entry)
+        return {**self._update(change, entry), "imported": version}
+
     def pin(self, version: str, robot: Optional[str] = None) -> dict:
         if not self.has(version):
             raise StoreError(f"no version {version} in {self.models}")
