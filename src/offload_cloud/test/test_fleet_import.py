@@ -4,7 +4,6 @@ from it, and a file that is not a model is refused with the store unchanged."""
 import io
 import json
 import os
-import zipfile
 
 import numpy as np
 import pytest

@@ -133,9 +133,7 @@ class ModelStore:
 
     def parent(self, version: str) -> str:
         for entry in reversed(self.history()):
-            # (an import of the version already in use names itself: the entry that made it current says more)
-            if entry.get("event") in ("trained", "imported") and entry.get("version") == version \
-                    and entry.get("parent") != version:
+            if entry.get("event") in ("trained", "imported") and entry.get("version") == version:
                 return entry.get("parent", "")
         return ""
 
@@ -186,17 +184,19 @@ class ModelStore:
         except ModelFileError as error:
             raise StoreError(f"{source}: {error}") from None
         version = self.put(data)
-        entry = {"event": "imported", "version": version, "source": source, "published": False,
-                 "parent": self.state()["current"]}
+        entry = {"event": "imported", "version": version, "source": source, "published": False}
 
         def change(state):
+            current = state["current"]
+            # The version in use imported again keeps the parent that made it current: not itself, so that
+            # rollback still goes somewhere.
+            entry["parent"] = current if current != version else self.parent(version)
             if not publish:
                 return
             if state["fleet_pinned"]:
-                raise StoreError(f"the fleet is pinned to {state['current'][:16]}: `pin {version}` runs the "
-                                 "imported version pinned, or `unpin` first")
-            entry["parent"] = state["current"]
-            if state["current"] != version:
+                raise StoreError(f"the fleet is pinned to {current[:16]}: `pin {version}` runs the imported "
+                                 "version pinned, or `unpin` first")
+            if current != version:
                 _make_current(state, entry)
         return {**self._update(change, entry), "imported": version}
 
