@@ -164,6 +164,10 @@ def test_the_scenario_table_gives_the_gap_closed_within_each_round_of_repeats():
     assert rows["dqn"]["gap_closed"] == pytest.approx((0.043 - 0.040) / (0.043 - 0.037))
     assert rows["oracle"]["gap_closed_runs"] == pytest.approx([1.0, 1.0])
     assert "-50 %, 70 %" in format_scenario_table(results)
+    # Two rounds that disagree this much do not tell the gap from zero: the table says so rather than give a range.
+    assert rows["dqn"]["gap_closed_interval"]["rounds"] == 2 and rows["dqn"]["gap_closed_interval"]["low"] is None
+    assert "no bound" in format_scenario_table(results)
     one_round = {"policies": {name: {**f, "run_means_s": f["run_means_s"][:1]}
                               for name, f in results["policies"].items()}}
-    assert all(row["gap_closed_runs"] is None for row in scenario_rows(one_round))
+    assert all(row["gap_closed_runs"] is None and row["gap_closed_interval"] is None
+               for row in scenario_rows(one_round))

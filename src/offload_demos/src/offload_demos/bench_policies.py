@@ -34,7 +34,7 @@ waited the cloud timeout. Results go to runs/bench-policies-<time>/results.json,
 With always-local among the policies, each other policy's mean is given as a ratio to local's with a 95 % interval
 over the repeats (offload_demos.mean_ratio: the runs' spread, not the requests', is the bench's noise); for the same
 reason the scenario table gives each policy's share of the threshold_best-to-oracle gap within each round of repeats
-beside the pooled share.
+beside the pooled share, and an interval for the share over the rounds (offload_demos.gap_share; it pools benches).
 """
 import argparse
 import json

@@ -3,6 +3,7 @@ import pathlib
 
 import numpy as np
 
+from offload_demos.gap_share import gap_share, rounds_of
 from offload_demos.hindsight import gap_closed
 
 
@@ -59,10 +60,17 @@ def gap_closed_runs(results: dict, name: str):
     """The gap closed within each round of repeats (repeat r of the policy against repeat r of threshold_best and of
     the live oracle: the runs that met the same state of the machine), so the table shows how far the pooled share
     moves between rounds; None with one repeat, without the live oracle, or when a run's mean is missing."""
-    runs = [results["policies"].get(key, {}).get("run_means_s") for key in (name, "threshold_best", "oracle")]
-    if any(not means for means in runs) or len({len(means) for means in runs}) != 1 or len(runs[0]) < 2:
+    runs = rounds_of(results, name)
+    if runs is None or len(runs[0]) < 2:
         return None
     return [gap_closed(best, mean, oracle) for mean, best, oracle in zip(*runs)]
+
+
+def gap_closed_interval(results: dict, name: str):
+    """The gap share's interval over the rounds (offload_demos.gap_share: whether the bench can tell), as a dict;
+    None without the rounds gap_closed_runs needs."""
+    runs = rounds_of(results, name)
+    return None if runs is None or len(runs[0]) < 2 else gap_share(*runs)._asdict()
 
 
 def scenario_rows(results: dict) -> list:
@@ -73,7 +81,8 @@ def scenario_rows(results: dict) -> list:
     oracle, _ = gap_oracle(results)
     rows = [{"policy": name, "mean_s": f["mean_s"], "p99_s": f["p99_s"],
              "robot_total_cpu_s_per_request": f.get("robot_total_cpu_s_per_request"),
-             "gap_closed": gap_closed(best, f["mean_s"], oracle), "gap_closed_runs": gap_closed_runs(results, name)}
+             "gap_closed": gap_closed(best, f["mean_s"], oracle), "gap_closed_runs": gap_closed_runs(results, name),
+             "gap_closed_interval": gap_closed_interval(results, name)}
             for name, f in results["policies"].items()]
     if results.get("oracle_mean_s") is not None:
         rows.append({"policy": "oracle (probes)", "mean_s": results["oracle_mean_s"], "p99_s": None,
@@ -86,18 +95,28 @@ def _shares(shares) -> str:
     return "" if not shares else ", ".join("n/a" if share is None else f"{100 * share:.0f} %" for share in shares)
 
 
+def _interval(interval) -> str:
+    if not interval:
+        return ""
+    if interval["low"] is None:
+        return "no bound"
+    return f"{100 * interval['low']:.0f} to {100 * interval['high']:.0f} %"
+
+
 def format_scenario_table(results: dict) -> str:
     pick = results.get("threshold_best") or {}
     lines = [f"scenario {results.get('scenario', 'stationary')}: {'policy':<15}{'mean ms':>9}{'p99 ms':>9}"
-             f"{'robot CPU ms/req':>18}{'gap closed':>12}{'per repeat':>22}   (gap: threshold_best's live mean to the "
-             f"{gap_oracle(results)[1]}'s; 100 % is that oracle, 0 the best fixed d_t rule, below 0 worse than it; "
-             "per repeat: within each round of runs, how far the pooled share moves with the machine)"]
+             f"{'robot CPU ms/req':>18}{'gap closed':>12}{'per repeat':>22}{'95 % interval':>18}   (gap: threshold_best's "
+             f"live mean to the {gap_oracle(results)[1]}'s; 100 % is that oracle, 0 the best fixed d_t rule, below 0 "
+             "worse than it; per repeat: within each round of runs, how far the pooled share moves with the machine; "
+             "interval: over the rounds, offload_demos.gap_share; no bound: the gap is not told apart from zero)"]
     indent = " " * len(f"scenario {results.get('scenario', 'stationary')}: ")
     for row in scenario_rows(results):
         gap = row["gap_closed"]
         lines.append(f"{indent}{row['policy']:<15}{_ms(row['mean_s'], 9)}{_ms(row['p99_s'], 9)}"
                      f"{_ms(row['robot_total_cpu_s_per_request'], 18)}"
-                     f"{'n/a' if gap is None else f'{100 * gap:.0f} %':>12}{_shares(row.get('gap_closed_runs')):>22}")
+                     f"{'n/a' if gap is None else f'{100 * gap:.0f} %':>12}{_shares(row.get('gap_closed_runs')):>22}"
+                     f"{_interval(row.get('gap_closed_interval')):>18}")
     oracle, label = gap_oracle(results)
     under = [row["policy"] for row in scenario_rows(results) if not row["policy"].startswith("oracle")
              and oracle is not None and row["mean_s"] < oracle]
