@@ -85,7 +85,25 @@ def test_benches_pool_round_by_round_and_the_cli_prints_the_pooled_share(tmp_pat
     assert f"dqn             {result.describe()}" in capsys.readouterr().out
 
 
+def test_the_cli_names_a_policy_with_a_run_without_a_mean_and_goes_on(tmp_path, capsys):
+    bench = _bench(tmp_path, "a", [[float("nan"), 0.039], [0.040, 0.046], [0.038, 0.036]])
+    assert main([str(bench)]) == 0
+    assert "dqn             no share: gap_share needs one finite run mean" in capsys.readouterr().out
+
+
 def test_a_bench_without_readable_results_is_a_clear_error(tmp_path):
     (tmp_path / "results.json").write_text("{not json")
     with pytest.raises(SystemExit):
         main([str(tmp_path)])
+
+
+def test_a_round_without_an_answered_request_leaves_the_table_without_an_interval_not_without_a_report():
+    from offload_demos.bench_report import format_scenario_table, scenario_rows
+    # A run that answered nothing has no mean (NaN): an hour's bench must still write its table.
+    runs = {"threshold_best": [0.040, 0.046], "oracle": [0.038, 0.036], "dqn": [float("nan"), 0.039]}
+    results = {"scenario": "pulse", "policies": {
+        name: {"mean_s": 0.04, "p99_s": 0.1, "run_means_s": means} for name, means in runs.items()}}
+    rows = {row["policy"]: row for row in scenario_rows(results)}
+    assert rows["dqn"]["gap_closed_interval"] is None
+    assert rows["oracle"]["gap_closed_interval"]["rounds"] == 2
+    assert "pulse" in format_scenario_table(results)

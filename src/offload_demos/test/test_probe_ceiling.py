@@ -44,3 +44,14 @@ def test_the_cli_prints_each_hedge_runs_figures_and_needs_two_runs(tmp_path, cap
     assert "hedge 1" in out and "hedge 2" in out and "n/a" in out     # no learning run: its column is n/a
     with pytest.raises(SystemExit):
         main([str(tmp_path / "bench" / "hedge")])
+
+
+def test_a_corrupt_hedge_bag_is_a_clear_error(tmp_path, capsys):
+    bench = tmp_path / "bench"
+    _hedge_run(bench / "hedge" / "repeat1" / "run", True)
+    (bench / "hedge" / "repeat2" / "run").mkdir(parents=True)
+    (bench / "hedge" / "repeat2" / "run" / "offload.bag").write_bytes(b"#ROSBAG V2.0\n" + b"\xff" * 64)
+    (bench / "results.json").write_text(json.dumps({"threshold_best": {"threshold": 1.0}}))
+    with pytest.raises(SystemExit):
+        main([str(bench), "--seeds", "1"])
+    assert str(bench) in capsys.readouterr().err

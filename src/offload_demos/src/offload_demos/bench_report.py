@@ -68,9 +68,11 @@ def gap_closed_runs(results: dict, name: str):
 
 def gap_closed_interval(results: dict, name: str):
     """The gap share's interval over the rounds (offload_demos.gap_share: whether the bench can tell), as a dict;
-    None without the rounds gap_closed_runs needs."""
+    None without the rounds gap_closed_runs needs or with a run that has no mean (it answered nothing)."""
     runs = rounds_of(results, name)
-    return None if runs is None or len(runs[0]) < 2 else gap_share(*runs)._asdict()
+    if runs is None or len(runs[0]) < 2 or not np.all(np.isfinite(runs)):
+        return None
+    return gap_share(*runs)._asdict()
 
 
 def scenario_rows(results: dict) -> list:

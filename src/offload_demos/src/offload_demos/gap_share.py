@@ -96,7 +96,11 @@ def main(argv=None) -> int:
     policies = sorted({name for results in benches for name in results.get("policies", {})} - {BASELINE, ORACLE})
     print(f"share of the {BASELINE}-to-{ORACLE} gap closed, pooled over the rounds of {len(benches)} bench(es)")
     for policy in policies:
-        share = pooled(benches, policy, args.level)
+        try:
+            share = pooled(benches, policy, args.level)
+        except ValueError as err:      # a run that answered nothing has no mean
+            print(f"{policy:<16}no share: {err}")
+            continue
         if share is not None:
             print(f"{policy:<16}{share.describe()}")
     return 0

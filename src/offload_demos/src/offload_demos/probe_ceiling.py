@@ -69,10 +69,13 @@ def main(argv=None) -> int:
         threshold = json.loads((args.bench_dir / "results.json").read_text())["threshold_best"]["threshold"]
     except (OSError, ValueError, KeyError, TypeError) as err:
         parser.error(f"{args.bench_dir}: no threshold_best in results.json ({err})")
-    runs = [hedge_rows(run) for run in hedges]
     checkpoints = sorted((args.bench_dir / "learning").glob("*/checkpoint.pt"))
-    learned = load_checkpoint(str(checkpoints[0])) if checkpoints else None
-    figures = cross_run(runs, [int(seed) for seed in args.seeds.split(",")])
+    try:
+        runs = [hedge_rows(run) for run in hedges]
+        learned = load_checkpoint(str(checkpoints[0])) if checkpoints else None
+        figures = cross_run(runs, [int(seed) for seed in args.seeds.split(",")])
+    except (RuntimeError, OSError, ValueError) as err:     # a corrupt bag or checkpoint, a run with no probe
+        parser.error(f"{args.bench_dir}: {err}")
     print(f"probe regret ms on each hedge run (share of threshold_best's d_t > {threshold:.4g} removed)")
     print(f"{'scored run':<12}{'threshold_best':>16}{'learning run':>18}{'ceiling':>18}{'in-sample':>18}")
     for k, (table, _) in enumerate(runs):
