@@ -46,6 +46,9 @@ def process_cpu_s(stat_text: str) -> float:
     return sum(int(value) for value in fields[11:15]) * CLOCK_TICKS_S
 
 
+UNKNOWN = "?"   # process_name of an empty command line: a process caught inside an exec reads so
+
+
 def process_name(cmdline: List[str]) -> str:
     """The ROS node name of a command line (`__name:=planner`), else the program's base name (the script's,
     for an interpreter running one)."""
@@ -55,14 +58,12 @@ def process_name(cmdline: List[str]) -> str:
     words = [word for word in cmdline if not word.startswith("-")]
     if len(words) > 1 and os.path.basename(words[0]).startswith("python"):
         return os.path.basename(words[1])
-    return os.path.basename(words[0]) if words else "?"
-
-
-UNKNOWN = "?"   # process_name of an empty command line: a process caught inside an exec reads so
+    return os.path.basename(words[0]) if words else UNKNOWN
 
 
 def listed_names(pids_file) -> Dict[int, str]:
-    """{pid: node name} from robot_confine's list ("<pid> <command...>" lines, written before the exec)."""
+    """{pid: node name} from robot_confine's list ("<pid> <command...>" lines, written before the exec; a pid
+    without its command is listed as UNKNOWN)."""
     names = {}
     try:
         lines = pathlib.Path(pids_file).read_text().splitlines()
@@ -70,7 +71,7 @@ def listed_names(pids_file) -> Dict[int, str]:
         return names
     for line in lines:
         words = line.split()
-        if len(words) > 1 and words[0].isdigit():
+        if words and words[0].isdigit():
             names[int(words[0])] = process_name(words[1:])
     return names
 
@@ -92,20 +93,17 @@ class CpuSampler:
         self._stop = threading.Event()
         self._thread: Optional[threading.Thread] = None
 
-    def pids(self) -> Iterable[int]:
+    def pids(self, listed: Optional[Dict[int, str]] = None) -> Iterable[int]:
+        """The cgroup's processes and robot_confine's list (`listed`, read from pids_file when not given)."""
         found = set()
         if self.cgroup_dir:
             try:
                 found.update(int(pid) for pid in pathlib.Path(self.cgroup_dir, "cgroup.procs").read_text().split())
             except (OSError, ValueError):
                 pass
-        if self.pids_file:
-            try:
-                for line in pathlib.Path(self.pids_file).read_text().splitlines():
-                    if line.split() and line.split()[0].isdigit():
-                        found.add(int(line.split()[0]))
-            except OSError:
-                pass
+        if listed is None and self.pids_file:
+            listed = listed_names(self.pids_file)
+        found.update(listed or ())
         return sorted(found)
 
     def sample(self) -> Dict:
@@ -116,13 +114,14 @@ class CpuSampler:
             except (OSError, ValueError):
                 pass
         procs = {}
-        for pid in self.pids():
+        listed = listed_names(self.pids_file) if self.pids_file else {}     # read once a sample
+        for pid in self.pids(listed):
             try:
                 if pid not in self.names:
                     cmdline = (self.proc_root / str(pid) / "cmdline").read_bytes().split(b"\0")
                     name = process_name([part.decode(errors="replace") for part in cmdline if part])
-                    if name == UNKNOWN and self.pids_file:
-                        name = listed_names(self.pids_file).get(pid, UNKNOWN)
+                    if name == UNKNOWN:
+                        name = listed.get(pid, UNKNOWN)
                     if name != UNKNOWN:   # read again next time: an exec empties the command line for a moment
                         self.names[pid] = name
                 procs[pid] = [self.names.get(pid, UNKNOWN),

@@ -140,12 +140,13 @@ def model_file_of(path: str) -> bytes:
 
 
 def history_line(entry: dict) -> str:
+    """`list`'s line of a trained round or an operator's import."""
+    head = f"{entry['version'][:16]} parent {entry.get('parent', '')[:16] or '-':16} "
     if entry.get("event") == "imported":
-        return (f"{entry['version'][:16]} parent {entry.get('parent', '')[:16] or '-':16} "
-                f"{'published' if entry.get('published') else 'stored   '} imported from {entry.get('source', '?')}")
+        published = "published" if entry.get("published") else "stored   "
+        return head + f"{published} imported from {entry.get('source', '?')}"
     gate = " ".join(f"{robot}:{gate_word(g)}" for robot, g in entry["gate"].items())
-    return (f"{entry['version'][:16]} parent {entry['parent'][:16] or '-':16} "
-            f"{'published' if entry['published'] else 'refused  '} rows {sum(entry['rows'].values())} {gate}")
+    return head + f"{'published' if entry['published'] else 'refused  '} rows {sum(entry['rows'].values())} {gate}"
 
 
 def gate_word(figure: dict) -> str:
